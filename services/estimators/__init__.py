@@ -1,0 +1,1 @@
+"""Structureless pose estimators: a protocol, a registry, and one module per method."""

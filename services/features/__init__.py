@@ -1,0 +1,1 @@
+"""Local feature extractors: a protocol, and one module per backend."""

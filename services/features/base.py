@@ -1,0 +1,42 @@
+"""The local-feature contract every extractor backend fulfils."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class LocalFeatures:
+    """Keypoints of one image.
+
+    Attributes:
+        keypoints: (N, 2) float32 pixel coordinates in the original image, COLMAP convention
+            (centre of the top-left pixel at (0.5, 0.5)).
+        descriptors: (N, D) float32, L2-normalised rows.
+        scores: (N,) float32 detection scores (higher is better).
+    """
+
+    keypoints: NDArray[np.float32]
+    descriptors: NDArray[np.float32]
+    scores: NDArray[np.float32]
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+class FeatureExtractor(Protocol):
+    """Detects and describes keypoints.
+
+    ``name`` identifies the model and its configuration; it is stored with every reference
+    image so that features of different extractors are never matched against each other.
+    """
+
+    name: str
+
+    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+        """Features of an (H, W, 3) RGB uint8 image."""
+        ...

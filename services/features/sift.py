@@ -1,0 +1,58 @@
+"""OpenCV SIFT with RootSIFT descriptors: the weight-free extractor."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.features.base import LocalFeatures
+
+
+@dataclass(frozen=True)
+class SiftOptions:
+    """max_keypoints: keypoint budget per image; max_side: longer image side (pixels) the
+    image is resized to before detection (keypoints are mapped back to the original size)."""
+
+    max_keypoints: int = 2048
+    max_side: int = 1024
+
+
+class SiftExtractor:
+    """SIFT keypoints with RootSIFT descriptors (Arandjelović & Zisserman 2012)."""
+
+    def __init__(self, options: SiftOptions | None = None) -> None:
+        self.options = options or SiftOptions()
+        self.name = f"sift-rootsift-{self.options.max_keypoints}-{self.options.max_side}"
+
+    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        height, width = gray.shape
+        scale = min(1.0, self.options.max_side / max(height, width))
+        if scale < 1.0:
+            gray = cv2.resize(
+                gray, (round(width * scale), round(height * scale)), interpolation=cv2.INTER_AREA
+            )
+        sift = cv2.SIFT_create(nfeatures=self.options.max_keypoints)
+        cv_keypoints, descriptors = sift.detectAndCompute(gray, None)
+        if descriptors is None or len(cv_keypoints) == 0:
+            return LocalFeatures(
+                np.zeros((0, 2), np.float32),
+                np.zeros((0, 128), np.float32),
+                np.zeros(0, np.float32),
+            )
+        xy = np.array([kp.pt for kp in cv_keypoints], dtype=np.float32)
+        scores = np.array([kp.response for kp in cv_keypoints], dtype=np.float32)
+        # OpenCV puts the top-left pixel centre at 0; COLMAP at 0.5. Undo the resize in COLMAP
+        # coordinates, where scaling about the image corner is exact.
+        xy = (xy + 0.5) / scale
+        order = np.argsort(-scores, kind="stable")[: self.options.max_keypoints]
+        root = np.sqrt(descriptors / np.maximum(descriptors.sum(axis=1, keepdims=True), 1e-12))
+        root /= np.maximum(np.linalg.norm(root, axis=1, keepdims=True), 1e-12)
+        return LocalFeatures(
+            np.ascontiguousarray(xy[order]),
+            np.ascontiguousarray(root[order].astype(np.float32)),
+            np.ascontiguousarray(scores[order]),
+        )

@@ -1,0 +1,1 @@
+"""Pure numpy geometry: rotations, rigid transforms, cameras. No I/O."""

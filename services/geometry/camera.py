@@ -1,0 +1,88 @@
+"""COLMAP camera models (names and parameter order as in COLMAP).
+
+Pixel convention: COLMAP's, the centre of the top-left pixel is at (0.5, 0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.errors import InvalidInputError
+
+# model name -> parameter names, in COLMAP order
+CAMERA_MODELS: dict[str, tuple[str, ...]] = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A COLMAP camera: model name, image size in pixels and parameters in COLMAP order."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if self.model not in CAMERA_MODELS:
+            raise InvalidInputError(
+                f"unknown camera model {self.model!r}; known: {', '.join(CAMERA_MODELS)}"
+            )
+        expected = CAMERA_MODELS[self.model]
+        if len(self.params) != len(expected):
+            raise InvalidInputError(
+                f"camera model {self.model} takes {len(expected)} params "
+                f"({', '.join(expected)}), got {len(self.params)}"
+            )
+        if self.width <= 0 or self.height <= 0:
+            raise InvalidInputError("camera width and height must be positive")
+        if not all(np.isfinite(self.params)):
+            raise InvalidInputError("camera params must be finite numbers")
+        fx, fy = self.focal_lengths
+        if fx <= 0 or fy <= 0:
+            raise InvalidInputError("camera focal length must be positive")
+
+    @property
+    def focal_lengths(self) -> tuple[float, float]:
+        names = CAMERA_MODELS[self.model]
+        if names[0] == "f":
+            return self.params[0], self.params[0]
+        return self.params[0], self.params[1]
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        names = CAMERA_MODELS[self.model]
+        i = names.index("cx")
+        return self.params[i], self.params[i + 1]
+
+    @property
+    def K(self) -> NDArray[np.float64]:
+        """(3, 3) calibration matrix (distortion ignored)."""
+        (fx, fy), (cx, cy) = self.focal_lengths, self.principal_point
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def to_poselib(self) -> dict[str, Any]:
+        """Camera dict for PoseLib, which uses the same model names and parameter order."""
+        return {
+            "model": self.model,
+            "width": self.width,
+            "height": self.height,
+            "params": list(self.params),
+        }
+
+
+def default_camera(width: int, height: int) -> Camera:
+    """Camera assumed for a query that comes without intrinsics: a pinhole with focal length
+    1.2 × the longer image side (a ~45° horizontal field of view at 4:3, typical of phone and
+    webcam lenses) and the principal point at the image centre."""
+    f = 1.2 * max(width, height)
+    return Camera("SIMPLE_PINHOLE", width, height, (f, width / 2.0, height / 2.0))

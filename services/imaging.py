@@ -1,0 +1,95 @@
+"""Decoding of uploaded images and depth maps, with size limits checked before decoding."""
+
+from __future__ import annotations
+
+import io
+import struct
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def image_size_from_header(data: bytes) -> tuple[int, int]:
+    """(width, height) read from a PNG or JPEG header without decoding the pixels.
+
+    Raises:
+        ImageDecodeError: not a PNG or JPEG, or a truncated header.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        width, height = struct.unpack(">II", data[16:24])
+        return int(width), int(height)
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 < len(data):
+            if data[i] != 0xFF:
+                i += 1
+                continue
+            marker = data[i + 1]
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+                i += 1 if marker == 0xFF else 2
+                continue
+            (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+            if marker in _JPEG_SOF:
+                height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+                return int(width), int(height)
+            i += 2 + length
+        raise ImageDecodeError("truncated JPEG: no frame header found")
+    raise ImageDecodeError("not a JPEG or PNG image")
+
+
+def decode_image(data: bytes, max_pixels: int) -> NDArray[np.uint8]:
+    """Decode a JPEG or PNG upload into an (H, W, 3) RGB uint8 array, EXIF orientation applied.
+
+    Raises:
+        ImageTooLargeError: more than ``max_pixels`` pixels (checked from the header).
+        ImageDecodeError: corrupt or unsupported data.
+    """
+    width, height = image_size_from_header(data)
+    if width * height > max_pixels:
+        raise ImageTooLargeError(
+            f"image is {width}×{height} = {width * height} pixels; the limit is {max_pixels}"
+        )
+    if width == 0 or height == 0:
+        raise ImageDecodeError("image has zero width or height")
+    bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ImageDecodeError("image data is corrupt or truncated")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArray[np.float32]:
+    """Decode a depth map: 16-bit PNG in millimetres or ``.npy`` float32 in metres.
+
+    Invalid depth (0, 65535, non-finite, negative) becomes 0. The map must match the image size.
+
+    Returns:
+        (H, W) float32 depth in metres, 0 where unknown.
+    """
+    if data[:6] == b"\x93NUMPY":
+        try:
+            depth = np.load(io.BytesIO(data), allow_pickle=False)
+        except ValueError as exc:
+            raise InvalidInputError(f"depth .npy could not be read: {exc}") from exc
+        if depth.ndim != 2 or depth.dtype.kind != "f":
+            raise InvalidInputError("depth .npy must be a 2-D float array in metres")
+        depth = depth.astype(np.float32)
+    else:
+        w, h = image_size_from_header(data)
+        if w * h > max_pixels:
+            raise ImageTooLargeError(f"depth map has {w * h} pixels; the limit is {max_pixels}")
+        raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+            raise InvalidInputError("depth PNG must be single-channel 16-bit (millimetres)")
+        depth = raw.astype(np.float32) / 1000.0
+        depth[raw == 65535] = 0.0
+    if depth.shape != (height, width):
+        raise InvalidInputError(
+            f"depth map is {depth.shape[1]}×{depth.shape[0]}, the image is {width}×{height}"
+        )
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth

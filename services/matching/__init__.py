@@ -1,0 +1,1 @@
+"""Local feature matchers: a protocol, and one module per backend."""

@@ -1,0 +1,277 @@
+"""The localizer: decode → extract → retrieve → match → estimate → result with diagnostics.
+
+Reference images reach the pipeline through a ``ReferenceStore`` (implemented by the database
+layer), so the engine never touches SQL.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.errors import InvalidInputError
+from services.estimators.base import (
+    EstimatorOptions,
+    FailureReason,
+    ReferenceObservation,
+)
+from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
+from services.features.base import FeatureExtractor, LocalFeatures
+from services.geometry.camera import Camera, default_camera
+from services.geometry.rigid import Rigid3d
+from services.imaging import decode_depth, decode_image
+from services.matching.base import Matcher
+from services.retrieval.base import GlobalDescriptor
+from services.retrieval.search import PositionPrior, top_k
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReferenceData:
+    """Everything stored for a reference image besides its name, camera and pose.
+
+    Attributes:
+        features: its local features.
+        global_descriptor: (D,) float32 unit vector.
+        depth: (H, W) float32 metres (0 = unknown), or None.
+        feature_model: name of the extractor that made ``features``.
+        descriptor_model: name of the global-descriptor backend.
+    """
+
+    features: LocalFeatures
+    global_descriptor: NDArray[np.float32]
+    depth: NDArray[np.float32] | None
+    feature_model: str
+    descriptor_model: str
+
+
+@dataclass(frozen=True)
+class RetrievalIndex:
+    """Global descriptors of a map's reference images.
+
+    Attributes:
+        image_ids: N ids.
+        descriptors: (N, D) float32 unit rows.
+        centers: (N, 3) float64 camera centres.
+    """
+
+    image_ids: list[str]
+    descriptors: NDArray[np.float32]
+    centers: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ReferenceView:
+    """A stored reference image as the pipeline needs it."""
+
+    image_id: str
+    name: str
+    camera: Camera
+    cam_from_world: Rigid3d
+    features: LocalFeatures
+    depth: NDArray[np.float32] | None
+
+
+class ReferenceStore(Protocol):
+    """Read access to one map's references, restricted to the localizer's feature models."""
+
+    def retrieval_index(self) -> RetrievalIndex: ...
+
+    def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
+        """The references with these ids, in that order; ids deleted meanwhile are skipped."""
+        ...
+
+
+@dataclass(frozen=True)
+class LocalizeParams:
+    camera: Camera | None = None
+    estimator: str = DEFAULT_ESTIMATOR
+    top_k: int = 10
+    prior: PositionPrior | None = None
+    options: EstimatorOptions = field(default_factory=EstimatorOptions)
+
+
+@dataclass(frozen=True)
+class RetrievedReference:
+    """A retrieved reference and how it took part: matches, inliers, and the inlier pixels
+    ((K, 2) float64, COLMAP convention) in the query and in the reference."""
+
+    image_id: str
+    name: str
+    score: float
+    num_matches: int
+    num_inliers: int
+    query_xy: NDArray[np.float64]
+    reference_xy: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LocalizationResult:
+    localized: bool
+    reason: str | None
+    estimator: str
+    cam_from_world: Rigid3d | None
+    num_inliers: int
+    confidence: float
+    retrieved: list[RetrievedReference]
+    timings_ms: dict[str, float]
+    stats: dict[str, float]
+
+
+def _sample_depth(
+    depth: NDArray[np.float32] | None, xy: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """Depth at (M, 2) COLMAP pixel coordinates (nearest pixel); None without a depth map."""
+    if depth is None:
+        return None
+    h, w = depth.shape
+    cols = np.clip(np.floor(xy[:, 0]).astype(np.int64), 0, w - 1)
+    rows = np.clip(np.floor(xy[:, 1]).astype(np.int64), 0, h - 1)
+    return depth[rows, cols].astype(np.float64)
+
+
+class Localizer:
+    """Owns the heavy components (extractor, matcher, global descriptor); thread-safe to call."""
+
+    def __init__(
+        self,
+        extractor: FeatureExtractor,
+        matcher: Matcher,
+        global_descriptor: GlobalDescriptor,
+        max_pixels: int,
+    ) -> None:
+        self.extractor = extractor
+        self.matcher = matcher
+        self.global_descriptor = global_descriptor
+        self.max_pixels = max_pixels
+
+    def describe_reference(
+        self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None
+    ) -> ReferenceData:
+        """Decode and describe a reference image; checks the camera against the image size."""
+        image = decode_image(image_bytes, self.max_pixels)
+        _check_camera_matches(camera, image)
+        depth = (
+            decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
+            if depth_bytes is not None
+            else None
+        )
+        features = self.extractor.extract(image)
+        return ReferenceData(
+            features=features,
+            global_descriptor=self.global_descriptor.compute(image, features),
+            depth=depth,
+            feature_model=self.extractor.name,
+            descriptor_model=self.global_descriptor.name,
+        )
+
+    def localize(
+        self,
+        image_bytes: bytes,
+        params: LocalizeParams,
+        store: ReferenceStore,
+        depth_bytes: bytes | None = None,
+    ) -> LocalizationResult:
+        estimator = get_estimator(params.estimator)
+        timings: dict[str, float] = {}
+        t_start = t = time.perf_counter()
+
+        def lap(stage: str) -> None:
+            nonlocal t
+            now = time.perf_counter()
+            timings[stage] = (now - t) * 1000.0
+            t = now
+
+        image = decode_image(image_bytes, self.max_pixels)
+        camera = params.camera or default_camera(image.shape[1], image.shape[0])
+        _check_camera_matches(camera, image)
+        query_depth = (
+            decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
+            if depth_bytes is not None
+            else None
+        )
+        lap("decode")
+        query = self.extractor.extract(image)
+        query_global = self.global_descriptor.compute(image, query)
+        lap("extract")
+        index = store.retrieval_index()
+        rows, scores = top_k(
+            query_global, index.descriptors, params.top_k, index.centers, params.prior
+        )
+        references = store.load_references([index.image_ids[i] for i in rows])
+        score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
+        lap("retrieve")
+        observations = [
+            self._observe(query, query_depth, ref, score_of[ref.image_id]) for ref in references
+        ]
+        lap("match")
+        if not observations:
+            outcome = None
+            reason: str | None = FailureReason.NO_REFERENCES.value
+        else:
+            outcome = estimator.estimate(camera, observations, params.options)
+            reason = outcome.failure_reason.value if outcome.failure_reason else None
+        lap("estimate")
+        timings["total"] = (time.perf_counter() - t_start) * 1000.0
+
+        retrieved = []
+        for i, (ref, obs) in enumerate(zip(references, observations, strict=True)):
+            mask = outcome.inliers[i] if outcome is not None else np.zeros(obs.num_matches, bool)
+            retrieved.append(
+                RetrievedReference(
+                    image_id=ref.image_id,
+                    name=ref.name,
+                    score=obs.retrieval_score,
+                    num_matches=obs.num_matches,
+                    num_inliers=int(mask.sum()),
+                    query_xy=obs.query_xy[mask],
+                    reference_xy=obs.reference_xy[mask],
+                )
+            )
+        pose = outcome.cam_from_world if outcome is not None else None
+        return LocalizationResult(
+            localized=pose is not None,
+            reason=reason,
+            estimator=estimator.name,
+            cam_from_world=pose,
+            num_inliers=outcome.num_inliers if outcome is not None and pose is not None else 0,
+            confidence=outcome.confidence if outcome is not None else 0.0,
+            retrieved=retrieved,
+            timings_ms=timings,
+            stats=outcome.stats if outcome is not None else {},
+        )
+
+    def _observe(
+        self,
+        query: LocalFeatures,
+        query_depth: NDArray[np.float32] | None,
+        ref: ReferenceView,
+        score: float,
+    ) -> ReferenceObservation:
+        pairs = self.matcher.match(query, ref.features)
+        query_xy = query.keypoints[pairs[:, 0]].astype(np.float64)
+        reference_xy = ref.features.keypoints[pairs[:, 1]].astype(np.float64)
+        return ReferenceObservation(
+            image_id=ref.image_id,
+            camera=ref.camera,
+            cam_from_world=ref.cam_from_world,
+            query_xy=query_xy,
+            reference_xy=reference_xy,
+            retrieval_score=score,
+            reference_depth=_sample_depth(ref.depth, reference_xy),
+            query_depth=_sample_depth(query_depth, query_xy),
+        )
+
+
+def _check_camera_matches(camera: Camera, image: NDArray[np.uint8]) -> None:
+    height, width = image.shape[:2]
+    if (camera.width, camera.height) != (width, height):
+        raise InvalidInputError(
+            f"camera is {camera.width}×{camera.height} but the image is {width}×{height}"
+        )

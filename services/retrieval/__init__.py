@@ -1,0 +1,1 @@
+"""Image retrieval: global descriptors and nearest-neighbour search over a map."""

@@ -1,0 +1,52 @@
+"""Top-k search by cosine similarity, optionally restricted by a position prior."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class PositionPrior:
+    """Keep references whose camera centre lies within ``radius`` of ``position`` (world units)."""
+
+    position: NDArray[np.float64]
+    radius: float
+
+
+def top_k(
+    query: NDArray[np.float32],
+    descriptors: NDArray[np.float32],
+    k: int,
+    centers: NDArray[np.float64] | None = None,
+    prior: PositionPrior | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Indices and cosine scores of the ``k`` most similar references, best first.
+
+    Args:
+        query: (D,) unit vector.
+        descriptors: (N, D) unit rows.
+        k: how many to return (fewer when fewer qualify).
+        centers: (N, 3) camera centres, needed with ``prior``.
+        prior: drops references outside the prior's ball.
+    Returns:
+        (K,) int64 row indices into ``descriptors`` and (K,) float32 scores.
+    """
+    if descriptors.shape[0] == 0 or k <= 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float32)
+    scores = descriptors @ query
+    candidates = np.arange(descriptors.shape[0])
+    if prior is not None:
+        if centers is None:
+            raise ValueError("a position prior needs the reference camera centres")
+        inside = np.linalg.norm(centers - prior.position, axis=1) <= prior.radius
+        candidates = candidates[inside]
+    if candidates.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.float32)
+    k = min(k, candidates.size)
+    part = np.argpartition(-scores[candidates], k - 1)[:k]
+    chosen = candidates[part]
+    order = np.argsort(-scores[chosen], kind="stable")
+    return chosen[order].astype(np.int64), scores[chosen[order]].astype(np.float32)
