@@ -72,12 +72,12 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArr
     """
     if data[:6] == b"\x93NUMPY":
         try:
-            depth = np.load(io.BytesIO(data), allow_pickle=False)
+            loaded = np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as exc:
             raise InvalidInputError(f"depth .npy could not be read: {exc}") from exc
-        if depth.ndim != 2 or depth.dtype.kind != "f":
+        if not isinstance(loaded, np.ndarray) or loaded.ndim != 2 or loaded.dtype.kind != "f":
             raise InvalidInputError("depth .npy must be a 2-D float array in metres")
-        depth = depth.astype(np.float32)
+        depth: NDArray[np.float32] = loaded.astype(np.float32)
     else:
         w, h = image_size_from_header(data)
         if w * h > max_pixels:

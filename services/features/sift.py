@@ -35,7 +35,7 @@ class SiftExtractor:
             gray = cv2.resize(
                 gray, (round(width * scale), round(height * scale)), interpolation=cv2.INTER_AREA
             )
-        sift = cv2.SIFT_create(nfeatures=self.options.max_keypoints)
+        sift = cv2.SIFT.create(nfeatures=self.options.max_keypoints)
         cv_keypoints, descriptors = sift.detectAndCompute(gray, None)
         if descriptors is None or len(cv_keypoints) == 0:
             return LocalFeatures(

@@ -1,0 +1,141 @@
+"""The ``slloc`` command: serve, import, db upgrade, openapi."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from app.settings import get_settings
+
+logger = logging.getLogger("slloc")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="slloc", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    serve = sub.add_parser("serve", help="run the HTTP API")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--log-level", default="info")
+
+    imp = sub.add_parser("import", help="bulk-load posed images into a map (resumable)")
+    imp.add_argument("--map", required=True, help="map name; created when missing")
+    src = imp.add_mutually_exclusive_group(required=True)
+    src.add_argument("--colmap", type=Path, help="COLMAP sparse model folder (text or binary)")
+    src.add_argument(
+        "--csv",
+        type=Path,
+        help="CSV of image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz[,depth]",
+    )
+    imp.add_argument("--images", type=Path, help="image folder (with --colmap)")
+
+    db = sub.add_parser("db", help="database maintenance")
+    db_sub = db.add_subparsers(dest="db_command", required=True)
+    db_sub.add_parser("upgrade", help="migrate the schema to the newest revision")
+
+    api = sub.add_parser("openapi", help="write the OpenAPI document")
+    api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
+
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    if args.command == "serve":
+        return _serve(args.host, args.port, args.log_level)
+    if args.command == "import":
+        return _import(args)
+    if args.command == "db":
+        return _db_upgrade()
+    return _openapi(args.out)
+
+
+def _serve(host: str, port: int, log_level: str) -> int:
+    import uvicorn
+
+    from app.main import create_app
+
+    uvicorn.run(create_app(), host=host, port=port, log_level=log_level)
+    return 0
+
+
+def _db_upgrade() -> int:
+    from db.migrate import upgrade
+    from db.session import make_engine
+
+    settings = get_settings()
+    engine = make_engine(settings.database_url)
+    upgrade(engine)
+    print(f"database at {engine.url.render_as_string(hide_password=True)} is at head")
+    return 0
+
+
+def _openapi(out: Path) -> int:
+    from app.openapi import openapi_document
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(openapi_document())
+    print(f"wrote {out}")
+    return 0
+
+
+def _import(args: argparse.Namespace) -> int:
+    from app.errors import ProblemError
+    from app.importers import ImportItem, iter_pending, read_colmap, read_csv
+    from app.operations import add_reference_image
+    from db.migrate import upgrade
+    from db.repositories.images import ImageRepository
+    from db.repositories.maps import MapRepository
+    from db.session import make_engine, make_session_factory
+    from services.components import build_localizer
+    from services.errors import InvalidInputError
+
+    settings = get_settings()
+    if args.colmap is not None:
+        if args.images is None:
+            print("--colmap needs --images", file=sys.stderr)
+            return 2
+        items: list[ImportItem] = read_colmap(args.colmap, args.images)
+    else:
+        items = read_csv(args.csv)
+    engine = make_engine(settings.database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions.begin() as session:
+        maps = MapRepository(session)
+        row = maps.get_by_name(args.map) or maps.create(args.map, None)
+        map_id = row.id
+        existing = ImageRepository(session).names(map_id)
+    pending = list(iter_pending(items, existing))
+    print(
+        f"map {args.map!r} ({map_id}): {len(items)} images listed, {len(existing)} stored, "
+        f"{len(pending)} to add",
+        flush=True,
+    )
+    localizer = build_localizer(settings.models_dir, settings.max_image_pixels)
+    failed = 0
+    start = time.perf_counter()
+    for done, item in enumerate(pending, start=1):
+        try:
+            depth = item.depth_path.read_bytes() if item.depth_path else None
+            out = add_reference_image(
+                sessions, localizer, map_id, item.metadata, item.image_path.read_bytes(), depth
+            )
+            status = f"added ({out.num_keypoints} keypoints)"
+        except (OSError, InvalidInputError, ProblemError) as exc:
+            failed += 1
+            status = f"FAILED: {exc}"
+        elapsed = time.perf_counter() - start
+        eta = elapsed / done * (len(pending) - done)
+        print(
+            f"[{done}/{len(pending)}] {item.metadata.name}: {status} (eta {eta:.0f} s)", flush=True
+        )
+    print(f"done: {len(pending) - failed} added, {failed} failed", flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,176 @@
+"""RFC 9457 problem details for every 4xx/5xx, and the domain-error → status table."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
+
+logger = logging.getLogger(__name__)
+
+PROBLEM_JSON = "application/problem+json"
+PROBLEM_BASE = "https://slloc.dev/problems/"
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details. ``type`` is a stable URI naming the kind of problem."""
+
+    type: str
+    title: str
+    status: int
+    detail: str | None = None
+    instance: str | None = None
+    errors: list[dict[str, Any]] | None = None
+
+
+class ProblemError(Exception):
+    """Raise anywhere in the app to answer with a problem document."""
+
+    def __init__(
+        self,
+        status: int,
+        slug: str,
+        title: str,
+        detail: str | None = None,
+        errors: list[dict[str, Any]] | None = None,
+    ) -> None:
+        super().__init__(detail or title)
+        self.status = status
+        self.slug = slug
+        self.title = title
+        self.detail = detail
+        self.errors = errors
+
+
+def not_found(what: str, ident: str) -> ProblemError:
+    return ProblemError(404, "not-found", "Not found", f"{what} {ident!r} does not exist")
+
+
+def conflict(detail: str) -> ProblemError:
+    return ProblemError(409, "conflict", "Conflict", detail)
+
+
+def invalid(detail: str, errors: list[dict[str, Any]] | None = None) -> ProblemError:
+    return ProblemError(422, "invalid-input", "Invalid input", detail, errors)
+
+
+def too_large(detail: str) -> ProblemError:
+    return ProblemError(413, "payload-too-large", "Payload too large", detail)
+
+
+# (status, slug, title) per engine error, most specific first
+_DOMAIN_ERRORS: list[tuple[type[Exception], int, str, str]] = [
+    (ImageTooLargeError, 413, "image-too-large", "Image too large"),
+    (ImageDecodeError, 422, "invalid-image", "Invalid image"),
+    (InvalidInputError, 422, "invalid-input", "Invalid input"),
+]
+
+_STATUS_SLUGS = {
+    400: ("bad-request", "Bad request"),
+    401: ("unauthorized", "Unauthorized"),
+    403: ("forbidden", "Forbidden"),
+    404: ("not-found", "Not found"),
+    405: ("method-not-allowed", "Method not allowed"),
+    413: ("payload-too-large", "Payload too large"),
+}
+
+PROBLEM_RESPONSE: dict[str, Any] = {
+    "model": Problem,
+    "content": {PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}},
+}
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` argument declaring problem documents for these statuses in OpenAPI."""
+    return {status: {**PROBLEM_RESPONSE, "description": _describe(status)} for status in statuses}
+
+
+def _describe(status: int) -> str:
+    return {
+        401: "Missing or unknown API key",
+        403: "The API key's role may not do this",
+        404: "Map or image not found",
+        409: "Name already taken",
+        413: "Upload or image too large",
+        422: "Invalid input",
+    }.get(status, "Problem")
+
+
+def _response(
+    request: Request, problem: Problem, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    problem.instance = problem.instance or request.url.path
+    return JSONResponse(
+        problem.model_dump(exclude_none=True),
+        status_code=problem.status,
+        media_type=PROBLEM_JSON,
+        headers=headers,
+    )
+
+
+def problem_response(
+    request: Request, status: int, slug: str, title: str, detail: str
+) -> JSONResponse:
+    return _response(
+        request, Problem(type=PROBLEM_BASE + slug, title=title, status=status, detail=detail)
+    )
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ProblemError)
+    async def _problem(request: Request, exc: ProblemError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "X-API-Key"} if exc.status == 401 else None
+        return _response(
+            request,
+            Problem(
+                type=PROBLEM_BASE + exc.slug,
+                title=exc.title,
+                status=exc.status,
+                detail=exc.detail,
+                errors=exc.errors,
+            ),
+            headers,
+        )
+
+    @app.exception_handler(InvalidInputError)
+    async def _domain(request: Request, exc: InvalidInputError) -> JSONResponse:
+        for cls, status, slug, title in _DOMAIN_ERRORS:
+            if isinstance(exc, cls):
+                return problem_response(request, status, slug, title, str(exc))
+        raise exc  # pragma: no cover - the table ends with the base class
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [
+            {"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
+            for e in exc.errors()
+        ]
+        return _response(
+            request,
+            Problem(
+                type=PROBLEM_BASE + "invalid-input",
+                title="Invalid input",
+                status=422,
+                detail="; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors),
+                errors=errors,
+            ),
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        slug, title = _STATUS_SLUGS.get(exc.status_code, ("error", "Error"))
+        return problem_response(request, exc.status_code, slug, title, str(exc.detail))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        logger.exception("unhandled error on %s %s", request.method, request.url.path)
+        return problem_response(
+            request, 500, "internal-error", "Internal server error", "an unexpected error occurred"
+        )

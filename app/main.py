@@ -1,0 +1,76 @@
+"""App factory: ``create_app()`` wires settings, database, localizer and routers."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from importlib.metadata import version
+
+from fastapi import FastAPI
+
+from app.api.routes import health, images, localize, maps
+from app.errors import Problem, install_error_handlers
+from app.limits import BodySizeLimit
+from app.settings import Settings, get_settings
+from db.migrate import upgrade
+from db.session import make_engine, make_session_factory
+from services.components import build_localizer
+from services.pipeline import Localizer
+
+logger = logging.getLogger(__name__)
+
+
+def create_app(settings: Settings | None = None, localizer: Localizer | None = None) -> FastAPI:
+    """Build the app. ``localizer`` may be injected (tests share one across apps)."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        engine = make_engine(settings.database_url)
+        if settings.auto_migrate:
+            upgrade(engine)
+        app.state.settings = settings
+        app.state.engine = engine
+        app.state.sessions = make_session_factory(engine)
+        app.state.localizer = localizer or build_localizer(
+            settings.models_dir, settings.max_image_pixels
+        )
+        app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
+        if not settings.api_keys:
+            logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")
+        logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
+        yield
+        engine.dispose()
+
+    app = FastAPI(
+        title="slloc",
+        version=version("slloc"),
+        summary="Structureless visual localization against a mutable database of posed images.",
+        lifespan=lifespan,
+    )
+    # Two uploads (image, depth) plus form fields may share one request.
+    app.add_middleware(BodySizeLimit, max_bytes=2 * settings.max_upload_bytes + 1024 * 1024)
+    install_error_handlers(app)
+    for module in (maps, images, localize, health):
+        app.include_router(module.router)
+    _register_problem_schema(app)
+    return app
+
+
+def _register_problem_schema(app: FastAPI) -> None:
+    """Make ``Problem`` a named component so problem+json responses can reference it."""
+    original = app.openapi
+
+    def openapi() -> dict:  # type: ignore[type-arg]
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = original()
+        schema.setdefault("components", {}).setdefault("schemas", {})["Problem"] = (
+            Problem.model_json_schema()
+        )
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

@@ -1,0 +1,72 @@
+"""Use cases shared by the HTTP API and the CLI, so both take the same code path."""
+
+from __future__ import annotations
+
+import logging
+
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.errors import conflict, not_found
+from app.schemas.geometry import CameraSchema, PoseSchema
+from app.schemas.images import ImageMetadata, ImageOut
+from db.models import ReferenceImage
+from db.repositories.images import ImageRepository
+from db.repositories.maps import MapRepository
+from db.store import camera_of, pose_of
+from services.pipeline import Localizer
+
+logger = logging.getLogger(__name__)
+
+
+def add_reference_image(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    map_id: str,
+    metadata: ImageMetadata,
+    image_bytes: bytes,
+    depth_bytes: bytes | None = None,
+) -> ImageOut:
+    """Describe and store a posed reference image: the row and all its features in one
+    transaction, or nothing.
+
+    Raises:
+        ProblemError: 404 unknown map, 409 name taken.
+        InvalidInputError: the image, depth or camera is unusable.
+    """
+    with sessions() as session:
+        if MapRepository(session).get(map_id) is None:
+            raise not_found("map", map_id)
+        if ImageRepository(session).name_exists(map_id, metadata.name):
+            raise conflict(f"map already has an image named {metadata.name!r}")
+    camera = metadata.camera.to_camera()
+    data = localizer.describe_reference(image_bytes, camera, depth_bytes)
+    try:
+        with sessions.begin() as session:
+            if MapRepository(session).get(map_id) is None:  # deleted while we extracted
+                raise not_found("map", map_id)
+            row = ImageRepository(session).add(
+                map_id, metadata.name, camera, metadata.cam_from_world.to_rigid(), data
+            )
+            out = image_out(row)
+    except IntegrityError as exc:
+        with sessions() as session:
+            if MapRepository(session).get(map_id) is None:
+                raise not_found("map", map_id) from exc
+        raise conflict(f"map already has an image named {metadata.name!r}") from exc
+    logger.info(
+        "map %s: added image %s (%s, %d keypoints)", map_id, out.id, out.name, out.num_keypoints
+    )
+    return out
+
+
+def image_out(row: ReferenceImage) -> ImageOut:
+    return ImageOut(
+        id=row.id,
+        name=row.name,
+        camera=CameraSchema.from_camera(camera_of(row)),
+        cam_from_world=PoseSchema.from_rigid(pose_of(row)),
+        num_keypoints=row.num_keypoints,
+        has_depth=row.has_depth,
+        created_at=row.created_at,
+    )

@@ -1,0 +1,1 @@
+"""Pydantic request/response models of the v1 API (never ORM objects)."""

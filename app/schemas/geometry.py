@@ -1,0 +1,84 @@
+"""Cameras and poses as they cross the API (COLMAP models; ``cam_from_world``, [w, x, y, z])."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from services.errors import InvalidInputError
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+CameraModelName = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+
+
+class CameraSchema(BaseModel):
+    """A COLMAP camera. Pixel coordinates use COLMAP's convention: the centre of the top-left
+    pixel is (0.5, 0.5), so an ideal principal point of a W×H image is (W/2, H/2)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "example": {
+                "model": "PINHOLE",
+                "width": 640,
+                "height": 480,
+                "params": [525.0, 525.0, 320.0, 240.0],
+            }
+        }
+    )
+
+    model: CameraModelName
+    width: int = Field(gt=0, le=100_000)
+    height: int = Field(gt=0, le=100_000)
+    params: list[FiniteFloat] = Field(description="COLMAP order, e.g. PINHOLE: fx, fy, cx, cy")
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraSchema:
+        try:
+            self.to_camera()
+        except InvalidInputError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+    def to_camera(self) -> Camera:
+        return Camera(self.model, self.width, self.height, tuple(self.params))
+
+    @classmethod
+    def from_camera(cls, camera: Camera) -> CameraSchema:
+        return cls(
+            model=camera.model,
+            width=camera.width,
+            height=camera.height,
+            params=list(camera.params),
+        )
+
+
+class PoseSchema(BaseModel):
+    """``cam_from_world``: x_cam = R(rotation) · x_world + translation."""
+
+    rotation: list[FiniteFloat] = Field(
+        min_length=4, max_length=4, description="unit quaternion [w, x, y, z]"
+    )
+    translation: list[FiniteFloat] = Field(min_length=3, max_length=3)
+
+    @field_validator("rotation")
+    @classmethod
+    def _unit(cls, q: list[float]) -> list[float]:
+        norm = math.sqrt(sum(v * v for v in q))
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"rotation must be a unit quaternion (norm {norm:.6g})")
+        return q
+
+    def to_rigid(self) -> Rigid3d:
+        return Rigid3d.from_quaternion(np.array(self.rotation), np.array(self.translation))
+
+    @classmethod
+    def from_rigid(cls, pose: Rigid3d) -> PoseSchema:
+        return cls(
+            rotation=[float(v) for v in pose.quaternion],
+            translation=[float(v) for v in pose.translation],
+        )

@@ -1,0 +1,65 @@
+"""Service configuration from the environment (prefix ``SLLOC_``), validated at start-up."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+Role = Literal["admin", "client"]
+
+
+class ApiKey(BaseModel):
+    key: SecretStr
+    role: Role
+
+
+class Settings(BaseSettings):
+    """Every setting can be given as ``SLLOC_<NAME>`` in the environment or a ``.env`` file."""
+
+    model_config = SettingsConfigDict(env_prefix="SLLOC_", env_file=".env", extra="ignore")
+
+    database_url: str = Field(
+        "sqlite:///./data/slloc.db",
+        description="SQLAlchemy URL; e.g. postgresql+psycopg://user@host:5432/slloc",
+    )
+    data_dir: Path = Field(Path("./data"), description="Directory for the SQLite file and logs")
+    models_dir: Path = Field(
+        Path("./models"), description="Where `slloc models build` writes ONNX models"
+    )
+    api_keys: str = Field(
+        "",
+        description="Comma-separated `key:role` pairs, role admin or client; empty = auth off",
+    )
+    max_upload_bytes: int = Field(25 * 1024 * 1024, gt=0, description="Per-file upload limit")
+    max_image_pixels: int = Field(40_000_000, gt=0, description="Decoded pixel-count limit")
+    max_top_k: int = Field(50, gt=0, description="Largest top_k a localize request may ask for")
+    auto_migrate: bool = Field(True, description="Upgrade the schema to head at start-up")
+    localize_workers: int = Field(2, gt=0, description="Threads for CPU-bound engine work")
+
+    @field_validator("api_keys")
+    @classmethod
+    def _check_keys(cls, value: str) -> str:
+        parse_api_keys(value)
+        return value
+
+    def parsed_api_keys(self) -> list[ApiKey]:
+        return parse_api_keys(self.api_keys)
+
+
+def parse_api_keys(value: str) -> list[ApiKey]:
+    keys = []
+    for item in filter(None, (part.strip() for part in value.split(","))):
+        key, sep, role = item.rpartition(":")
+        if not sep or not key or role not in ("admin", "client"):
+            raise ValueError(f"API key entries are `key:admin` or `key:client`, got {item!r}")
+        keys.append(ApiKey(key=SecretStr(key), role=role))
+    return keys
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,91 @@
+"""Tables: maps, their posed reference images, and each image's stored feature arrays."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from db.base import Base
+
+
+def _new_id() -> str:
+    return str(uuid.uuid4())
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+class Map(Base):
+    __tablename__ = "maps"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
+    name: Mapped[str] = mapped_column(String(255), unique=True)
+    description: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_now)
+
+    images: Mapped[list[ReferenceImage]] = relationship(
+        back_populates="map", cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class ReferenceImage(Base):
+    """A posed reference image. The pose is ``cam_from_world``, quaternion ``[w, x, y, z]``."""
+
+    __tablename__ = "reference_images"
+    __table_args__ = (UniqueConstraint("map_id", "name", name="uq_reference_images_map_id_name"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
+    map_id: Mapped[str] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    camera_model: Mapped[str] = mapped_column(String(32))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    camera_params: Mapped[list[float]] = mapped_column(JSON)
+    qw: Mapped[float] = mapped_column(Float)
+    qx: Mapped[float] = mapped_column(Float)
+    qy: Mapped[float] = mapped_column(Float)
+    qz: Mapped[float] = mapped_column(Float)
+    tx: Mapped[float] = mapped_column(Float)
+    ty: Mapped[float] = mapped_column(Float)
+    tz: Mapped[float] = mapped_column(Float)
+    num_keypoints: Mapped[int] = mapped_column(Integer)
+    has_depth: Mapped[bool] = mapped_column(default=False)
+    feature_model: Mapped[str] = mapped_column(String(128))
+    descriptor_model: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_now)
+
+    map: Mapped[Map] = relationship(back_populates="images")
+    arrays: Mapped[list[FeatureArray]] = relationship(
+        back_populates="image", cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class FeatureArray(Base):
+    """One numpy array of an image (keypoints, descriptors, scores, global descriptor, depth),
+    stored as raw C-order bytes with its dtype and shape."""
+
+    __tablename__ = "feature_arrays"
+
+    image_id: Mapped[str] = mapped_column(
+        ForeignKey("reference_images.id", ondelete="CASCADE"), primary_key=True
+    )
+    kind: Mapped[str] = mapped_column(String(32), primary_key=True)
+    dtype: Mapped[str] = mapped_column(String(16))
+    shape: Mapped[list[int]] = mapped_column(JSON)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+    image: Mapped[ReferenceImage] = relationship(back_populates="arrays")

@@ -1,0 +1,1 @@
+"""Repositories: typed queries over one session; callers own the transaction."""

@@ -1,0 +1,115 @@
+"""Queries on reference images and their feature arrays."""
+
+from __future__ import annotations
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from db.arrays import to_row
+from db.models import FeatureArray, ReferenceImage
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.pipeline import ReferenceData
+
+
+class ImageRepository:
+    def __init__(self, session: Session) -> None:
+        self.session = session
+
+    def add(
+        self,
+        map_id: str,
+        name: str,
+        camera: Camera,
+        cam_from_world: Rigid3d,
+        data: ReferenceData,
+    ) -> ReferenceImage:
+        """Insert the image row and all its arrays (flushed, not committed)."""
+        qw, qx, qy, qz = (float(v) for v in cam_from_world.quaternion)
+        tx, ty, tz = (float(v) for v in cam_from_world.translation)
+        row = ReferenceImage(
+            map_id=map_id,
+            name=name,
+            camera_model=camera.model,
+            width=camera.width,
+            height=camera.height,
+            camera_params=[float(p) for p in camera.params],
+            qw=qw,
+            qx=qx,
+            qy=qy,
+            qz=qz,
+            tx=tx,
+            ty=ty,
+            tz=tz,
+            num_keypoints=len(data.features),
+            has_depth=data.depth is not None,
+            feature_model=data.feature_model,
+            descriptor_model=data.descriptor_model,
+        )
+        self.session.add(row)
+        self.session.flush()
+        arrays = {
+            "keypoints": data.features.keypoints,
+            "descriptors": data.features.descriptors,
+            "scores": data.features.scores,
+            "global_descriptor": data.global_descriptor,
+        }
+        if data.depth is not None:
+            arrays["depth"] = data.depth.astype("float16")
+        self.session.add_all(to_row(row.id, kind, array) for kind, array in arrays.items())
+        self.session.flush()
+        return row
+
+    def get(self, map_id: str, image_id: str) -> ReferenceImage | None:
+        return self.session.scalars(
+            select(ReferenceImage).where(
+                ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
+            )
+        ).one_or_none()
+
+    def name_exists(self, map_id: str, name: str) -> bool:
+        return (
+            self.session.scalar(
+                select(ReferenceImage.id).where(
+                    ReferenceImage.map_id == map_id, ReferenceImage.name == name
+                )
+            )
+            is not None
+        )
+
+    def names(self, map_id: str) -> set[str]:
+        return set(
+            self.session.scalars(
+                select(ReferenceImage.name).where(ReferenceImage.map_id == map_id)
+            ).all()
+        )
+
+    def page(self, map_id: str, offset: int, limit: int) -> tuple[list[ReferenceImage], int]:
+        where = ReferenceImage.map_id == map_id
+        total = self.session.scalar(select(func.count()).select_from(ReferenceImage).where(where))
+        rows = self.session.scalars(
+            select(ReferenceImage)
+            .where(where)
+            .order_by(ReferenceImage.created_at, ReferenceImage.id)
+            .offset(offset)
+            .limit(limit)
+        ).all()
+        return list(rows), int(total or 0)
+
+    def delete(self, map_id: str, image_id: str) -> bool:
+        """Delete an image and its feature arrays. True when it existed."""
+        result = self.session.execute(
+            delete(ReferenceImage).where(
+                ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
+            )
+        )
+        return bool(result.rowcount)  # type: ignore[attr-defined]
+
+    def count_orphan_arrays(self) -> int:
+        """Feature arrays whose image no longer exists (0 in a healthy database)."""
+        orphan = (
+            ~select(ReferenceImage.id).where(ReferenceImage.id == FeatureArray.image_id).exists()
+        )
+        return int(
+            self.session.scalar(select(func.count()).select_from(FeatureArray).where(orphan)) or 0
+        )

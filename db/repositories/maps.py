@@ -1,0 +1,49 @@
+"""Queries on maps."""
+
+from __future__ import annotations
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from db.models import Map, ReferenceImage
+
+
+class MapRepository:
+    def __init__(self, session: Session) -> None:
+        self.session = session
+
+    def create(self, name: str, description: str | None) -> Map:
+        row = Map(name=name, description=description)
+        self.session.add(row)
+        self.session.flush()
+        return row
+
+    def get(self, map_id: str) -> Map | None:
+        return self.session.get(Map, map_id)
+
+    def get_by_name(self, name: str) -> Map | None:
+        return self.session.scalars(select(Map).where(Map.name == name)).one_or_none()
+
+    def page(self, offset: int, limit: int) -> tuple[list[Map], int]:
+        total = self.session.scalar(select(func.count()).select_from(Map)) or 0
+        rows = self.session.scalars(
+            select(Map).order_by(Map.created_at, Map.id).offset(offset).limit(limit)
+        ).all()
+        return list(rows), total
+
+    def image_counts(self, map_ids: list[str]) -> dict[str, int]:
+        if not map_ids:
+            return {}
+        rows = self.session.execute(
+            select(ReferenceImage.map_id, func.count())
+            .where(ReferenceImage.map_id.in_(map_ids))
+            .group_by(ReferenceImage.map_id)
+        ).all()
+        return {map_id: int(count) for map_id, count in rows}
+
+    def delete(self, map_id: str) -> bool:
+        """Delete a map with its images and their features. True when it existed."""
+        # ON DELETE CASCADE does the work on both backends; the explicit statement keeps the
+        # result independent of ORM state.
+        result = self.session.execute(delete(Map).where(Map.id == map_id))
+        return bool(result.rowcount)  # type: ignore[attr-defined]
