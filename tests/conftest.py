@@ -1,0 +1,124 @@
+"""Shared fixtures: a synthetic scene, one localizer, and API clients on SQLite and PostgreSQL.
+
+PostgreSQL tests use the server at ``SLLOC_TEST_POSTGRES_URL`` (default
+``postgresql+psycopg://postgres@127.0.0.1:5432/postgres``); each test gets a fresh database.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import create_engine, text
+from sqlalchemy.engine import make_url
+
+from app.main import create_app
+from app.settings import Settings
+from services.components import build_localizer
+from services.pipeline import Localizer
+from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png
+
+POSTGRES_ADMIN_URL = os.environ.get(
+    "SLLOC_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
+)
+
+
+@pytest.fixture(scope="session")
+def scene() -> SyntheticScene:
+    return SyntheticScene(seed=0)
+
+
+@pytest.fixture(scope="session")
+def reference_views(scene: SyntheticScene) -> list[SyntheticView]:
+    return scene.views(24, stream=1, prefix="ref")
+
+
+@pytest.fixture(scope="session")
+def query_views(scene: SyntheticScene) -> list[SyntheticView]:
+    return scene.views(10, stream=2, prefix="query")
+
+
+@pytest.fixture(scope="session")
+def localizer() -> Localizer:
+    return build_localizer(Path("/nonexistent-models"), max_pixels=40_000_000)
+
+
+@pytest.fixture(scope="session")
+def postgres_admin_url() -> str:
+    engine = create_engine(POSTGRES_ADMIN_URL)
+    try:
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+    except Exception as exc:  # pragma: no cover - CI starts the server
+        pytest.fail(f"PostgreSQL is not reachable at {POSTGRES_ADMIN_URL}: {exc}")
+    finally:
+        engine.dispose()
+    return POSTGRES_ADMIN_URL
+
+
+def _fresh_postgres_database(admin_url: str) -> Iterator[str]:
+    name = f"slloc_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield make_url(admin_url).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh, empty database: a SQLite file, or a new PostgreSQL database."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'slloc.db'}"
+    else:
+        yield from _fresh_postgres_database(request.getfixturevalue("postgres_admin_url"))
+
+
+def make_client(url: str, localizer: Localizer, **settings: object) -> TestClient:
+    return TestClient(create_app(Settings(database_url=url, **settings), localizer=localizer))
+
+
+@pytest.fixture
+def client(database_url: str, localizer: Localizer) -> Iterator[TestClient]:
+    with make_client(database_url, localizer) as c:
+        yield c
+
+
+def image_metadata(view: SyntheticView, name: str | None = None) -> dict[str, object]:
+    cam = view.camera
+    return {
+        "name": name or view.name,
+        "camera": {"model": cam.model, "width": cam.width, "height": cam.height,
+                   "params": list(cam.params)},
+        "cam_from_world": {
+            "rotation": [float(v) for v in view.cam_from_world.quaternion],
+            "translation": [float(v) for v in view.cam_from_world.translation],
+        },
+    }
+
+
+def upload_view(
+    client: TestClient, map_id: str, view: SyntheticView, name: str | None = None, **kwargs: object
+) -> object:
+    """POST a synthetic view as a reference image; returns the response."""
+    return client.post(
+        f"/v1/maps/{map_id}/images",
+        files={"image": (view.name, encode_png(view.image), "image/png")},
+        data={"metadata": json.dumps(image_metadata(view, name))},
+        **kwargs,  # type: ignore[arg-type]
+    )
+
+
+def create_map(client: TestClient, name: str = "scene") -> str:
+    response = client.post("/v1/maps", json={"name": name})
+    assert response.status_code == 201, response.text
+    return str(response.json()["id"])
