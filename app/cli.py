@@ -94,13 +94,16 @@ def _import(args: argparse.Namespace) -> int:
     from services.errors import InvalidInputError
 
     settings = get_settings()
-    if args.colmap is not None:
-        if args.images is None:
-            print("--colmap needs --images", file=sys.stderr)
-            return 2
-        items: list[ImportItem] = read_colmap(args.colmap, args.images)
-    else:
-        items = read_csv(args.csv)
+    if args.colmap is not None and args.images is None:
+        print("--colmap needs --images", file=sys.stderr)
+        return 2
+    try:  # a malformed source is reported before the map is touched
+        items: list[ImportItem] = (
+            read_colmap(args.colmap, args.images) if args.colmap is not None else read_csv(args.csv)
+        )
+    except (OSError, ValueError) as exc:
+        print(f"cannot read {args.colmap or args.csv}: {exc}", file=sys.stderr)
+        return 2
     engine = make_engine(settings.database_url)
     upgrade(engine)
     sessions = make_session_factory(engine)

@@ -81,15 +81,27 @@ _STATUS_SLUGS = {
     413: ("payload-too-large", "Payload too large"),
 }
 
-PROBLEM_RESPONSE: dict[str, Any] = {
-    "model": Problem,
-    "content": {PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}},
-}
+PROBLEM_CONTENT: dict[str, Any] = {PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}}
 
 
 def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` argument declaring problem documents for these statuses in OpenAPI."""
-    return {status: {**PROBLEM_RESPONSE, "description": _describe(status)} for status in statuses}
+    return {status: {"description": _describe(status)} for status in statuses}
+
+
+def document_problems(schema: dict[str, Any]) -> None:
+    """Rewrite an OpenAPI document so every 4xx/5xx answer is ``application/problem+json``
+    with the ``Problem`` schema (FastAPI would describe 422 as its own JSON shape)."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components["Problem"] = Problem.model_json_schema()
+    for name in ("HTTPValidationError", "ValidationError"):
+        components.pop(name, None)
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            for status, response in operation.get("responses", {}).items():
+                if status.startswith(("4", "5")):
+                    response["content"] = PROBLEM_CONTENT
+                    response["description"] = _describe(int(status))
 
 
 def _describe(status: int) -> str:

@@ -11,7 +11,7 @@ from importlib.metadata import version
 from fastapi import FastAPI
 
 from app.api.routes import health, images, localize, maps
-from app.errors import Problem, install_error_handlers
+from app.errors import document_problems, install_error_handlers
 from app.limits import BodySizeLimit
 from app.settings import Settings, get_settings
 from db.migrate import upgrade
@@ -60,16 +60,14 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
 
 
 def _register_problem_schema(app: FastAPI) -> None:
-    """Make ``Problem`` a named component so problem+json responses can reference it."""
+    """Describe every error answer as problem+json in the OpenAPI document."""
     original = app.openapi
 
     def openapi() -> dict:  # type: ignore[type-arg]
         if app.openapi_schema:
             return app.openapi_schema
         schema = original()
-        schema.setdefault("components", {}).setdefault("schemas", {})["Problem"] = (
-            Problem.model_json_schema()
-        )
+        document_problems(schema)
         app.openapi_schema = schema
         return schema
 

@@ -83,8 +83,11 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str
         yield from _fresh_postgres_database(request.getfixturevalue("postgres_admin_url"))
 
 
-def make_client(url: str, localizer: Localizer, **settings: object) -> TestClient:
-    return TestClient(create_app(Settings(database_url=url, **settings), localizer=localizer))
+def make_client(
+    url: str, localizer: Localizer, raise_server_exceptions: bool = True, **settings: object
+) -> TestClient:
+    app = create_app(Settings(database_url=url, **settings), localizer=localizer)  # type: ignore[arg-type]
+    return TestClient(app, raise_server_exceptions=raise_server_exceptions)
 
 
 @pytest.fixture

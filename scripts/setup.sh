@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Create .venv and install slloc into it (editable). Usage: scripts/setup.sh [extras], e.g. dev
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+extras=${1:-}
+if [ ! -x .venv/bin/python ]; then
+  "$PYTHON" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".${extras:+[$extras]}"

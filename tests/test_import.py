@@ -1,0 +1,472 @@
+"""``slloc import``: COLMAP (text, binary, pre-4.0 text) and CSV sources, resuming after an
+interrupt, and per-image failures — run through the real CLI entry point on SQLite and
+PostgreSQL, checked in the database and through the HTTP API."""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import inspect, select
+from sqlalchemy.orm import Session
+
+from app import cli
+from app.importers import read_colmap
+from app.main import create_app
+from app.settings import Settings, get_settings
+from db.arrays import from_row
+from db.models import FeatureArray, Map, ReferenceImage
+from db.repositories.images import ImageRepository
+from db.session import make_engine
+from services.pipeline import Localizer
+from services.synthetic_scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
+
+NUM_VIEWS = 6
+FEATURE_KINDS = {"keypoints", "descriptors", "scores", "global_descriptor"}
+
+
+@pytest.fixture(scope="module")
+def views(scene: SyntheticScene) -> list[SyntheticView]:
+    """The first six reference views (same poses as ``reference_views[:6]``, rendered alone so
+    this module stays fast when run by itself)."""
+    return scene.views(NUM_VIEWS, stream=1, prefix="ref")
+
+
+def _name(i: int, view: SyntheticView) -> str:
+    """Image names as the map will hold them; half live in a sub-folder of the image root."""
+    return f"seq{i % 2}/{view.name}"
+
+
+@pytest.fixture(scope="module")
+def dataset(views: list[SyntheticView], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An image root with ``seq*/ref*.png`` images and ``depth/ref*.png`` 16-bit depth maps."""
+    root = tmp_path_factory.mktemp("dataset")
+    for i, view in enumerate(views):
+        path = root / _name(i, view)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(encode_png(view.image))
+        depth = root / "depth" / view.name
+        depth.parent.mkdir(exist_ok=True)
+        depth.write_bytes(encode_depth_png(view.depth))
+    return root
+
+
+@pytest.fixture
+def slloc_env(database_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """The CLI's environment: this test's database and an empty models folder."""
+    models = tmp_path / "models"
+    models.mkdir()
+    monkeypatch.setenv("SLLOC_DATABASE_URL", database_url)
+    monkeypatch.setenv("SLLOC_MODELS_DIR", str(models))
+    get_settings.cache_clear()
+    yield database_url
+    get_settings.cache_clear()
+
+
+@dataclass
+class Run:
+    rc: int
+    out: str
+    err: str
+
+    def summary(self) -> tuple[int, int, int]:
+        """(listed, stored, to add) from the first line of the import's report."""
+        m = re.search(r"(\d+) images listed, (\d+) stored, (\d+) to add", self.out)
+        assert m, self.out
+        listed, stored, pending = (int(g) for g in m.groups())
+        return listed, stored, pending
+
+
+def run_import(capsys: pytest.CaptureFixture[str], *args: str | Path) -> Run:
+    capsys.readouterr()
+    rc = cli.main(["import", *(str(a) for a in args)])
+    captured = capsys.readouterr()
+    return Run(rc, captured.out, captured.err)
+
+
+@dataclass
+class Stored:
+    images: list[ReferenceImage]
+    arrays: dict[str, dict[str, FeatureArray]]  # image id -> kind -> row
+    orphan_arrays: int
+
+    def by_name(self) -> dict[str, ReferenceImage]:
+        return {row.name: row for row in self.images}
+
+
+def stored(database_url: str, map_name: str = "scene") -> Stored:
+    """Everything the database holds for ``map_name`` (rows stay readable after closing)."""
+    engine = make_engine(database_url)
+    try:
+        with Session(engine) as session:
+            map_id = session.scalar(select(Map.id).where(Map.name == map_name))
+            assert map_id is not None, f"map {map_name!r} was not created"
+            images = list(
+                session.scalars(select(ReferenceImage).where(ReferenceImage.map_id == map_id))
+            )
+            arrays: dict[str, dict[str, FeatureArray]] = {row.id: {} for row in images}
+            for array in session.scalars(select(FeatureArray)):
+                arrays.setdefault(array.image_id, {})[array.kind] = array
+            orphans = ImageRepository(session).count_orphan_arrays()
+    finally:
+        engine.dispose()
+    return Stored(images, arrays, orphans)
+
+
+def assert_consistent(db: Stored) -> None:
+    """One row per name, each with exactly its arrays, and no arrays of a missing image."""
+    assert db.orphan_arrays == 0
+    assert set(db.arrays) == {row.id for row in db.images}
+    assert all(n == 1 for n in Counter(row.name for row in db.images).values())
+    for row in db.images:
+        expected = FEATURE_KINDS | ({"depth"} if row.has_depth else set())
+        assert set(db.arrays[row.id]) == expected, row.name
+        assert row.num_keypoints > 100
+        assert from_row(db.arrays[row.id]["keypoints"]).shape[0] == row.num_keypoints
+
+
+def assert_pose(
+    q_wxyz: list[float] | np.ndarray, t: list[float] | np.ndarray, view: SyntheticView
+) -> None:
+    q = np.asarray(q_wxyz, dtype=float)
+    q_true = view.cam_from_world.quaternion
+    assert np.linalg.norm(q - q_true) < 1e-6 or np.linalg.norm(q + q_true) < 1e-6, (q, q_true)
+    np.testing.assert_allclose(t, view.cam_from_world.translation, rtol=0, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# COLMAP
+
+
+def write_colmap_model(views: list[SyntheticView], out: Path, fmt: str) -> None:
+    """A sparse model without points: camera 1 is PINHOLE, camera 2 the same intrinsics as
+    SIMPLE_PINHOLE; odd images have the negated (equivalent) quaternion; non-contiguous ids."""
+    fx, fy, cx, cy = views[0].camera.params
+    assert fx == fy
+    width, height = views[0].camera.width, views[0].camera.height
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            model="PINHOLE", width=width, height=height, params=[fx, fy, cx, cy], camera_id=1
+        )
+    )
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            model="SIMPLE_PINHOLE", width=width, height=height, params=[fx, cx, cy], camera_id=2
+        )
+    )
+    for i, view in enumerate(views):
+        w, x, y, z = view.cam_from_world.quaternion * (-1.0 if i % 2 else 1.0)
+        pose = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.array([x, y, z, w])), view.cam_from_world.translation
+        )
+        image = pycolmap.Image(name=_name(i, view), camera_id=1 + i % 2, image_id=10 + 7 * i)
+        rec.add_image_with_trivial_frame(image, pose)
+    assert rec.num_reg_images() == len(views)
+    out.mkdir(parents=True)
+    if fmt == "binary":
+        rec.write_binary(str(out))
+    else:
+        rec.write_text(str(out))
+    if fmt == "text-3.x":  # COLMAP < 4.0 wrote no rigs/frames files
+        (out / "rigs.txt").unlink()
+        (out / "frames.txt").unlink()
+
+
+def expected_camera(i: int, view: SyntheticView) -> tuple[str, list[float]]:
+    fx, _, cx, cy = view.camera.params
+    return ("PINHOLE", list(view.camera.params)) if i % 2 == 0 else ("SIMPLE_PINHOLE", [fx, cx, cy])
+
+
+@pytest.mark.parametrize("fmt", ["text", "binary"])
+def test_colmap_import(
+    fmt: str,
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    localizer: Localizer,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    model = tmp_path / "sparse" / "0"
+    write_colmap_model(views, model, fmt)
+
+    run = run_import(capsys, "--map", "scene", "--colmap", model, "--images", dataset)
+    assert run.rc == 0, run.out
+    assert run.summary() == (NUM_VIEWS, 0, NUM_VIEWS)
+    assert f"done: {NUM_VIEWS} added, 0 failed" in run.out
+
+    db = stored(slloc_env)
+    assert_consistent(db)
+    rows = db.by_name()
+    assert sorted(rows) == sorted(_name(i, v) for i, v in enumerate(views))
+    for i, view in enumerate(views):
+        row = rows[_name(i, view)]
+        model_name, params = expected_camera(i, view)
+        assert (row.camera_model, row.width, row.height) == (model_name, 640, 480)
+        np.testing.assert_allclose(row.camera_params, params, rtol=0, atol=1e-9)
+        assert_pose([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz], view)
+        assert row.has_depth is False
+
+    # the HTTP API sees the imported map like one built through it
+    app = create_app(Settings(database_url=slloc_env), localizer=localizer)
+    with TestClient(app) as client:
+        maps = client.get("/v1/maps").json()["items"]
+        assert [(m["name"], m["image_count"]) for m in maps] == [("scene", NUM_VIEWS)]
+        page = client.get(f"/v1/maps/{maps[0]['id']}/images").json()
+    assert page["total"] == NUM_VIEWS
+    api = {item["name"]: item for item in page["items"]}
+    for i, view in enumerate(views):
+        item = api[_name(i, view)]
+        assert item["camera"]["model"] == expected_camera(i, view)[0]
+        assert_pose(item["cam_from_world"]["rotation"], item["cam_from_world"]["translation"], view)
+
+
+@pytest.mark.parametrize("fmt", ["text", "binary", "text-3.x"])
+def test_read_colmap_formats(
+    fmt: str, views: list[SyntheticView], dataset: Path, tmp_path: Path
+) -> None:
+    """The reader alone (no database): every model flavour yields the same items."""
+    model = tmp_path / "model"
+    write_colmap_model(views, model, fmt)
+    items = read_colmap(model, dataset)
+    assert [item.metadata.name for item in items] == sorted(
+        _name(i, v) for i, v in enumerate(views)
+    )
+    by_name = {item.metadata.name: item for item in items}
+    for i, view in enumerate(views):
+        item = by_name[_name(i, view)]
+        assert item.image_path == dataset / _name(i, view) and item.image_path.is_file()
+        assert item.depth_path is None
+        model_name, params = expected_camera(i, view)
+        assert item.metadata.camera.model == model_name
+        np.testing.assert_allclose(item.metadata.camera.params, params, rtol=0, atol=1e-9)
+        pose = item.metadata.cam_from_world
+        assert_pose(pose.rotation, pose.translation, view)
+
+
+# ---------------------------------------------------------------------------------------------
+# CSV
+
+CSV_HEADER = [
+    "image",
+    "camera_model",
+    "width",
+    "height",
+    "params",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "tx",
+    "ty",
+    "tz",
+    "depth",
+]
+
+
+def csv_row(
+    image: str, view: SyntheticView, depth: str = "", width: int | None = None
+) -> list[str]:
+    cam = view.camera
+    return [
+        image,
+        cam.model,
+        str(width or cam.width),
+        str(cam.height),
+        " ".join(repr(float(p)) for p in cam.params),
+        *(repr(float(v)) for v in view.cam_from_world.quaternion),
+        *(repr(float(v)) for v in view.cam_from_world.translation),
+        depth,
+    ]
+
+
+def write_csv(path: Path, rows: list[list[str]]) -> Path:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(CSV_HEADER)
+        writer.writerows(rows)
+    return path
+
+
+def full_csv(dataset: Path, views: list[SyntheticView], name: str = "images.csv") -> Path:
+    """All views; views 0, 2, 4 come with a depth map."""
+    rows = [
+        csv_row(_name(i, v), v, f"depth/{v.name}" if i % 2 == 0 else "")
+        for i, v in enumerate(views)
+    ]
+    return write_csv(dataset / name, rows)
+
+
+def test_csv_import_with_depth(
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    table = full_csv(dataset, views)
+    run = run_import(capsys, "--map", "scene", "--csv", table)
+    assert run.rc == 0, run.out
+    assert run.summary() == (NUM_VIEWS, 0, NUM_VIEWS)
+
+    db = stored(slloc_env)
+    assert_consistent(db)
+    rows = db.by_name()
+    assert sorted(rows) == sorted(_name(i, v) for i, v in enumerate(views))
+    for i, view in enumerate(views):
+        row = rows[_name(i, view)]
+        assert (row.camera_model, row.width, row.height) == ("PINHOLE", 640, 480)
+        assert row.camera_params == list(view.camera.params)
+        assert_pose([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz], view)
+        assert row.has_depth is (i % 2 == 0)
+        if row.has_depth:
+            depth = from_row(db.arrays[row.id]["depth"]).astype(np.float32)
+            assert depth.shape == view.depth.shape
+            valid = view.depth > 0
+            # millimetre PNG, stored as float16: within a few millimetres at room scale
+            np.testing.assert_allclose(depth[valid], view.depth[valid], rtol=0, atol=0.01)
+
+
+# ---------------------------------------------------------------------------------------------
+# resuming
+
+
+def test_resume_after_interrupt(
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Ctrl-C lands inside the 4th image's transaction, after its row and arrays were
+    flushed; a re-run adds exactly the missing images, a third run adds nothing."""
+    table = full_csv(dataset, views, "resume.csv")
+    real_add = ImageRepository.add
+    calls = 0
+
+    def add_then_interrupt(self: ImageRepository, *args: object, **kwargs: object) -> object:
+        nonlocal calls
+        calls += 1
+        row = real_add(self, *args, **kwargs)  # type: ignore[arg-type]
+        if calls == 4:
+            raise KeyboardInterrupt
+        return row
+
+    with monkeypatch.context() as patch:
+        patch.setattr(ImageRepository, "add", add_then_interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            cli.main(["import", "--map", "scene", "--csv", str(table)])
+    first = stored(slloc_env)
+    assert_consistent(first)  # the interrupted image left nothing behind
+    assert len(first.images) == 3
+
+    second = run_import(capsys, "--map", "scene", "--csv", table)
+    assert second.rc == 0, second.out
+    assert second.summary() == (NUM_VIEWS, 3, NUM_VIEWS - 3)
+    assert f"done: {NUM_VIEWS - 3} added, 0 failed" in second.out
+    db = stored(slloc_env)
+    assert_consistent(db)
+    assert sorted(db.by_name()) == sorted(_name(i, v) for i, v in enumerate(views))
+    # the first three were not re-described or replaced
+    assert {r.id for r in first.images} <= {r.id for r in db.images}
+
+    third = run_import(capsys, "--map", "scene", "--csv", table)
+    assert third.rc == 0, third.out
+    assert third.summary() == (NUM_VIEWS, NUM_VIEWS, 0)
+    assert "done: 0 added, 0 failed" in third.out
+    again = stored(slloc_env)
+    assert sorted(r.id for r in again.images) == sorted(r.id for r in db.images)
+
+
+# ---------------------------------------------------------------------------------------------
+# failures
+
+
+def test_failing_rows_are_reported_and_skipped(
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A missing file, corrupt bytes, a truncated PNG and a depth map of the wrong size fail
+    their own row only; the command exits non-zero and the failures can be fixed and resumed."""
+    root = tmp_path / "broken"
+    root.mkdir()
+    (root / "garbage.png").write_bytes(b"this is not an image at all")
+    png = encode_png(views[2].image)
+    (root / "truncated.png").write_bytes(png[: len(png) // 2])
+    (root / "ok1.png").write_bytes(encode_png(views[0].image))
+    (root / "ok2.png").write_bytes(encode_png(views[1].image))
+    (root / "bad_depth.png").write_bytes(encode_png(views[3].image))
+    (root / "small_depth.png").write_bytes(encode_depth_png(views[3].depth[::2, ::2]))
+    rows = [
+        csv_row("ok1.png", views[0]),
+        csv_row("missing.png", views[4]),
+        csv_row("garbage.png", views[5]),
+        csv_row("truncated.png", views[2]),
+        csv_row("bad_depth.png", views[3], depth="small_depth.png"),
+        csv_row("ok2.png", views[1]),
+    ]
+    table = write_csv(root / "images.csv", rows)
+
+    run = run_import(capsys, "--map", "scene", "--csv", table)
+    assert run.rc != 0
+    assert run.summary() == (6, 0, 6)
+    failed = {
+        line.split("] ", 1)[1].split(":", 1)[0] for line in run.out.splitlines() if "FAILED" in line
+    }
+    assert failed == {"missing.png", "garbage.png", "truncated.png", "bad_depth.png"}
+    assert "done: 2 added, 4 failed" in run.out
+
+    db = stored(slloc_env)
+    assert_consistent(db)  # no feature arrays of the failed images
+    assert sorted(db.by_name()) == ["ok1.png", "ok2.png"]
+    ok2 = db.by_name()["ok2.png"]
+    assert_pose([ok2.qw, ok2.qx, ok2.qy, ok2.qz], [ok2.tx, ok2.ty, ok2.tz], views[1])
+
+    # fix one file and re-run: only the failed rows are retried
+    (root / "missing.png").write_bytes(encode_png(views[4].image))
+    rerun = run_import(capsys, "--map", "scene", "--csv", table)
+    assert rerun.rc != 0
+    assert rerun.summary() == (6, 2, 4)
+    assert "done: 1 added, 3 failed" in rerun.out
+    db = stored(slloc_env)
+    assert_consistent(db)
+    assert sorted(db.by_name()) == ["missing.png", "ok1.png", "ok2.png"]
+
+
+def test_unreadable_source_is_a_clean_error(
+    slloc_env: str,
+    views: list[SyntheticView],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A malformed CSV or a folder without a COLMAP model stops before touching the map."""
+    bad = write_csv(tmp_path / "bad.csv", [csv_row("a.png", views[0], width=-1)])
+    run = run_import(capsys, "--map", "scene", "--csv", bad)
+    assert run.rc == 2, run.out
+    assert "line 2" in run.err and "width" in run.err
+
+    run = run_import(capsys, "--map", "scene", "--colmap", tmp_path / "nope", "--images", tmp_path)
+    assert run.rc == 2, run.out
+    assert "nope" in run.err
+
+    run = run_import(capsys, "--map", "scene", "--csv", tmp_path / "absent.csv")
+    assert run.rc == 2, run.out
+    assert "absent.csv" in run.err
+
+    engine = make_engine(slloc_env)
+    try:
+        with engine.connect() as conn:
+            assert not inspect(conn).has_table("maps") or not conn.scalar(select(Map.id))
+    finally:
+        engine.dispose()

@@ -1,0 +1,60 @@
+import numpy as np
+
+from services.features.base import LocalFeatures
+from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.retrieval.search import PositionPrior, top_k
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+class TestTopK:
+    def test_order_and_scores(self) -> None:
+        rng = np.random.default_rng(0)
+        db = _unit(rng.normal(size=(200, 16)))
+        query = db[17]
+        rows, scores = top_k(query, db, 5)
+        assert rows[0] == 17 and np.isclose(scores[0], 1.0)
+        assert np.all(np.diff(scores) <= 0)
+        assert np.allclose(scores, db[rows] @ query)
+        brute = np.argsort(-(db @ query))[:5]
+        assert set(rows) == set(brute)
+
+    def test_prior_filters_by_centre(self) -> None:
+        db = _unit(np.random.default_rng(1).normal(size=(10, 8)))
+        centers = np.zeros((10, 3))
+        centers[:, 0] = np.arange(10)
+        prior = PositionPrior(np.array([0.0, 0, 0]), radius=2.5)
+        rows, _ = top_k(db[9], db, 10, centers, prior)
+        assert set(rows) == {0, 1, 2}
+        far = PositionPrior(np.array([100.0, 0, 0]), radius=1.0)
+        assert top_k(db[0], db, 3, centers, far)[0].size == 0
+
+    def test_empty(self) -> None:
+        rows, scores = top_k(np.ones(4, np.float32), np.zeros((0, 4), np.float32), 3)
+        assert rows.size == 0 and scores.size == 0
+
+
+class TestNearestNeighborMatcher:
+    def _features(self, desc: np.ndarray) -> LocalFeatures:
+        n = desc.shape[0]
+        return LocalFeatures(np.zeros((n, 2), np.float32), _unit(desc), np.ones(n, np.float32))
+
+    def test_recovers_permutation_and_rejects_ambiguous(self) -> None:
+        rng = np.random.default_rng(0)
+        ref = rng.normal(size=(50, 32))
+        perm = rng.permutation(50)
+        query = ref[perm] + 0.01 * rng.normal(size=(50, 32))
+        matches = NearestNeighborMatcher(0.8).match(self._features(query), self._features(ref))
+        assert len(matches) == 50
+        assert np.array_equal(matches[:, 1], perm[matches[:, 0]])
+
+        # two identical reference descriptors: the ratio test drops the ambiguous query
+        ref_dup = np.vstack([ref, ref[:1]])
+        m = NearestNeighborMatcher(0.8).match(self._features(ref[:1]), self._features(ref_dup))
+        assert len(m) == 0
+
+    def test_too_few_keypoints(self) -> None:
+        one = self._features(np.ones((1, 4)))
+        assert NearestNeighborMatcher().match(one, one).shape == (0, 2)
