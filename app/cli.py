@@ -1,4 +1,4 @@
-"""The ``slloc`` command: serve, import, db upgrade, openapi."""
+"""The ``slloc`` command: serve, import, db upgrade, synth, openapi."""
 
 from __future__ import annotations
 
@@ -37,6 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     db_sub = db.add_subparsers(dest="db_command", required=True)
     db_sub.add_parser("upgrade", help="migrate the schema to the newest revision")
 
+    synth = sub.add_parser("synth", help="write a rendered synthetic scene (demo and test data)")
+    synth.add_argument("--out", type=Path, default=Path("demo"))
+    synth.add_argument("--references", type=int, default=24)
+    synth.add_argument("--queries", type=int, default=3)
+    synth.add_argument("--seed", type=int, default=0)
+
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
@@ -50,6 +56,12 @@ def main(argv: list[str] | None = None) -> int:
         return _import(args)
     if args.command == "db":
         return _db_upgrade()
+    if args.command == "synth":
+        from app.synthetic_dataset import write_synthetic_dataset
+
+        write_synthetic_dataset(args.out, args.references, args.queries, args.seed)
+        print(f"wrote {args.references} references and {args.queries} queries to {args.out}")
+        return 0
     return _openapi(args.out)
 
 

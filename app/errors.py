@@ -81,7 +81,9 @@ _STATUS_SLUGS = {
     413: ("payload-too-large", "Payload too large"),
 }
 
-PROBLEM_CONTENT: dict[str, Any] = {PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}}
+PROBLEM_CONTENT: dict[str, Any] = {
+    PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}
+}
 
 
 def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:

@@ -100,8 +100,12 @@ def image_metadata(view: SyntheticView, name: str | None = None) -> dict[str, ob
     cam = view.camera
     return {
         "name": name or view.name,
-        "camera": {"model": cam.model, "width": cam.width, "height": cam.height,
-                   "params": list(cam.params)},
+        "camera": {
+            "model": cam.model,
+            "width": cam.width,
+            "height": cam.height,
+            "params": list(cam.params),
+        },
         "cam_from_world": {
             "rotation": [float(v) for v in view.cam_from_world.quaternion],
             "translation": [float(v) for v in view.cam_from_world.translation],

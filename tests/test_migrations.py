@@ -19,7 +19,8 @@ def test_upgrade_head_matches_models(database_url: str) -> None:
         inspect(engine).get_table_names()
     )
     with engine.connect() as conn:
-        diff = compare_metadata(MigrationContext.configure(conn, opts={"compare_type": True}),
-                                Base.metadata)
+        diff = compare_metadata(
+            MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata
+        )
     engine.dispose()
     assert diff == []

@@ -23,7 +23,10 @@ def secured(database_url: str, localizer: Localizer) -> Iterator[TestClient]:
 
 def test_roles(secured: TestClient) -> None:
     assert secured.post("/v1/maps", json={"name": "m"}).status_code == 401
-    assert secured.post("/v1/maps", json={"name": "m"}, headers={"X-API-Key": "wrong"}).status_code == 401
+    assert (
+        secured.post("/v1/maps", json={"name": "m"}, headers={"X-API-Key": "wrong"}).status_code
+        == 401
+    )
     forbidden = secured.post("/v1/maps", json={"name": "m"}, headers=CLIENT)
     assert forbidden.status_code == 403
     assert forbidden.headers["content-type"] == PROBLEM
@@ -38,19 +41,28 @@ def test_roles(secured: TestClient) -> None:
     assert secured.get(f"/v1/maps/{map_id}", headers=CLIENT).status_code == 200
     assert secured.get(f"/v1/maps/{map_id}/images", headers=CLIENT).status_code == 200
     assert secured.delete(f"/v1/maps/{map_id}", headers=CLIENT).status_code == 403
-    assert secured.post(
-        f"/v1/maps/{map_id}/images", headers=CLIENT,
-        files={"image": ("a.png", b"x", "image/png")}, data={"metadata": "{}"},
-    ).status_code == 403
+    assert (
+        secured.post(
+            f"/v1/maps/{map_id}/images",
+            headers=CLIENT,
+            files={"image": ("a.png", b"x", "image/png")},
+            data={"metadata": "{}"},
+        ).status_code
+        == 403
+    )
     # the client role may localize (a corrupt image: 422 proves it got past auth)
     localize = secured.post(
-        f"/v1/maps/{map_id}/localize", headers=CLIENT,
+        f"/v1/maps/{map_id}/localize",
+        headers=CLIENT,
         files={"image": ("q.png", b"not an image", "image/png")},
     )
     assert localize.status_code == 422
-    assert secured.post(
-        f"/v1/maps/{map_id}/localize", files={"image": ("q.png", b"x", "image/png")}
-    ).status_code == 401
+    assert (
+        secured.post(
+            f"/v1/maps/{map_id}/localize", files={"image": ("q.png", b"x", "image/png")}
+        ).status_code
+        == 401
+    )
     assert secured.delete(f"/v1/maps/{map_id}", headers=ADMIN).status_code == 204
 
 

@@ -51,8 +51,9 @@ def test_concurrent_add_delete_localize(
         def run() -> None:
             try:
                 fn(*args)
-            except BaseException as exc:  # noqa: BLE001 - re-raised below in the main thread
+            except BaseException as exc:
                 errors.append(exc)
+
         return threading.Thread(target=run)
 
     random.Random(0).shuffle(seeded)
@@ -68,8 +69,11 @@ def test_concurrent_add_delete_localize(
     for t in threads:
         t.join(timeout=600)
     assert not errors, errors
-    unexpected = {k: n for k, n in statuses.items() if k not in {
-        ("add", 201), ("delete", 204), ("delete", 404), ("localize", 200)}}
+    unexpected = {
+        k: n
+        for k, n in statuses.items()
+        if k not in {("add", 201), ("delete", 204), ("delete", 404), ("localize", 200)}
+    }
     assert not unexpected, unexpected
     assert statuses[("add", 201)] == 10
     assert statuses[("delete", 204)] == 4 and statuses[("delete", 404)] == 4

@@ -114,8 +114,15 @@ def _bad_metadata(view: SyntheticView) -> dict[str, object]:
 
 @pytest.mark.parametrize(
     "case",
-    ["corrupt_image", "truncated_png", "not_json", "wrong_params", "non_unit", "nan_quaternion",
-     "wrong_size"],
+    [
+        "corrupt_image",
+        "truncated_png",
+        "not_json",
+        "wrong_params",
+        "non_unit",
+        "nan_quaternion",
+        "wrong_size",
+    ],
 )
 def test_bad_input_is_422_and_stores_nothing(
     client: TestClient, database_url: str, reference_views: list[SyntheticView], case: str
@@ -132,7 +139,9 @@ def test_bad_input_is_422_and_stores_nothing(
         metadata = "{not json"  # type: ignore[assignment]
     elif case == "nan_quaternion":
         metadata = json.dumps(metadata).replace(
-            str(metadata["cam_from_world"]["rotation"][0]), "NaN", 1  # type: ignore[index]
+            str(metadata["cam_from_world"]["rotation"][0]),
+            "NaN",
+            1,  # type: ignore[index]
         )
     elif case in ("wrong_params", "non_unit", "wrong_size"):
         metadata = _bad_metadata(view)[case]
@@ -163,9 +172,16 @@ def test_too_many_pixels_is_413(database_url: str, localizer: object) -> None:
     assert ok
     with make_client(database_url, localizer) as client:  # type: ignore[arg-type]
         map_id = create_map(client)
-        meta = {"name": "big", "camera": {"model": "PINHOLE", "width": 4000, "height": 3000,
-                "params": [3000, 3000, 2000, 1500]},
-                "cam_from_world": {"rotation": [1, 0, 0, 0], "translation": [0, 0, 0]}}
+        meta = {
+            "name": "big",
+            "camera": {
+                "model": "PINHOLE",
+                "width": 4000,
+                "height": 3000,
+                "params": [3000, 3000, 2000, 1500],
+            },
+            "cam_from_world": {"rotation": [1, 0, 0, 0], "translation": [0, 0, 0]},
+        }
         client.app.state.localizer.max_pixels = 1_000_000  # type: ignore[attr-defined]
         try:
             response = _post(client, map_id, buf.tobytes(), meta)
@@ -208,15 +224,19 @@ def test_failure_half_way_leaves_nothing(
     client.__exit__(None, None, None)
 
 
-def test_depth_of_wrong_size_is_422(client: TestClient, reference_views: list[SyntheticView]) -> None:
+def test_depth_of_wrong_size_is_422(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
     map_id = create_map(client)
     view = reference_views[0]
     buf = io.BytesIO()
     np.save(buf, np.ones((10, 10), np.float32))
     response = client.post(
         f"/v1/maps/{map_id}/images",
-        files={"image": ("a.png", encode_png(view.image), "image/png"),
-               "depth": ("d.npy", buf.getvalue(), "application/octet-stream")},
+        files={
+            "image": ("a.png", encode_png(view.image), "image/png"),
+            "depth": ("d.npy", buf.getvalue(), "application/octet-stream"),
+        },
         data={"metadata": json.dumps(image_metadata(view))},
     )
     assert response.status_code == 422

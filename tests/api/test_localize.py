@@ -17,8 +17,12 @@ PROBLEM = "application/problem+json"
 
 def _camera(view: SyntheticView) -> dict[str, object]:
     cam = view.camera
-    return {"model": cam.model, "width": cam.width, "height": cam.height,
-            "params": list(cam.params)}
+    return {
+        "model": cam.model,
+        "width": cam.width,
+        "height": cam.height,
+        "params": list(cam.params),
+    }
 
 
 def _localize(client: TestClient, map_id: str, image: bytes, params: dict[str, object]) -> dict:  # type: ignore[type-arg]
@@ -48,7 +52,9 @@ def test_localizes_held_out_views(
     good = 0
     for view in query_views:
         result = _localize(
-            client, scene_map, encode_png(view.image),
+            client,
+            scene_map,
+            encode_png(view.image),
             {"camera": _camera(view), "return_inliers": True},
         )
         if not result["localized"]:
@@ -67,17 +73,21 @@ def test_localizes_held_out_views(
     assert good >= 9, f"only {good} of {len(query_views)} queries within 1% / 1°"
 
 
-def test_result_shape(
-    client: TestClient, scene_map: str, query_views: list[SyntheticView]
-) -> None:
+def test_result_shape(client: TestClient, scene_map: str, query_views: list[SyntheticView]) -> None:
     result = _localize(client, scene_map, encode_png(query_views[0].image), {"top_k": 5})
     assert result["estimator"] == "e5p1"
     assert len(result["retrieved"]) == 5
     scores = [r["score"] for r in result["retrieved"]]
     assert scores == sorted(scores, reverse=True)
     assert result["inliers"] is None  # not asked for
-    assert set(result["timings_ms"]) == {"decode", "extract", "retrieve", "match", "estimate",
-                                         "total"}
+    assert set(result["timings_ms"]) == {
+        "decode",
+        "extract",
+        "retrieve",
+        "match",
+        "estimate",
+        "total",
+    }
 
 
 def test_unrelated_image_is_not_localized(client: TestClient, scene_map: str) -> None:
@@ -92,7 +102,9 @@ def test_prior_excluding_everything_is_no_references(
     client: TestClient, scene_map: str, query_views: list[SyntheticView]
 ) -> None:
     result = _localize(
-        client, scene_map, encode_png(query_views[0].image),
+        client,
+        scene_map,
+        encode_png(query_views[0].image),
         {"prior": {"position": [100.0, 100.0, 100.0], "radius": 1.0}},
     )
     assert result["localized"] is False and result["reason"] == "no_references"
@@ -111,10 +123,21 @@ def test_empty_map_is_not_localized(client: TestClient, query_views: list[Synthe
         ({"estimator": "nope"}, "unknown estimator 'nope'; known: e5p1"),
         ({"top_k": 0}, "top_k"),
         ({"top_k": 1000}, "top_k may be at most"),
-        ({"camera": {"model": "PINHOLE", "width": 640, "height": 480, "params": [1, 2]}},
-         "takes 4 params"),
-        ({"camera": {"model": "PINHOLE", "width": 100, "height": 480,
-                     "params": [500, 500, 50, 240]}}, "camera is 100×480 but the image is 640×480"),
+        (
+            {"camera": {"model": "PINHOLE", "width": 640, "height": 480, "params": [1, 2]}},
+            "takes 4 params",
+        ),
+        (
+            {
+                "camera": {
+                    "model": "PINHOLE",
+                    "width": 100,
+                    "height": 480,
+                    "params": [500, 500, 50, 240],
+                }
+            },
+            "camera is 100×480 but the image is 640×480",
+        ),
         ({"prior": {"position": [0, 0], "radius": 1}}, "position"),
     ],
 )

@@ -23,7 +23,10 @@ def test_create_list_get(client: TestClient) -> None:
     listing = client.get("/v1/maps").json()
     assert listing["total"] == 2
     assert [m["name"] for m in listing["items"]] == ["kitchen", "hall"]
-    assert client.get("/v1/maps", params={"offset": 1, "limit": 1}).json()["items"][0]["name"] == "hall"
+    assert (
+        client.get("/v1/maps", params={"offset": 1, "limit": 1}).json()["items"][0]["name"]
+        == "hall"
+    )
 
     got = client.get(f"/v1/maps/{body['id']}")
     assert got.status_code == 200 and got.json() == body
@@ -71,8 +74,11 @@ def test_delete_map_removes_images_and_features(
     with engine.connect() as conn:
         images = conn.scalar(select(func.count()).select_from(ReferenceImage))
         arrays = conn.scalar(select(func.count()).select_from(FeatureArray))
-        kept = conn.scalar(select(func.count()).select_from(FeatureArray).where(
-            FeatureArray.image_id.in_(select(ReferenceImage.id))))
+        kept = conn.scalar(
+            select(func.count())
+            .select_from(FeatureArray)
+            .where(FeatureArray.image_id.in_(select(ReferenceImage.id)))
+        )
     engine.dispose()
     assert images == 1  # only the other map's image is left
     assert arrays == kept and arrays > 0

@@ -25,8 +25,13 @@ class TestQuaternion:
 
     def test_round_trip_all_branches(self) -> None:
         # include rotations by ~180° about each axis, which exercise every Shepperd branch
-        qs = [*_random_quaternions(50), np.array([0.0, 1, 0, 0]), np.array([0.0, 0, 1, 0]),
-              np.array([0.0, 0, 0, 1]), np.array([0.01, 0.7, 0.7, 0.1])]
+        qs = [
+            *_random_quaternions(50),
+            np.array([0.0, 1, 0, 0]),
+            np.array([0.0, 0, 1, 0]),
+            np.array([0.0, 0, 0, 1]),
+            np.array([0.01, 0.7, 0.7, 0.1]),
+        ]
         for q in qs:
             q = q / np.linalg.norm(q)
             back = matrix_to_quaternion(quaternion_to_matrix(q))
