@@ -129,20 +129,24 @@ def pose_sampson_errors_px(
 
     Args:
         R_q: (B, 3, 3) query rotations; C_q: (B, 3) query centres.
-        subset: optional (S,) match indices to evaluate.
+        subset: optional (S,) match indices to evaluate (errors come in sorted index order).
     Returns:
         (B, N) or (B, S) errors.
     """
-    idx = np.arange(stacked.size) if subset is None else subset
+    idx = np.arange(stacked.size) if subset is None else np.sort(subset)
     ref = stacked.ref_index[idx]
     b_r = stacked.ref_bearing_world[idx]
     h_q = np.concatenate([stacked.query_norm[idx], np.ones((idx.shape[0], 1))], axis=1)
     u = stacked.C_ref[ref][None, :, :] - C_q[:, None, :]  # (B, S, 3)
     cross = np.cross(u, b_r[None])
-    a = np.einsum("bji,nj->bni", R_q, h_q)  # R_qᵀ x̃_q
-    num = np.einsum("bni,bni->bn", a, cross)
-    Ex1 = np.einsum("bij,bnj->bni", R_q, cross)
-    Etx2 = np.einsum("nij,bnj->bni", stacked.R_ref[ref], np.cross(a, u))
+    a = h_q @ R_q  # (B, S, 3): R_qᵀ x̃_q
+    num = (a * cross).sum(axis=-1)
+    Ex1 = cross @ np.swapaxes(R_q, 1, 2)  # R_q (u × b_r)
+    w = np.cross(a, u)
+    Etx2 = np.empty_like(w)
+    for i in np.unique(ref):  # loop over references (≤ top-k), vectorised over matches
+        sel = ref == i
+        Etx2[:, sel] = w[:, sel] @ stacked.R_ref[i].T  # R_i (a × u)
     den = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
     err = np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
     return np.asarray(err * stacked.focal[idx][None], dtype=np.float64)

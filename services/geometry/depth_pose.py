@@ -89,10 +89,14 @@ def sampson_errors(R: Array, t: Array, x_src: Array, x_dst: Array) -> Array:
         (B, N) errors.
     """
     E = skew(t) @ R
-    h_src = np.concatenate([x_src, np.ones((x_src.shape[0], 1))], axis=1)
-    h_dst = np.concatenate([x_dst, np.ones((x_dst.shape[0], 1))], axis=1)
-    Ex1 = np.einsum("bij,nj->bni", E, h_src)
-    Etx2 = np.einsum("bji,nj->bni", E, h_dst)
-    num = np.einsum("nj,bnj->bn", h_dst, Ex1)
-    den = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
+    x1, y1 = x_src[None, :, 0], x_src[None, :, 1]
+    x2, y2 = x_dst[None, :, 0], x_dst[None, :, 1]
+    e = E[:, :, :, None]  # (B, 3, 3, 1) broadcasts against (1, N)
+    Ex1_0 = e[:, 0, 0] * x1 + e[:, 0, 1] * y1 + e[:, 0, 2]
+    Ex1_1 = e[:, 1, 0] * x1 + e[:, 1, 1] * y1 + e[:, 1, 2]
+    Ex1_2 = e[:, 2, 0] * x1 + e[:, 2, 1] * y1 + e[:, 2, 2]
+    Etx2_0 = e[:, 0, 0] * x2 + e[:, 1, 0] * y2 + e[:, 2, 0]
+    Etx2_1 = e[:, 0, 1] * x2 + e[:, 1, 1] * y2 + e[:, 2, 1]
+    num = Ex1_0 * x2 + Ex1_1 * y2 + Ex1_2
+    den = Ex1_0**2 + Ex1_1**2 + Etx2_0**2 + Etx2_1**2
     return np.asarray(np.abs(num) / np.sqrt(np.maximum(den, 1e-300)), dtype=np.float64)
