@@ -50,6 +50,8 @@ class StackedMatches:
         ref_bearing_world: (N, 3) ``R_refᵀ·(x, y, 1)``: the reference ray in world axes.
         R_ref: (V, 3, 3) reference rotations; C_ref: (V, 3) reference centres.
         focal: (N,) mean of the query's and the reference's focal lengths, in pixels.
+        ref_focal: (N,) the reference's focal length, in pixels.
+        query_xy: (N, 2) query pixels (COLMAP convention).
     """
 
     ref_index: IntArray
@@ -62,6 +64,8 @@ class StackedMatches:
     R_ref: Array
     C_ref: Array
     focal: Array
+    ref_focal: Array
+    query_xy: Array
 
     @property
     def size(self) -> int:
@@ -111,11 +115,15 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
         [np.full(ref.num_matches, 0.5 * (f_query + mean_focal(ref.camera))) for ref in references]
         or [np.zeros(0)]
     )
+    ref_focal = np.concatenate(
+        [np.full(ref.num_matches, mean_focal(ref.camera)) for ref in references] or [np.zeros(0)]
+    )
+    query_xy = cat([np.asarray(ref.query_xy, dtype=np.float64) for ref in references], 2)
     h_ref = np.concatenate([ref_norm, np.ones((ref_norm.shape[0], 1))], axis=1)
     ref_bearing_world = np.einsum("nji,nj->ni", R_ref[ref_index], h_ref)
     return StackedMatches(
         ref_index, offsets, query_norm, ref_norm, query_depth, ref_depth,
-        ref_bearing_world, R_ref, C_ref, focal,
+        ref_bearing_world, R_ref, C_ref, focal, ref_focal, query_xy,
     )  # fmt: skip
 
 
