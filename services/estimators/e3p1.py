@@ -107,7 +107,8 @@ class E3p1Estimator:
         options: EstimatorOptions,
     ) -> EstimateResult:
         deadline = Deadline(options.time_budget_s)
-        reason = precheck(references, min_matches=1)
+        # like E5+1: at least two references with 5 matches each
+        reason = precheck(references, min_matches=5)
         if reason is not None:
             return EstimateResult.failure(reason, references)
         stacked = stack_matches(query_camera, references)

@@ -4,7 +4,7 @@ averaging (IRLS with Cauchy weights on the ray angles, rays beyond 10° rejected
 averaged pose is refined on 2D–3D matches: query keypoints ↔ points triangulated between the
 retrieved references through the shared query keypoints (RANSAC triangulation, threshold
 ``triangulation_error_px``), by PoseLib absolute-pose refinement on the points that reproject
-within ``max_error_px`` (three rounds). Without enough triangulated points the averaged pose
+within an adaptive threshold ≤ ``max_error_px`` (three rounds, ``tracks.refine_on_points``). Without enough triangulated points the averaged pose
 is returned as is (``stats["refined"] = 0``).
 """
 
@@ -25,11 +25,9 @@ from services.estimators.correspondences import (
     precheck,
     stack_matches,
 )
-from services.estimators.poselib_bridge import refine_absolute_pose
 from services.estimators.pose_triangulation import pairwise_poses, solve_5pt, triangulate_pose
-from services.estimators.tracks import build_tracks, triangulate_tracks
+from services.estimators.tracks import build_tracks, refine_on_points, triangulate_tracks
 from services.geometry.camera import Camera
-from services.geometry.projection import pixels_from_camera_points
 
 REFINEMENT_ROUNDS = 3
 MIN_POINTS = 6  # fewer inlier 2D–3D matches: keep the averaged pose
@@ -75,19 +73,11 @@ class MotionAveragingEstimator:
             points = tri.points[tri.valid]
             query_xy = stacked.query_xy[sub.query_match[tri.valid]]
             stats["points_triangulated"] = float(points.shape[0])
-            for _ in range(REFINEMENT_ROUNDS):
-                if deadline.expired():
-                    break
-                projected = pixels_from_camera_points(query_camera, pose.apply(points))
-                err = np.linalg.norm(projected - query_xy, axis=1)
-                inl = np.isfinite(err) & (err < options.max_error_px)
-                if inl.sum() < MIN_POINTS:
-                    break
-                pose = refine_absolute_pose(
-                    query_xy[inl], points[inl], query_camera, pose, options.max_error_px / 4.0
-                )
-                stats["refined"] = 1.0
-                stats["points_inliers"] = float(inl.sum())
+            pose, used = refine_on_points(
+                pose, points, query_xy, query_camera, options, deadline, REFINEMENT_ROUNDS, MIN_POINTS
+            )
+            stats["refined"] = float(used > 0)
+            stats["points_inliers"] = float(used)
         errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
         inliers = errors < options.max_error_px
         stats["score"] = float(inliers.sum())

@@ -39,6 +39,7 @@ from services.estimators.poselib_bridge import (
     refine_query_pose,
     refine_relative_pose,
 )
+from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.averaging import (
     average_rotations,
     irls_ray_intersection,
@@ -211,24 +212,29 @@ def local_optimisation(
     deadline: Deadline,
     rounds: int = 3,
 ) -> tuple[Rigid3d, BoolArray]:
-    """Step 4: generalized Sampson refinement on the inliers of the current pose, up to
-    ``rounds`` times while the truncated (MSAC) Sampson score improves. Returns the pose and its (N,) inlier mask over the stacked matches."""
+    """Step 4: generalized Sampson refinement (PoseLib, Cauchy loss) of the query pose on all
+    pairs at once, ``rounds`` times; each round re-selects the matches within an adaptive
+    threshold (``adaptive_threshold_px``). A round that loses more than 5 % of the inliers at
+    ``max_error_px`` is rejected. Returns the pose and its (N,) inlier mask at ``max_error_px``
+    over the stacked matches."""
     thr = options.max_error_px
     errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
-    inliers = errors < thr
-    score = float((np.minimum(errors, thr) ** 2).sum())
+    count = int((errors < thr).sum())
     for _ in range(rounds):
         if deadline.expired():
             break
+        refine_thr = adaptive_threshold_px(errors, thr)
         refined = refine_query_pose(
-            references, stacked.split(inliers), query_camera, pose, options.max_error_px / 4.0
+            references, stacked.split(errors < refine_thr), query_camera, pose, refine_thr / 4.0
         )
-        errors = pose_sampson_errors_px(stacked, refined.rotation[None], refined.center[None])[0]
-        new_score = float((np.minimum(errors, thr) ** 2).sum())
-        if new_score >= score:  # MSAC score: the refinement must not make the fit worse
+        new_errors = pose_sampson_errors_px(
+            stacked, refined.rotation[None], refined.center[None]
+        )[0]
+        new_count = int((new_errors < thr).sum())
+        if new_count < 0.95 * count:
             break
-        pose, inliers, score = refined, errors < thr, new_score
-    return pose, inliers
+        pose, errors, count = refined, new_errors, new_count
+    return pose, errors < thr
 
 
 def estimate_by_pose_triangulation(

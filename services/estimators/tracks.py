@@ -16,8 +16,14 @@ from numpy.typing import NDArray
 
 from services.estimators.base import EstimatorOptions
 from services.estimators.correspondences import Deadline, StackedMatches
-from services.estimators.poselib_bridge import estimate_absolute_pose, ransac_options
+from services.estimators.poselib_bridge import (
+    estimate_absolute_pose,
+    ransac_options,
+    refine_absolute_pose,
+)
+from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.camera import Camera
+from services.geometry.projection import pixels_from_camera_points
 from services.geometry.rigid import Rigid3d
 from services.geometry.triangulation import TriangulatedTracks, ransac_triangulate
 
@@ -128,3 +134,33 @@ def pose_from_tracks(
     inliers = np.zeros(tracks.size, dtype=bool)
     inliers[valid[out[1]]] = True
     return TrackPose(out[0], inliers, out[2])
+
+
+def refine_on_points(
+    pose: Rigid3d,
+    points3d: Array,
+    query_xy: Array,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+    rounds: int = 3,
+    min_points: int = 6,
+) -> tuple[Rigid3d, int]:
+    """Refine the query pose on 2D–3D matches (PoseLib absolute-pose refinement, Cauchy loss)
+    ``rounds`` times; each round keeps the points that reproject within an adaptive threshold
+    (3σ of the errors below ``max_error_px``, at least 1 px). Returns the pose and the number
+    of points used in the last round (0 if it never refined)."""
+    used = 0
+    for _ in range(rounds):
+        if deadline.expired():
+            break
+        projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
+        err = np.linalg.norm(projected - query_xy, axis=1)
+        err = np.where(np.isfinite(err), err, np.inf)
+        thr = adaptive_threshold_px(err, options.max_error_px)
+        inl = err < thr
+        if inl.sum() < min_points:
+            break
+        pose = refine_absolute_pose(query_xy[inl], points3d[inl], query_camera, pose, thr / 4.0)
+        used = int(inl.sum())
+    return pose, used
