@@ -4,7 +4,8 @@ Hypotheses come in batches from ``geometry.depth_pose.relative_pose_3pt_depth`` 
 three back-projected points per image), are scored by truncated (MSAC) Sampson error on a
 random subset of the matches (preemptive scoring bounds the cost), and the best of each batch
 is scored on all matches. Local optimisation re-fits the similarity on all inliers that have
-depth. The caller polishes the result with PoseLib's Sampson refinement.
+depth. ``polish_relative_pose`` then runs PoseLib's Sampson refinement on adaptive inlier
+sets.
 """
 
 from __future__ import annotations
@@ -15,12 +16,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.estimators.correspondences import Deadline
+from services.estimators.poselib_bridge import refine_relative_pose
+from services.estimators.robust_scale import adaptive_threshold_px
+from services.geometry.camera import Camera
 from services.geometry.depth_pose import (
     back_project,
     relative_pose_3pt_depth,
     sampson_errors,
     similarity_from_points,
 )
+from services.geometry.rigid import Rigid3d
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -152,3 +157,36 @@ def _local_optimisation(
             break
         score, model = new, (R2[0], t2[0], s2)
     return score, model
+
+
+def polish_relative_pose(
+    model: DepthRelativePose,
+    ref_xy: Array,
+    query_xy: Array,
+    x_ref: Array,
+    x_query: Array,
+    ref_camera: Camera,
+    query_camera: Camera,
+    threshold: float,
+    focal: float,
+    rounds: int = 3,
+) -> tuple[Rigid3d, BoolArray]:
+    """PoseLib Sampson refinement of a ``query_from_ref`` model, ``rounds`` times, each on the
+    matches within an adaptive threshold (≤ ``threshold``, normalised units). Returns the pose
+    (unit translation) and its inliers at ``threshold``."""
+    pose = Rigid3d(model.R, model.t)
+    errors = sampson_errors(model.R[None], model.t[None], x_ref, x_query)[0] * focal
+    for _ in range(rounds):
+        thr_px = adaptive_threshold_px(errors, threshold * focal)
+        keep = errors < thr_px
+        refined = refine_relative_pose(
+            ref_xy[keep], query_xy[keep], pose, ref_camera, query_camera, thr_px / 4.0
+        )
+        new_errors = (
+            sampson_errors(refined.rotation[None], refined.translation[None], x_ref, x_query)[0]
+            * focal
+        )
+        if (new_errors < threshold * focal).sum() < 0.95 * (errors < threshold * focal).sum():
+            break
+        pose, errors = refined, new_errors
+    return pose, errors < threshold * focal

@@ -32,12 +32,14 @@ from services.estimators.correspondences import (
     precheck,
     stack_matches,
 )
-from services.estimators.depth_relative_pose import ransac_relative_pose_depth
+from services.estimators.depth_relative_pose import (
+    polish_relative_pose,
+    ransac_relative_pose_depth,
+)
 from services.estimators.poselib_bridge import (
     estimate_relative_pose,
     ransac_options,
     refine_query_pose,
-    refine_relative_pose,
 )
 from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.averaging import (
@@ -99,7 +101,7 @@ def solve_3pt_depth(
     rng: np.random.Generator,
 ) -> PairPose | None:
     """Our 3-point-with-depth LO-RANSAC (similarity: depth scale per image unknown), then
-    PoseLib Sampson refinement on its inliers."""
+    PoseLib Sampson refinement on adaptive inlier sets."""
     if ref.query_depth is None or ref.reference_depth is None or ref.num_matches < 5:
         return None
     x_ref = normalized_from_pixels(ref.camera, ref.reference_xy)
@@ -121,16 +123,18 @@ def solve_3pt_depth(
     )
     if model is None:
         return None
-    pose = Rigid3d(model.R, model.t)
-    refined = refine_relative_pose(
-        ref.reference_xy[model.inliers],
-        ref.query_xy[model.inliers],
-        pose,
+    refined, inliers = polish_relative_pose(
+        model,
+        ref.reference_xy,
+        ref.query_xy,
+        x_ref,
+        x_q,
         ref.camera,
         query_camera,
-        options.max_error_px / 4.0,
+        options.max_error_px / focal,
+        focal,
     )
-    return PairPose(-1, refined, model.inliers, model.iterations)
+    return PairPose(-1, refined, inliers, model.iterations)
 
 
 def pairwise_poses(
