@@ -66,7 +66,9 @@ def sample_room_points(rng: np.random.Generator, count: int) -> Array:
     return np.asarray(origins + ab[:, :1] * us + ab[:, 1:] * vs, dtype=np.float64)
 
 
-def _project(camera: Camera, pose: Rigid3d, points: Array) -> tuple[Array, Array, Array]:
+def _project(
+    camera: Camera, pose: Rigid3d, points: Array
+) -> tuple[Array, Array, NDArray[np.bool_]]:
     X = pose.apply(points)
     z = X[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -126,7 +128,7 @@ def make_correspondences(
         visible = np.flatnonzero(r_vis)
         m = min(matches_per_reference, visible.size)
         chosen = rng.choice(visible, size=m, replace=False)
-        num_out = int(round(outlier_ratio * m))
+        num_out = round(outlier_ratio * m)
         is_out = np.zeros(m, dtype=bool)
         is_out[rng.choice(m, size=num_out, replace=False)] = True
         ref_xy = r_xy[chosen] + rng.normal(0.0, noise_px, (m, 2))

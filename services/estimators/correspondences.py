@@ -79,7 +79,11 @@ class StackedMatches:
         ]
 
     def flatten(self, masks: list[BoolArray]) -> BoolArray:
-        return np.concatenate([np.asarray(m, dtype=bool) for m in masks]) if masks else np.zeros(0, bool)
+        return (
+            np.concatenate([np.asarray(m, dtype=bool) for m in masks])
+            if masks
+            else np.zeros(0, bool)
+        )
 
 
 def _depth_or_zeros(depth: Array | None, count: int) -> Array:
@@ -93,16 +97,22 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
     counts = np.array([ref.num_matches for ref in references], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     ref_index = np.repeat(np.arange(len(references), dtype=np.int64), counts)
-    R_ref = np.stack([ref.cam_from_world.rotation for ref in references]) if references else np.zeros((0, 3, 3))
-    C_ref = np.stack([ref.cam_from_world.center for ref in references]) if references else np.zeros((0, 3))
+    R_ref = (
+        np.stack([ref.cam_from_world.rotation for ref in references])
+        if references
+        else np.zeros((0, 3, 3))
+    )
+    C_ref = (
+        np.stack([ref.cam_from_world.center for ref in references])
+        if references
+        else np.zeros((0, 3))
+    )
     f_query = mean_focal(query_camera)
 
     def cat(parts: list[Array], width: int) -> Array:
         return np.concatenate(parts, axis=0) if parts else np.zeros((0, width))
 
-    query_norm = cat(
-        [normalized_from_pixels(query_camera, ref.query_xy) for ref in references], 2
-    )
+    query_norm = cat([normalized_from_pixels(query_camera, ref.query_xy) for ref in references], 2)
     ref_norm = cat([normalized_from_pixels(ref.camera, ref.reference_xy) for ref in references], 2)
     query_depth = np.concatenate(
         [_depth_or_zeros(ref.query_depth, ref.num_matches) for ref in references] or [np.zeros(0)]

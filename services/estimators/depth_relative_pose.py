@@ -57,7 +57,7 @@ def required_iterations(inlier_ratio: float, sample_size: int, success_prob: flo
 
 
 def _msac(errors: Array, threshold: float) -> Array:
-    return np.asarray(np.minimum(errors, threshold) ** 2, dtype=np.float64).sum(axis=-1)
+    return np.asarray((np.minimum(errors, threshold) ** 2).sum(axis=-1), dtype=np.float64)
 
 
 def ransac_relative_pose_depth(

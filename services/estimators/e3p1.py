@@ -159,7 +159,9 @@ class E3p1Estimator:
         stats: dict[str, float] = {"iterations": float(iterations)}
         if best is None:
             reason = (
-                FailureReason.TIME_BUDGET_EXCEEDED if deadline.expired() else FailureReason.NO_CONSENSUS
+                FailureReason.TIME_BUDGET_EXCEEDED
+                if deadline.expired()
+                else FailureReason.NO_CONSENSUS
             )
             return EstimateResult.failure(reason, references, stats)
         errors = pose_sampson_errors_px(stacked, best.rotation[None], best.center[None])[0]

@@ -10,7 +10,6 @@ inliers.
 
 from __future__ import annotations
 
-
 from services.estimators.base import (
     EstimateResult,
     EstimatorOptions,
@@ -71,5 +70,3 @@ class LocalTriAllEstimator:
         if found.inliers.sum() < 4:
             return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
         return finish(pose, masks, references, options, stats)
-
-

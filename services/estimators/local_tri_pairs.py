@@ -121,4 +121,6 @@ class LocalTriPairsEstimator:
         )
         stats["points_refined"] = float(used)
         errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
-        return finish(pose, stacked.split(errors < options.max_error_px), references, options, stats)
+        return finish(
+            pose, stacked.split(errors < options.max_error_px), references, options, stats
+        )

@@ -4,8 +4,9 @@ averaging (IRLS with Cauchy weights on the ray angles, rays beyond 10° rejected
 averaged pose is refined on 2D–3D matches: query keypoints ↔ points triangulated between the
 retrieved references through the shared query keypoints (RANSAC triangulation, threshold
 ``triangulation_error_px``), by PoseLib absolute-pose refinement on the points that reproject
-within an adaptive threshold ≤ ``max_error_px`` (three rounds, ``tracks.refine_on_points``). Without enough triangulated points the averaged pose
-is returned as is (``stats["refined"] = 0``).
+within an adaptive threshold ≤ ``max_error_px`` (three rounds, ``tracks.refine_on_points``).
+Without enough triangulated points the averaged pose is returned as is
+(``stats["refined"] = 0``).
 """
 
 from __future__ import annotations
@@ -74,7 +75,14 @@ class MotionAveragingEstimator:
             query_xy = stacked.query_xy[sub.query_match[tri.valid]]
             stats["points_triangulated"] = float(points.shape[0])
             pose, used = refine_on_points(
-                pose, points, query_xy, query_camera, options, deadline, REFINEMENT_ROUNDS, MIN_POINTS
+                pose,
+                points,
+                query_xy,
+                query_camera,
+                options,
+                deadline,
+                REFINEMENT_ROUNDS,
+                MIN_POINTS,
             )
             stats["refined"] = float(used > 0)
             stats["points_inliers"] = float(used)

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.errors import InvalidInputError
 from services.estimators.base import (
     EstimateResult,
     EstimatorOptions,
     FailureReason,
     ReferenceObservation,
 )
-from services.errors import InvalidInputError
 from services.geometry.averaging import project_to_rotation
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d

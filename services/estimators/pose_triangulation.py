@@ -231,9 +231,9 @@ def local_optimisation(
         refined = refine_query_pose(
             references, stacked.split(errors < refine_thr), query_camera, pose, refine_thr / 4.0
         )
-        new_errors = pose_sampson_errors_px(
-            stacked, refined.rotation[None], refined.center[None]
-        )[0]
+        new_errors = pose_sampson_errors_px(stacked, refined.rotation[None], refined.center[None])[
+            0
+        ]
         new_count = int((new_errors < thr).sum())
         if new_count < 0.95 * count:
             break
@@ -266,9 +266,7 @@ def estimate_by_pose_triangulation(
     stats["pairs_consistent"] = float(tri.pair_inliers.sum())
     stats["ray_conditioning"] = tri.conditioning
     if tri.pose is None:
-        return EstimateResult.failure(
-            tri.failure or FailureReason.NO_CONSENSUS, references, stats
-        )
+        return EstimateResult.failure(tri.failure or FailureReason.NO_CONSENSUS, references, stats)
     stacked = stack_matches(query_camera, references)
     pose, inliers = local_optimisation(
         tri.pose, stacked, references, query_camera, options, deadline

@@ -47,9 +47,10 @@ def similarity_from_points(
 
 def back_project(normalized: Array, depth: Array) -> Array:
     """(…, 2) normalised points and (…,) z-depths → (…, 3) camera-frame points."""
-    return np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1) * depth[
-        ..., None
-    ]
+    return (
+        np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1)
+        * depth[..., None]
+    )
 
 
 def relative_pose_3pt_depth(

@@ -37,7 +37,7 @@ def normalized_from_pixels(camera: Camera, xy: Array) -> Array:
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     if camera.model in _PINHOLE_MODELS or xy.shape[0] == 0:
         (fx, fy), (cx, cy) = camera.focal_lengths, camera.principal_point
-        return (xy - np.array([cx, cy])) / np.array([fx, fy])
+        return np.asarray((xy - np.array([cx, cy])) / np.array([fx, fy]), dtype=np.float64)
     out = _pycolmap_camera(camera).cam_from_img(np.ascontiguousarray(xy))
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
@@ -55,7 +55,7 @@ def pixels_from_camera_points(camera: Camera, points_cam: Array) -> Array:
         normalized = np.where(z > 0, points_cam[:, :2] / z, np.nan)
     if camera.model in _PINHOLE_MODELS or points_cam.shape[0] == 0:
         (fx, fy), (cx, cy) = camera.focal_lengths, camera.principal_point
-        return normalized * np.array([fx, fy]) + np.array([cx, cy])
+        return np.asarray(normalized * np.array([fx, fy]) + np.array([cx, cy]), dtype=np.float64)
     ok = np.all(np.isfinite(normalized), axis=1)
     out = np.full((points_cam.shape[0], 2), np.nan)
     if ok.any():

@@ -31,15 +31,16 @@ def triangulate_dlt(normalized: Array, projections: Array, weights: Array) -> Ar
     P = np.broadcast_to(projections, (*normalized.shape[:2], 3, 4))
     rows_x = normalized[..., 0:1] * P[..., 2, :] - P[..., 0, :]  # (T, V, 4)
     rows_y = normalized[..., 1:2] * P[..., 2, :] - P[..., 1, :]
-    A = np.concatenate([rows_x, rows_y], axis=1) * np.concatenate([weights, weights], axis=1)[
-        ..., None
-    ]
+    A = (
+        np.concatenate([rows_x, rows_y], axis=1)
+        * np.concatenate([weights, weights], axis=1)[..., None]
+    )
     # the null vector of A is the eigenvector of AᵀA with the smallest eigenvalue
     _, vecs = np.linalg.eigh(np.swapaxes(A, 1, 2) @ A)
     X = vecs[..., :, 0]
     w = X[:, 3]
     w = np.where(np.abs(w) < 1e-12, 1e-12, w)
-    return X[:, :3] / w[:, None]
+    return np.asarray(X[:, :3] / w[:, None], dtype=np.float64)
 
 
 def reprojection_errors(

@@ -156,8 +156,7 @@ def test_only_outliers(name: str, scene: SyntheticCorrespondences) -> None:
 @pytest.mark.parametrize("name", sorted(DEPTH_ESTIMATORS))
 def test_depth_estimators_without_depth(name: str, scene: SyntheticCorrespondences) -> None:
     refs = [
-        dataclasses.replace(ref, query_depth=None, reference_depth=None)
-        for ref in scene.references
+        dataclasses.replace(ref, query_depth=None, reference_depth=None) for ref in scene.references
     ]
     result = get_estimator(name).estimate(scene.query_camera, refs, TEST_OPTIONS)
     _check_shape(result, refs)

@@ -21,12 +21,14 @@ from services.synthetic_correspondences import make_correspondences
 
 
 def _random_rotations(rng: np.random.Generator, n: int, max_deg: float) -> np.ndarray:
-    return np.stack([cv2.Rodrigues(np.radians(rng.uniform(-max_deg, max_deg, 3)))[0] for _ in range(n)])
+    return np.stack(
+        [cv2.Rodrigues(np.radians(rng.uniform(-max_deg, max_deg, 3)))[0] for _ in range(n)]
+    )
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return np.asarray(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 @pytest.mark.parametrize("with_scale", [True, False])
@@ -80,7 +82,7 @@ def test_3pt_depth_on_par_with_poselib_5pt(seed: int) -> None:
     assert ref.reference_depth is not None and ref.query_depth is not None
     truth = data.query_pose.compose(ref.cam_from_world.inverse())  # query_from_ref
     ransac = {"max_epipolar_error": 2.0, "min_iterations": 200, "max_iterations": 2000, "seed": 0}
-    pose5, info5 = poselib.estimate_relative_pose(
+    pose5, _ = poselib.estimate_relative_pose(
         ref.reference_xy, ref.query_xy, ref.camera.to_poselib(), cam.to_poselib(), ransac, {}
     )
     five = from_poselib(pose5)

@@ -23,7 +23,7 @@ from services.synthetic_correspondences import make_correspondences
 
 def test_rotation_averaging_rejects_outliers() -> None:
     rng = np.random.default_rng(0)
-    truth = cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0]
+    truth = np.asarray(cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0], dtype=np.float64)
     noisy = [cv2.Rodrigues(rng.normal(0, 0.002, 3))[0] @ truth for _ in range(7)]
     wild = [cv2.Rodrigues(rng.normal(0, 1.0, 3))[0] @ truth for _ in range(3)]
     R, inliers = average_rotations(np.stack(noisy + wild), np.ones(10), 5.0)
