@@ -61,7 +61,12 @@ class E5p1Estimator:
         if deadline.expired():
             return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references)
         # iterations capped by the remaining time budget, if any
-        ransac = ransac_options(options, deadline, epipolar_px=options.max_error_px)
+        ransac = ransac_options(
+            options,
+            deadline,
+            epipolar_px=options.max_error_px,
+            num_matches=sum(references[i].num_matches for i in used),
+        )
         pose, info = poselib.estimate_generalized_relative_pose(
             matches,
             [_poselib_pose(references[i].cam_from_world) for i in used],

@@ -85,7 +85,9 @@ def solve_5pt(
     rng: np.random.Generator,
 ) -> PairPose | None:
     """PoseLib 5-point LO-RANSAC with Sampson refinement (``index`` filled by the caller)."""
-    ransac = ransac_options(options, deadline, calls_left, epipolar_px=options.max_error_px)
+    ransac = ransac_options(
+        options, deadline, calls_left, epipolar_px=options.max_error_px, num_matches=ref.num_matches
+    )
     out = estimate_relative_pose(ref, query_camera, ransac, options.max_error_px / 4.0)
     if out is None:
         return None

@@ -121,7 +121,13 @@ def pose_from_tracks(
     valid = np.flatnonzero(triangulated.valid)
     if valid.size < 4:
         return None
-    ransac = ransac_options(options, deadline, calls_left, reprojection_px=options.max_error_px)
+    ransac = ransac_options(
+        options,
+        deadline,
+        calls_left,
+        reprojection_px=options.max_error_px,
+        num_matches=int(valid.size),
+    )
     out = estimate_absolute_pose(
         stacked.query_xy[tracks.query_match[valid]],
         triangulated.points[valid],
