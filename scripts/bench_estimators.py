@@ -1,7 +1,8 @@
 """Median run time and accuracy of every registered estimator at the guide's setting: top-10
 references, ~1000 matches per pair (1 px noise, 30 % outliers, metric depth), synthetic.
 
-Usage: PYTHONPATH=. python scripts/bench_estimators.py [--runs 3] [--matches 1000] [NAME ...]
+Usage: PYTHONPATH=. python scripts/bench_estimators.py [--runs 3] [--matches 1000]
+       [--min-iterations 1000] [NAME ...]
 Guide CPU figures for comparison: E5+1 265 ms, LazyLoc 101 ms, Ess. mat. 1623 ms,
 local triangulation all 2909 ms / pairs 1528 ms.
 """
@@ -29,6 +30,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3, help="scenes (seeds) per estimator")
     parser.add_argument("--matches", type=int, default=1000, help="matches per reference")
     parser.add_argument("--references", type=int, default=10)
+    parser.add_argument("--min-iterations", type=int, default=EstimatorOptions().min_iterations)
     args = parser.parse_args()
     scenes = [
         make_correspondences(
@@ -39,7 +41,7 @@ def main() -> None:
         )
         for seed in range(args.runs)
     ]
-    options = EstimatorOptions()
+    options = EstimatorOptions(min_iterations=args.min_iterations)
     print(f"{'estimator':<22}{'median ms':>10}{'pos err %':>11}{'rot err °':>11}  failures")
     for name in args.names:
         estimator = get_estimator(name)

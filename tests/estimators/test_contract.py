@@ -14,6 +14,7 @@ from services.estimators.base import (
     ReferenceObservation,
 )
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
+from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
 from services.synthetic_correspondences import SyntheticCorrespondences
 from tests.estimators.conftest import TEST_OPTIONS
@@ -186,3 +187,15 @@ def test_pose_approx_top1(scene: SyntheticCorrespondences) -> None:
     best = max(scene.references, key=lambda ref: ref.retrieval_score)
     assert result.cam_from_world is not None
     np.testing.assert_allclose(result.cam_from_world.center, best.cam_from_world.center)
+
+
+@pytest.mark.parametrize("name", ["essential_5pt", "e3p1", "local_tri_all", "motion_averaging"])
+def test_distorted_camera_model_path(name: str, scene: SyntheticCorrespondences) -> None:
+    """OPENCV cameras (zero distortion) go through pycolmap's (un)projection: same answer."""
+    fx, fy, cx, cy = scene.query_camera.params
+    opencv = Camera("OPENCV", 640, 480, (fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0))
+    refs = [dataclasses.replace(ref, camera=opencv) for ref in scene.references]
+    result = get_estimator(name).estimate(opencv, refs, TEST_OPTIONS)
+    assert result.cam_from_world is not None, result.failure_reason
+    position, rotation = pose_error(result.cam_from_world, scene.query_pose)
+    assert rotation < 0.5 and position < 0.01 * scene.scene_depth
