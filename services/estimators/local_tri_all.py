@@ -41,20 +41,20 @@ class LocalTriAllEstimator:
         if reason is not None:
             return EstimateResult.failure(reason, references)
         stacked = stack_matches(query_camera, references)
-        tracks = build_tracks(stacked, options.track_merge_px)
-        multi = tracks.observed.sum(axis=1) >= 2
+        all_tracks = build_tracks(stacked, options.track_merge_px)
+        tracks = all_tracks.multi_view()
         stats: dict[str, float] = {
-            "tracks": float(tracks.size),
-            "tracks_multi_view": float(multi.sum()),
+            "tracks": float(all_tracks.size),
+            "tracks_multi_view": float(tracks.size),
         }
-        if multi.sum() < 4:
+        if tracks.size < 4:
             return EstimateResult.failure(FailureReason.TOO_FEW_MATCHES, references, stats)
         tri = triangulate_tracks(stacked, tracks, options.triangulation_error_px)
         stats["points_triangulated"] = float(tri.valid.sum())
         if deadline.expired():
             return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references, stats)
         if tri.valid.sum() < 4:
-            reason = FailureReason.DEGENERATE_GEOMETRY if multi.sum() >= 20 else None
+            reason = FailureReason.DEGENERATE_GEOMETRY if tracks.size >= 20 else None
             return EstimateResult.failure(
                 reason or FailureReason.TOO_FEW_MATCHES, references, stats
             )

@@ -32,7 +32,6 @@ from services.estimators.correspondences import (
 )
 from services.estimators.tracks import (
     TrackPose,
-    Tracks,
     build_tracks,
     pose_from_tracks,
     refine_on_points,
@@ -81,7 +80,7 @@ class LocalTriPairsEstimator:
                 exhausted = True
                 break
             in_pair = tracks.observed[:, a] & tracks.observed[:, b]
-            sub = Tracks(tracks.match_index[in_pair], tracks.query_match[in_pair])
+            sub = tracks.subset(in_pair)
             views = np.array([a, b], dtype=np.int64)
             tri = triangulate_tracks(stacked, sub, options.triangulation_error_px, views)
             tried += 1

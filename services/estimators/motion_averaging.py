@@ -11,8 +11,6 @@ Without enough triangulated points the averaged pose is returned as is
 
 from __future__ import annotations
 
-import numpy as np
-
 from services.estimators.base import (
     EstimateResult,
     EstimatorOptions,
@@ -65,11 +63,9 @@ class MotionAveragingEstimator:
         pose = averaged.pose
         stacked = stack_matches(query_camera, references)
         tracks = build_tracks(stacked, options.track_merge_px)
-        multi = tracks.observed.sum(axis=1) >= 2
+        sub = tracks.multi_view()
         stats["refined"] = 0.0
-        if multi.sum() >= MIN_POINTS and not deadline.expired():
-            sub_index = np.flatnonzero(multi)
-            sub = type(tracks)(tracks.match_index[sub_index], tracks.query_match[sub_index])
+        if sub.size >= MIN_POINTS and not deadline.expired():
             tri = triangulate_tracks(stacked, sub, options.triangulation_error_px)
             points = tri.points[tri.valid]
             query_xy = stacked.query_xy[sub.query_match[tri.valid]]

@@ -53,6 +53,14 @@ class Tracks:
     def size(self) -> int:
         return int(self.match_index.shape[0])
 
+    def subset(self, rows: BoolArray | IntArray) -> Tracks:
+        """The tracks selected by a (T,) mask or an index array."""
+        return Tracks(self.match_index[rows], self.query_match[rows])
+
+    def multi_view(self) -> Tracks:
+        """The tracks observed by at least two references (the triangulable ones)."""
+        return self.subset(self.observed.sum(axis=1) >= 2)
+
 
 def build_tracks(stacked: StackedMatches, merge_px: float = 0.0) -> Tracks:
     """Group the stacked matches by query keypoint.
