@@ -62,6 +62,16 @@ class EstimatorOptions:
         min_inliers: fewer inliers than this (over all references) is a failure.
         min_references: inliers must come from at least this many references.
         seed: seed of every random choice, for reproducible answers.
+        time_budget_s: wall-clock budget of one ``estimate`` call in seconds (None = unbounded).
+            Estimators check it between solver calls and cap their own iteration counts; a
+            single PoseLib call is not interruptible, so the bound is soft by one call.
+        triangulation_error_px: reprojection threshold of point triangulation (local
+            triangulation, LazyLoc refinement): 2 px for sparse features, 8 px for dense ones.
+        track_merge_px: query keypoints closer than this form one track (0 = exact equality,
+            right for sparse detectors; the guide uses 5 px for dense matchers).
+        metric_depth: depths in ``ReferenceObservation`` are metric (True) or known only up to
+            one scale per image (False, e.g. monocular depth); used by ``e3p1``.
+        pose_approx_mode: ``"weighted"`` (retrieval-score-weighted interpolation) or ``"top1"``.
     """
 
     max_error_px: float = 12.0
@@ -70,6 +80,11 @@ class EstimatorOptions:
     min_inliers: int = 30
     min_references: int = 2
     seed: int = 0
+    time_budget_s: float | None = None
+    triangulation_error_px: float = 2.0
+    track_merge_px: float = 0.0
+    metric_depth: bool = True
+    pose_approx_mode: str = "weighted"
 
 
 @dataclass(frozen=True)

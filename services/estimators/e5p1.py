@@ -18,6 +18,8 @@ from services.estimators.base import (
     ReferenceObservation,
     confidence_from_inliers,
 )
+from services.estimators.correspondences import Deadline
+from services.estimators.poselib_bridge import ransac_options
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
@@ -55,12 +57,16 @@ class E5p1Estimator:
             m.x1 = np.ascontiguousarray(references[i].reference_xy, dtype=np.float64)
             m.x2 = np.ascontiguousarray(references[i].query_xy, dtype=np.float64)
             matches.append(m)
-        ransac = {
-            "max_epipolar_error": options.max_error_px,
-            "min_iterations": options.min_iterations,
-            "max_iterations": options.max_iterations,
-            "seed": options.seed,
-        }
+        deadline = Deadline(options.time_budget_s)
+        if deadline.expired():
+            return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references)
+        # iterations capped by the remaining time budget, if any
+        ransac = ransac_options(
+            options,
+            deadline,
+            epipolar_px=options.max_error_px,
+            num_matches=sum(references[i].num_matches for i in used),
+        )
         pose, info = poselib.estimate_generalized_relative_pose(
             matches,
             [_poselib_pose(references[i].cam_from_world) for i in used],

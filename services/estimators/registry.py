@@ -4,11 +4,31 @@ from __future__ import annotations
 
 from services.errors import UnknownComponentError
 from services.estimators.base import PoseEstimator
+from services.estimators.e3p1 import E3p1Estimator
 from services.estimators.e5p1 import E5p1Estimator
+from services.estimators.essential_3pt_depth import Essential3ptDepthEstimator
+from services.estimators.essential_5pt import Essential5ptEstimator
+from services.estimators.local_tri_all import LocalTriAllEstimator
+from services.estimators.local_tri_pairs import LocalTriPairsEstimator
+from services.estimators.motion_averaging import MotionAveragingEstimator
+from services.estimators.pose_approx import PoseApproxEstimator
 
 _ESTIMATORS: dict[str, PoseEstimator] = {
-    estimator.name: estimator for estimator in (E5p1Estimator(),)
+    estimator.name: estimator
+    for estimator in (
+        PoseApproxEstimator(),
+        Essential5ptEstimator(),
+        Essential3ptDepthEstimator(),
+        MotionAveragingEstimator(),
+        E5p1Estimator(),
+        E3p1Estimator(),
+        LocalTriAllEstimator(),
+        LocalTriPairsEstimator(),
+    )
 }
+
+# estimators that need depth for the query and the references
+DEPTH_ESTIMATORS = frozenset({"essential_3pt_depth", "e3p1"})
 
 DEFAULT_ESTIMATOR = "e5p1"
 

@@ -1,0 +1,223 @@
+"""All query–reference matches of a request stacked into flat arrays, and the checks, scores
+and result assembly that every estimator shares."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.estimators.base import (
+    EstimateResult,
+    EstimatorOptions,
+    FailureReason,
+    ReferenceObservation,
+    confidence_from_inliers,
+)
+from services.geometry.camera import Camera
+from services.geometry.projection import mean_focal, normalized_from_pixels
+from services.geometry.rigid import Rigid3d
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+
+class Deadline:
+    """Wall-clock budget of one request (``EstimatorOptions.time_budget_s``; None = none)."""
+
+    def __init__(self, budget_s: float | None) -> None:
+        self._end = None if budget_s is None else time.perf_counter() + budget_s
+
+    def expired(self) -> bool:
+        return self._end is not None and time.perf_counter() > self._end
+
+    def remaining_s(self) -> float:
+        return float("inf") if self._end is None else self._end - time.perf_counter()
+
+
+@dataclass(frozen=True)
+class StackedMatches:
+    """The matches of all references, concatenated (N matches in all, V references).
+
+    Attributes:
+        ref_index: (N,) index into the request's reference list of each match.
+        offsets: (V + 1,) match ``ref_index == i`` occupy ``offsets[i]:offsets[i + 1]``.
+        query_norm, ref_norm: (N, 2) normalised (undistorted) coordinates.
+        query_depth, ref_depth: (N,) depths, 0 where unknown.
+        ref_bearing_world: (N, 3) ``R_refᵀ·(x, y, 1)``: the reference ray in world axes.
+        R_ref: (V, 3, 3) reference rotations; C_ref: (V, 3) reference centres.
+        focal: (N,) mean of the query's and the reference's focal lengths, in pixels.
+        ref_focal: (N,) the reference's focal length, in pixels.
+        query_xy: (N, 2) query pixels (COLMAP convention).
+    """
+
+    ref_index: IntArray
+    offsets: IntArray
+    query_norm: Array
+    ref_norm: Array
+    query_depth: Array
+    ref_depth: Array
+    ref_bearing_world: Array
+    R_ref: Array
+    C_ref: Array
+    focal: Array
+    ref_focal: Array
+    query_xy: Array
+
+    @property
+    def size(self) -> int:
+        return int(self.ref_index.shape[0])
+
+    def split(self, flat: BoolArray) -> list[BoolArray]:
+        """Per-reference masks from an (N,) mask over the stacked matches."""
+        return [
+            flat[self.offsets[i] : self.offsets[i + 1]].copy()
+            for i in range(self.offsets.shape[0] - 1)
+        ]
+
+    def flatten(self, masks: list[BoolArray]) -> BoolArray:
+        return (
+            np.concatenate([np.asarray(m, dtype=bool) for m in masks])
+            if masks
+            else np.zeros(0, bool)
+        )
+
+
+def _depth_or_zeros(depth: Array | None, count: int) -> Array:
+    if depth is None:
+        return np.zeros(count)
+    d = np.asarray(depth, dtype=np.float64).reshape(-1)
+    return np.where(np.isfinite(d) & (d > 0), d, 0.0)
+
+
+def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) -> StackedMatches:
+    counts = np.array([ref.num_matches for ref in references], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    ref_index = np.repeat(np.arange(len(references), dtype=np.int64), counts)
+    R_ref = (
+        np.stack([ref.cam_from_world.rotation for ref in references])
+        if references
+        else np.zeros((0, 3, 3))
+    )
+    C_ref = (
+        np.stack([ref.cam_from_world.center for ref in references])
+        if references
+        else np.zeros((0, 3))
+    )
+    f_query = mean_focal(query_camera)
+
+    def cat(parts: list[Array], width: int) -> Array:
+        return np.concatenate(parts, axis=0) if parts else np.zeros((0, width))
+
+    query_norm = cat([normalized_from_pixels(query_camera, ref.query_xy) for ref in references], 2)
+    ref_norm = cat([normalized_from_pixels(ref.camera, ref.reference_xy) for ref in references], 2)
+    query_depth = np.concatenate(
+        [_depth_or_zeros(ref.query_depth, ref.num_matches) for ref in references] or [np.zeros(0)]
+    )
+    ref_depth = np.concatenate(
+        [_depth_or_zeros(ref.reference_depth, ref.num_matches) for ref in references]
+        or [np.zeros(0)]
+    )
+    focal = np.concatenate(
+        [np.full(ref.num_matches, 0.5 * (f_query + mean_focal(ref.camera))) for ref in references]
+        or [np.zeros(0)]
+    )
+    ref_focal = np.concatenate(
+        [np.full(ref.num_matches, mean_focal(ref.camera)) for ref in references] or [np.zeros(0)]
+    )
+    query_xy = cat([np.asarray(ref.query_xy, dtype=np.float64) for ref in references], 2)
+    h_ref = np.concatenate([ref_norm, np.ones((ref_norm.shape[0], 1))], axis=1)
+    ref_bearing_world = np.einsum("nji,nj->ni", R_ref[ref_index], h_ref)
+    return StackedMatches(
+        ref_index, offsets, query_norm, ref_norm, query_depth, ref_depth,
+        ref_bearing_world, R_ref, C_ref, focal, ref_focal, query_xy,
+    )  # fmt: skip
+
+
+def pose_sampson_errors_px(
+    stacked: StackedMatches, R_q: Array, C_q: Array, subset: IntArray | None = None
+) -> Array:
+    """Sampson error (≈ pixels) of every match under query-pose hypotheses.
+
+    The relative pose of the query to reference i follows from both absolute poses:
+    ``R = R_q·R_iᵀ``, ``t = R_q·(C_i − C_q)``; everything is evaluated in world axes, batched.
+
+    Args:
+        R_q: (B, 3, 3) query rotations; C_q: (B, 3) query centres.
+        subset: optional (S,) match indices to evaluate (errors come in sorted index order).
+    Returns:
+        (B, N) or (B, S) errors.
+    """
+    idx = np.arange(stacked.size) if subset is None else np.sort(subset)
+    ref = stacked.ref_index[idx]
+    b_r = stacked.ref_bearing_world[idx]
+    h_q = np.concatenate([stacked.query_norm[idx], np.ones((idx.shape[0], 1))], axis=1)
+    u = stacked.C_ref[ref][None, :, :] - C_q[:, None, :]  # (B, S, 3)
+    cross = np.cross(u, b_r[None])
+    a = h_q @ R_q  # (B, S, 3): R_qᵀ x̃_q
+    num = (a * cross).sum(axis=-1)
+    Ex1 = cross @ np.swapaxes(R_q, 1, 2)  # R_q (u × b_r)
+    w = np.cross(a, u)
+    Etx2 = np.empty_like(w)
+    for i in np.unique(ref):  # loop over references (≤ top-k), vectorised over matches
+        sel = ref == i
+        Etx2[:, sel] = w[:, sel] @ stacked.R_ref[i].T  # R_i (a × u)
+    den = Ex1[..., 0] ** 2 + Ex1[..., 1] ** 2 + Etx2[..., 0] ** 2 + Etx2[..., 1] ** 2
+    err = np.abs(num) / np.sqrt(np.maximum(den, 1e-300))
+    return np.asarray(err * stacked.focal[idx][None], dtype=np.float64)
+
+
+def precheck(
+    references: list[ReferenceObservation], min_matches: int, min_pairs: int = 2
+) -> FailureReason | None:
+    """Common input checks: at least ``min_pairs`` references with ``min_matches`` matches
+    (else too_few_matches), and their centres not all coincident (else degenerate_geometry)."""
+    if not references:
+        return FailureReason.NO_REFERENCES
+    usable = [ref for ref in references if ref.num_matches >= min_matches]
+    if len(usable) < min_pairs:
+        return FailureReason.TOO_FEW_MATCHES
+    if min_pairs >= 2:
+        centers = np.stack([ref.cam_from_world.center for ref in usable])
+        scale = max(float(np.abs(centers).max()), 1.0)
+        if float(np.ptp(centers, axis=0).max()) < 1e-6 * scale:
+            return FailureReason.DEGENERATE_GEOMETRY
+    return None
+
+
+def finish(
+    cam_from_world: Rigid3d | None,
+    masks: list[BoolArray],
+    references: list[ReferenceObservation],
+    options: EstimatorOptions,
+    stats: dict[str, float],
+    reason_if_weak: FailureReason = FailureReason.NO_CONSENSUS,
+) -> EstimateResult:
+    """Assemble the result: stats, confidence, and a failure when the pose is missing, not
+    finite, or supported by too few inliers / references."""
+    num_inliers = int(sum(int(m.sum()) for m in masks))
+    refs_with_inliers = sum(int(m.sum() >= 3) for m in masks)
+    total = sum(ref.num_matches for ref in references)
+    stats = {
+        **stats,
+        "num_matches": float(total),
+        "num_inliers": float(num_inliers),
+        "inlier_ratio": num_inliers / max(total, 1),
+        "references_with_inliers": float(refs_with_inliers),
+    }
+    if cam_from_world is None:
+        return EstimateResult(None, masks, 0.0, stats, reason_if_weak)
+    finite = np.all(np.isfinite(cam_from_world.rotation)) and np.all(
+        np.isfinite(cam_from_world.translation)
+    )
+    if (
+        not finite
+        or num_inliers < options.min_inliers
+        or refs_with_inliers < options.min_references
+    ):
+        return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
+    confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
+    return EstimateResult(cam_from_world, masks, confidence, stats, None)

@@ -1,0 +1,66 @@
+"""Pose approximation (the guide's baseline): the query pose is the top-1 retrieved pose, or a
+retrieval-score-weighted interpolation of the retrieved poses (default).
+
+Weighted mode: weights are the retrieval scores clipped at 0 (uniform when all are ≤ 0); the
+centre is the weighted mean of the reference centres and the rotation the chordal L2 mean of
+the reference rotations (projected back onto SO(3)). No correspondences are used, so every
+inlier mask is empty and the confidence stays low (≤ 0.1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.errors import InvalidInputError
+from services.estimators.base import (
+    EstimateResult,
+    EstimatorOptions,
+    FailureReason,
+    ReferenceObservation,
+)
+from services.geometry.averaging import project_to_rotation
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+
+MODES = ("weighted", "top1")
+
+
+class PoseApproxEstimator:
+    name = "pose_approx"
+
+    def estimate(
+        self,
+        query_camera: Camera,
+        references: list[ReferenceObservation],
+        options: EstimatorOptions,
+    ) -> EstimateResult:
+        masks = [np.zeros(ref.num_matches, dtype=bool) for ref in references]
+        if not references:
+            return EstimateResult.failure(FailureReason.NO_REFERENCES, references)
+        if options.pose_approx_mode not in MODES:
+            raise InvalidInputError(
+                f"unknown pose_approx_mode {options.pose_approx_mode!r}; known: {', '.join(MODES)}"
+            )
+        scores = np.array([ref.retrieval_score for ref in references], dtype=np.float64)
+        rotations = np.stack([ref.cam_from_world.rotation for ref in references])
+        centers = np.stack([ref.cam_from_world.center for ref in references])
+        if options.pose_approx_mode == "top1":
+            best = int(np.argmax(scores))
+            weights = np.zeros(len(references))
+            weights[best] = 1.0
+        else:
+            weights = np.clip(scores, 0.0, None)
+            if weights.sum() <= 0:
+                weights = np.ones(len(references))
+        weights = weights / weights.sum()
+        R = project_to_rotation(np.einsum("n,nij->ij", weights, rotations))
+        C = weights @ centers
+        pose = Rigid3d(R, -R @ C)
+        stats = {
+            "iterations": 0.0,
+            "num_references": float(len(references)),
+            "inlier_ratio": 0.0,
+            "score": float(np.max(scores)),
+        }
+        confidence = float(0.1 * np.clip(np.max(scores), 0.0, 1.0))
+        return EstimateResult(pose, masks, confidence, stats, None)

@@ -1,0 +1,180 @@
+"""Tracks through query keypoints: a query keypoint matched in several references links those
+references' keypoints, which can then be triangulated from the (posed) references alone.
+
+Query keypoints are identified by their pixel coordinates: the pipeline takes every match's
+query position from the one keypoint array, so equal coordinates mean the same keypoint. With
+``merge_px > 0`` (dense matchers) coordinates are snapped to a ``merge_px`` grid first, an
+approximation of the guide's 5 px track merging (neighbours across a cell border stay apart).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.estimators.base import EstimatorOptions
+from services.estimators.correspondences import Deadline, StackedMatches
+from services.estimators.poselib_bridge import (
+    estimate_absolute_pose,
+    ransac_options,
+    refine_absolute_pose,
+)
+from services.estimators.robust_scale import adaptive_threshold_px
+from services.geometry.camera import Camera
+from services.geometry.projection import pixels_from_camera_points
+from services.geometry.rigid import Rigid3d
+from services.geometry.triangulation import TriangulatedTracks, ransac_triangulate
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """T tracks over V references.
+
+    Attributes:
+        match_index: (T, V) index into the stacked matches of the track's match in each
+            reference, −1 where the reference does not observe it.
+        query_match: (T,) one stacked match of each track (for the query pixel / ray).
+    """
+
+    match_index: IntArray
+    query_match: IntArray
+
+    @property
+    def observed(self) -> BoolArray:
+        return self.match_index >= 0
+
+    @property
+    def size(self) -> int:
+        return int(self.match_index.shape[0])
+
+    def subset(self, rows: BoolArray | IntArray) -> Tracks:
+        """The tracks selected by a (T,) mask or an index array."""
+        return Tracks(self.match_index[rows], self.query_match[rows])
+
+    def multi_view(self) -> Tracks:
+        """The tracks observed by at least two references (the triangulable ones)."""
+        return self.subset(self.observed.sum(axis=1) >= 2)
+
+
+def build_tracks(stacked: StackedMatches, merge_px: float = 0.0) -> Tracks:
+    """Group the stacked matches by query keypoint.
+
+    Args:
+        merge_px: grid size for merging nearby query keypoints; 0 = exact equality.
+    """
+    n = stacked.size
+    num_refs = stacked.offsets.shape[0] - 1
+    if n == 0:
+        return Tracks(np.zeros((0, num_refs), np.int64), np.zeros(0, np.int64))
+    keys = np.floor(stacked.query_xy / merge_px) if merge_px > 0 else stacked.query_xy
+    _, first, track_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    track_of = track_of.reshape(-1)
+    match_index = np.full((first.shape[0], num_refs), -1, dtype=np.int64)
+    # later matches of the same keypoint in the same reference overwrite earlier ones
+    match_index[track_of, stacked.ref_index] = np.arange(n)
+    return Tracks(match_index, first.astype(np.int64))
+
+
+def triangulate_tracks(
+    stacked: StackedMatches,
+    tracks: Tracks,
+    threshold_px: float,
+    views: IntArray | None = None,
+    min_angle_deg: float = 1.0,
+) -> TriangulatedTracks:
+    """RANSAC-triangulate the tracks from the references (all, or the given ``views``).
+
+    Returns ``TriangulatedTracks`` over the T tracks and the chosen views' columns.
+    """
+    cols = np.arange(tracks.match_index.shape[1]) if views is None else views
+    mi = tracks.match_index[:, cols]
+    observed = mi >= 0
+    normalized = stacked.ref_norm[np.where(observed, mi, 0)]
+    R = stacked.R_ref[cols]
+    C = stacked.C_ref[cols]
+    projections = np.concatenate([R, -(R @ C[:, :, None])], axis=2)
+    starts, ends = stacked.offsets[cols], stacked.offsets[cols + 1]
+    focals = np.where(ends > starts, stacked.ref_focal[np.minimum(starts, stacked.size - 1)], 1.0)
+    return ransac_triangulate(
+        normalized, observed, projections, focals, C, threshold_px, min_angle_deg
+    )
+
+
+@dataclass(frozen=True)
+class TrackPose:
+    """Query pose from triangulated tracks: pose, (T,) 2D–3D inlier mask, iterations."""
+
+    pose: Rigid3d
+    inliers: BoolArray
+    iterations: int
+
+
+def pose_from_tracks(
+    stacked: StackedMatches,
+    tracks: Tracks,
+    triangulated: TriangulatedTracks,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+    calls_left: int = 1,
+) -> TrackPose | None:
+    """P3P LO-RANSAC (PoseLib, reprojection threshold ``max_error_px``) with non-linear
+    refinement on the query keypoints of the valid tracks and their triangulated points."""
+    valid = np.flatnonzero(triangulated.valid)
+    if valid.size < 4:
+        return None
+    ransac = ransac_options(
+        options,
+        deadline,
+        calls_left,
+        reprojection_px=options.max_error_px,
+        num_matches=int(valid.size),
+    )
+    out = estimate_absolute_pose(
+        stacked.query_xy[tracks.query_match[valid]],
+        triangulated.points[valid],
+        query_camera,
+        ransac,
+        options.max_error_px / 4.0,
+    )
+    if out is None:
+        return None
+    inliers = np.zeros(tracks.size, dtype=bool)
+    inliers[valid[out[1]]] = True
+    return TrackPose(out[0], inliers, out[2])
+
+
+def refine_on_points(
+    pose: Rigid3d,
+    points3d: Array,
+    query_xy: Array,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+    rounds: int = 3,
+    min_points: int = 6,
+) -> tuple[Rigid3d, int]:
+    """Refine the query pose on 2D–3D matches (PoseLib absolute-pose refinement, Cauchy loss)
+    ``rounds`` times; each round keeps the points that reproject within an adaptive threshold
+    (3σ of the errors below ``max_error_px``, at least 1 px). Returns the pose and the number
+    of points used in the last round (0 if it never refined)."""
+    used = 0
+    for _ in range(rounds):
+        if deadline.expired():
+            break
+        projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
+        err = np.linalg.norm(projected - query_xy, axis=1)
+        err = np.where(np.isfinite(err), err, np.inf)
+        thr = adaptive_threshold_px(err, options.max_error_px)
+        inl = err < thr
+        if inl.sum() < min_points:
+            break
+        pose = refine_absolute_pose(query_xy[inl], points3d[inl], query_camera, pose, thr / 4.0)
+        used = int(inl.sum())
+    return pose, used

@@ -1,0 +1,103 @@
+"""Relative pose from three correspondences with depth, and epipolar (Sampson) errors.
+
+With a depth d at a normalised point x̃ = (x, y, 1), the 3D point in the camera frame is d·x̃
+(z-depth). Three such points seen in two images fix the similarity ``P_dst = s·R·P_src + t``
+(Umeyama / Horn); the unknown per-image depth scale only changes ``s`` and the length of
+``t``, so R and the direction of t are exact even when depths are known only up to scale. With
+metric depths in both images, s = 1 and ``t`` is metric.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def similarity_from_points(
+    src: Array, dst: Array, with_scale: bool = True
+) -> tuple[Array, Array, Array]:
+    """Least-squares similarity ``dst ≈ s·R·src + t`` of point sets (Umeyama 1991), batched.
+
+    Args:
+        src, dst: (B, n, 3) corresponding points, n ≥ 3.
+        with_scale: estimate s; otherwise s = 1 (rigid).
+    Returns:
+        R (B, 3, 3), t (B, 3), s (B,).
+    """
+    mu_src = src.mean(axis=1)
+    mu_dst = dst.mean(axis=1)
+    a = src - mu_src[:, None]
+    b = dst - mu_dst[:, None]
+    cov = np.einsum("bni,bnj->bij", b, a) / src.shape[1]
+    U, S, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.ones((src.shape[0], 3))
+    D[:, 2] = d
+    R = (U * D[:, None, :]) @ Vt
+    if with_scale:
+        var_src = (a * a).sum(axis=(1, 2)) / src.shape[1]
+        s = (S * D).sum(axis=1) / np.maximum(var_src, 1e-300)
+    else:
+        s = np.ones(src.shape[0])
+    t = mu_dst - s[:, None] * np.einsum("bij,bj->bi", R, mu_src)
+    return R, t, s
+
+
+def back_project(normalized: Array, depth: Array) -> Array:
+    """(…, 2) normalised points and (…,) z-depths → (…, 3) camera-frame points."""
+    return (
+        np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1)
+        * depth[..., None]
+    )
+
+
+def relative_pose_3pt_depth(
+    x_src: Array, d_src: Array, x_dst: Array, d_dst: Array, with_scale: bool = True
+) -> tuple[Array, Array, Array]:
+    """Minimal 3-point relative pose with depth, batched over B samples.
+
+    Args:
+        x_src, x_dst: (B, 3, 2) normalised points in the source / destination image.
+        d_src, d_dst: (B, 3) depths (> 0) at those points.
+        with_scale: depths are known only up to one scale per image (True) or both metric.
+    Returns:
+        ``dst_from_src`` as R (B, 3, 3) and t (B, 3) (metric when ``with_scale`` is False,
+        otherwise in the source depth units), and the scale s (B,).
+    """
+    return similarity_from_points(
+        back_project(x_src, d_src), back_project(x_dst, d_dst), with_scale
+    )
+
+
+def skew(v: Array) -> Array:
+    """(..., 3) → (..., 3, 3) cross-product matrices."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def sampson_errors(R: Array, t: Array, x_src: Array, x_dst: Array) -> Array:
+    """Sampson epipolar error (normalised units, ≈ pixel error / focal) of relative poses.
+
+    Args:
+        R, t: (B, 3, 3), (B, 3) ``dst_from_src`` hypotheses (the length of t is irrelevant).
+        x_src, x_dst: (N, 2) normalised correspondences.
+    Returns:
+        (B, N) errors.
+    """
+    E = skew(t) @ R
+    x1, y1 = x_src[None, :, 0], x_src[None, :, 1]
+    x2, y2 = x_dst[None, :, 0], x_dst[None, :, 1]
+    e = E[:, :, :, None]  # (B, 3, 3, 1) broadcasts against (1, N)
+    Ex1_0 = e[:, 0, 0] * x1 + e[:, 0, 1] * y1 + e[:, 0, 2]
+    Ex1_1 = e[:, 1, 0] * x1 + e[:, 1, 1] * y1 + e[:, 1, 2]
+    Ex1_2 = e[:, 2, 0] * x1 + e[:, 2, 1] * y1 + e[:, 2, 2]
+    Etx2_0 = e[:, 0, 0] * x2 + e[:, 1, 0] * y2 + e[:, 2, 0]
+    Etx2_1 = e[:, 0, 1] * x2 + e[:, 1, 1] * y2 + e[:, 2, 1]
+    num = Ex1_0 * x2 + Ex1_1 * y2 + Ex1_2
+    den = Ex1_0**2 + Ex1_1**2 + Etx2_0**2 + Etx2_1**2
+    return np.asarray(np.abs(num) / np.sqrt(np.maximum(den, 1e-300)), dtype=np.float64)
