@@ -49,6 +49,7 @@ class Map(Base):
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
     name: Mapped[str] = mapped_column(String(255), unique=True)
     description: Mapped[str | None] = mapped_column(Text)
+    default_estimator: Mapped[str] = mapped_column(String(64), default="e5p1")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     images: Mapped[list[ReferenceImage]] = relationship(

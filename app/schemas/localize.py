@@ -3,6 +3,7 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
+from app.schemas.maps import EstimatorName
 
 
 class PriorSchema(BaseModel):
@@ -18,7 +19,9 @@ class LocalizeParamsIn(BaseModel):
         description="Query intrinsics. When absent: SIMPLE_PINHOLE, focal 1.2 × the longer "
         "image side, principal point at the image centre.",
     )
-    estimator: str = "e5p1"
+    estimator: EstimatorName | None = Field(
+        None, description="Estimator name; default: the map's default_estimator"
+    )
     top_k: int = Field(10, ge=1)
     prior: PriorSchema | None = None
     return_inliers: bool = False

@@ -1,19 +1,38 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Annotated
 
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field
+
+from services.errors import UnknownComponentError
+from services.estimators.registry import get_estimator
+
+
+def _known_estimator(name: str) -> str:
+    try:
+        get_estimator(name)
+    except UnknownComponentError as exc:
+        raise ValueError(str(exc)) from None
+    return name
+
+
+EstimatorName = Annotated[str, AfterValidator(_known_estimator)]
 
 
 class MapCreate(BaseModel):
     name: str = Field(min_length=1, max_length=255)
     description: str | None = Field(None, max_length=10_000)
+    default_estimator: EstimatorName = Field(
+        "e5p1", description="Estimator used when a localize request names none"
+    )
 
 
 class MapOut(BaseModel):
     id: str
     name: str
     description: str | None
+    default_estimator: str
     image_count: int
     created_at: datetime
 

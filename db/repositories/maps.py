@@ -12,8 +12,8 @@ class MapRepository:
     def __init__(self, session: Session) -> None:
         self.session = session
 
-    def create(self, name: str, description: str | None) -> Map:
-        row = Map(name=name, description=description)
+    def create(self, name: str, description: str | None, default_estimator: str = "e5p1") -> Map:
+        row = Map(name=name, description=description, default_estimator=default_estimator)
         self.session.add(row)
         self.session.flush()
         return row

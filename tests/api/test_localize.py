@@ -166,3 +166,14 @@ def test_unknown_map_and_corrupt_image(client: TestClient) -> None:
     )
     assert response.status_code == 422
     assert response.json()["type"].endswith("/invalid-image")
+
+
+def test_map_default_estimator(client: TestClient, query_views: list[SyntheticView]) -> None:
+    created = client.post("/v1/maps", json={"name": "lt", "default_estimator": "local_tri_all"})
+    assert created.status_code == 201 and created.json()["default_estimator"] == "local_tri_all"
+    image = encode_png(query_views[0].image)
+    map_id = created.json()["id"]
+    assert _localize(client, map_id, image, {})["estimator"] == "local_tri_all"
+    assert _localize(client, map_id, image, {"estimator": "e5p1"})["estimator"] == "e5p1"
+    bad = client.post("/v1/maps", json={"name": "x", "default_estimator": "magic"})
+    assert bad.status_code == 422 and "unknown estimator 'magic'" in bad.json()["detail"]

@@ -29,9 +29,7 @@ from app.schemas.localize import (
 )
 from db.repositories.maps import MapRepository
 from db.store import SqlReferenceStore
-from services.errors import UnknownComponentError
 from services.estimators.base import EstimatorOptions
-from services.estimators.registry import get_estimator
 from services.pipeline import LocalizationResult, LocalizeParams
 from services.retrieval.search import PositionPrior
 
@@ -43,13 +41,7 @@ PARAMS_HELP = (
 )
 
 
-def _to_params(body: LocalizeParamsIn, max_top_k: int) -> LocalizeParams:
-    try:
-        get_estimator(body.estimator)
-    except UnknownComponentError as exc:
-        raise invalid(
-            str(exc), [{"loc": ["params", "estimator"], "msg": str(exc), "type": "value_error"}]
-        ) from None
+def _to_params(body: LocalizeParamsIn, default_estimator: str, max_top_k: int) -> LocalizeParams:
     if body.top_k > max_top_k:
         raise invalid(f"top_k may be at most {max_top_k}")
     options = EstimatorOptions()
@@ -57,7 +49,7 @@ def _to_params(body: LocalizeParamsIn, max_top_k: int) -> LocalizeParams:
         options = replace(options, max_error_px=body.max_error_px)
     return LocalizeParams(
         camera=body.camera.to_camera() if body.camera else None,
-        estimator=body.estimator,
+        estimator=body.estimator or default_estimator,
         top_k=body.top_k,
         prior=PositionPrior(np.array(body.prior.position), body.prior.radius)
         if body.prior
@@ -123,12 +115,14 @@ async def localize(
     """Returns 200 with ``localized: false`` and a ``reason`` when the image cannot be
     localized; 4xx only for bad input."""
     body = parse_json_form(LocalizeParamsIn, params, "params")
-    engine_params = _to_params(body, settings.max_top_k)
+    with sessions() as session:
+        map_row = MapRepository(session).get(map_id)
+        if map_row is None:
+            raise not_found("map", map_id)
+        default_estimator = map_row.default_estimator
+    engine_params = _to_params(body, default_estimator, settings.max_top_k)
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    with sessions() as session:
-        if MapRepository(session).get(map_id) is None:
-            raise not_found("map", map_id)
     store = SqlReferenceStore(
         sessions, map_id, localizer.extractor.name, localizer.global_descriptor.name
     )

@@ -19,6 +19,7 @@ def _out(row: Map, image_count: int) -> MapOut:
         id=row.id,
         name=row.name,
         description=row.description,
+        default_estimator=row.default_estimator,
         image_count=image_count,
         created_at=row.created_at,
     )
@@ -37,7 +38,7 @@ def create_map(body: MapCreate, sessions: SessionsDep) -> MapOut:
             repo = MapRepository(session)
             if repo.get_by_name(body.name) is not None:
                 raise conflict(f"a map named {body.name!r} exists")
-            row = repo.create(body.name, body.description)
+            row = repo.create(body.name, body.description, body.default_estimator)
             return _out(row, 0)
     except IntegrityError as exc:
         raise conflict(f"a map named {body.name!r} exists") from exc
