@@ -62,7 +62,8 @@ def procedural_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> ND
         else:
             end = tuple(int(c + d) for c, d in zip(center, rng.integers(-60, 60, 2), strict=True))
             cv2.line(image, center, end, color, int(rng.integers(2, 6)), cv2.LINE_AA)
-    return cv2.GaussianBlur(image, (0, 0), 1.0)
+    blurred: NDArray[np.uint8] = cv2.GaussianBlur(image, (0, 0), 1.0)
+    return blurred
 
 
 class SyntheticScene:
