@@ -92,4 +92,5 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArr
             f"depth map is {depth.shape[1]}×{depth.shape[0]}, the image is {width}×{height}"
         )
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
-    return depth
+    out: NDArray[np.float32] = depth
+    return out

@@ -61,6 +61,11 @@ class EstimatorOptions:
         min_iterations, max_iterations: LO-RANSAC iteration bounds.
         min_inliers: fewer inliers than this (over all references) is a failure.
         min_references: inliers must come from at least this many references.
+        min_verified_points: fewer verified 3D points than this is a failure (0 disables the
+            check): query keypoints that are inliers in >= 2 references whose reference
+            observations triangulate to a point that reprojects into the query within
+            ``max_error_px`` (see ``services.estimators.verification``). Epipolar inliers alone
+            do not prove a pose: unrelated images reach 40-75 of them.
         seed: seed of every random choice, for reproducible answers.
         time_budget_s: wall-clock budget of one ``estimate`` call in seconds (None = unbounded).
             Estimators check it between solver calls and cap their own iteration counts; a
@@ -79,6 +84,7 @@ class EstimatorOptions:
     max_iterations: int = 100_000
     min_inliers: int = 30
     min_references: int = 2
+    min_verified_points: int = 10
     seed: int = 0
     time_budget_s: float | None = None
     triangulation_error_px: float = 2.0

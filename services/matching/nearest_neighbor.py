@@ -10,9 +10,12 @@ from services.features.base import LocalFeatures
 
 class NearestNeighborMatcher:
     """Keeps a pair when each keypoint is the other's nearest neighbour and the nearest
-    distance is below ``ratio`` × the second-nearest (in the query → reference direction)."""
+    distance is below ``ratio`` × the second-nearest (in the query → reference direction).
 
-    def __init__(self, ratio: float = 0.85) -> None:
+    Default 0.8 (was 0.85): on redkitchen it keeps recall (slightly higher) while halving the
+    matches of unrelated images, so their spurious epipolar consensus shrinks as well."""
+
+    def __init__(self, ratio: float = 0.8) -> None:
         if not 0.0 < ratio <= 1.0:
             raise ValueError(f"ratio must be in (0, 1], got {ratio}")
         self.ratio = ratio
@@ -21,18 +24,18 @@ class NearestNeighborMatcher:
     def match(self, query: LocalFeatures, reference: LocalFeatures) -> NDArray[np.int64]:
         if len(query) < 2 or len(reference) < 2:
             return np.zeros((0, 2), dtype=np.int64)
-        similarity = query.descriptors @ reference.descriptors.T
-        # squared L2 distance of unit vectors: 2 - 2·cos
-        nearest2 = np.argpartition(-similarity, 1, axis=1)[:, :2]
+        similarity = query.descriptors @ reference.descriptors.T  # (N, M) cosines
         rows = np.arange(len(query))
-        s0 = similarity[rows, nearest2[:, 0]]
-        s1 = similarity[rows, nearest2[:, 1]]
-        swap = s1 > s0
-        best = np.where(swap, nearest2[:, 1], nearest2[:, 0])
-        first, second = np.maximum(s0, s1), np.minimum(s0, s1)
+        best = np.argmax(similarity, axis=1)
+        # best match per reference keypoint, taken before the row maxima are masked below
+        best_of_reference = np.argmax(similarity, axis=0)
+        first = similarity[rows, best].copy()
+        similarity[rows, best] = -np.inf  # the matrix is ours: mask in place (no argpartition)
+        second = similarity.max(axis=1)
+        # L2 distance of unit vectors: sqrt(2 - 2·cos)
         d_first = np.sqrt(np.maximum(2.0 - 2.0 * first, 0.0))
         d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
         keep = d_first < self.ratio * d_second
-        mutual = np.argmax(similarity, axis=0)[best] == rows
+        mutual = best_of_reference[best] == rows
         keep &= mutual
         return np.stack([rows[keep], best[keep]], axis=1).astype(np.int64)
