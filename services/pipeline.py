@@ -21,6 +21,7 @@ from services.estimators.base import (
     ReferenceObservation,
 )
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
+from services.estimators.verification import verify_pose
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
@@ -215,7 +216,12 @@ class Localizer:
             outcome = None
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
-            outcome = estimator.estimate(camera, observations, params.options)
+            outcome = verify_pose(
+                estimator.estimate(camera, observations, params.options),
+                camera,
+                observations,
+                params.options,
+            )
             reason = outcome.failure_reason.value if outcome.failure_reason else None
         lap("estimate")
         timings["total"] = (time.perf_counter() - t_start) * 1000.0

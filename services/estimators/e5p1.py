@@ -5,15 +5,13 @@ query is a single pinhole camera. PoseLib's 5+1 solver in LO-RANSAC (with Sampso
 refinement) gives the query's ``cam_from_world`` directly, metric scale from the references'
 known baselines.
 
-A pose is accepted only with enough epipolar inliers *and* enough 3D-verified points
-(``services.estimators.verification``): the epipolar consensus alone accepts unrelated images.
+The pipeline then verifies the pose in 3D (``services.estimators.verification``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import poselib
-from numpy.typing import NDArray
 
 from services.estimators.base import (
     EstimateResult,
@@ -24,7 +22,6 @@ from services.estimators.base import (
 )
 from services.estimators.correspondences import Deadline
 from services.estimators.poselib_bridge import ransac_options
-from services.estimators.verification import verify_by_reference_triangulation
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
@@ -34,51 +31,6 @@ def _poselib_pose(pose: Rigid3d) -> poselib.CameraPose:
     out.q = pose.quaternion
     out.t = pose.translation
     return out
-
-
-def _normalized(camera: Camera, xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(M, 2) pixels → (M, 2) undistorted normalised coordinates (PoseLib's camera models)."""
-    if xy.shape[0] == 0:
-        return np.zeros((0, 2))
-    model = poselib.Camera(camera.model, list(camera.params), camera.width, camera.height)
-    return np.asarray(model.unproject(np.ascontiguousarray(xy, dtype=np.float64)), np.float64)
-
-
-def count_verified_points(
-    query_camera: Camera,
-    cam_from_world: Rigid3d,
-    references: list[ReferenceObservation],
-    inliers: list[NDArray[np.bool_]],
-    max_error_px: float,
-) -> tuple[int, int]:
-    """(verified points, candidate tracks) of a pose; see ``verify_by_reference_triangulation``.
-
-    Query keypoints are identified across references by their exact pixel coordinates (every
-    reference is matched against the same query keypoint array).
-    """
-    used = [i for i, mask in enumerate(inliers) if mask.any()]
-    if len(used) < 2:
-        return 0, 0
-    query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
-    _, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
-    check = verify_by_reference_triangulation(
-        cam_from_world.rotation,
-        cam_from_world.translation,
-        _normalized(query_camera, query_xy),
-        np.concatenate([np.full(int(inliers[i].sum()), j, np.int64) for j, i in enumerate(used)]),
-        np.stack([references[i].cam_from_world.rotation for i in used]),
-        np.stack([references[i].cam_from_world.translation for i in used]),
-        np.concatenate(
-            [
-                _normalized(references[i].camera, references[i].reference_xy[inliers[i]])
-                for i in used
-            ]
-        ),
-        track_ids.reshape(-1).astype(np.int64),
-        max_error_px / float(np.mean(query_camera.focal_lengths)),
-        np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
-    )
-    return check.num_verified_points, check.num_tracks
 
 
 class E5p1Estimator:
@@ -146,13 +98,5 @@ class E5p1Estimator:
             and np.all(np.isfinite(cam_from_world.translation))
         ):
             return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
-        if options.min_verified_points > 0:
-            verified, tracks = count_verified_points(
-                query_camera, cam_from_world, references, masks, options.max_error_px
-            )
-            stats["verified_points"] = float(verified)
-            stats["multi_reference_tracks"] = float(tracks)
-            if verified < options.min_verified_points:
-                return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
         confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
         return EstimateResult(cam_from_world, masks, confidence, stats, None)

@@ -29,10 +29,20 @@ focal length. Pure numpy, no per-point Python loops.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import poselib
 from numpy.typing import NDArray
+
+from services.estimators.base import (
+    EstimateResult,
+    EstimatorOptions,
+    FailureReason,
+    ReferenceObservation,
+)
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
 
 Array = NDArray[np.float64]
 
@@ -236,3 +246,76 @@ def verify_by_reference_triangulation(
         point_verified=point_verified,
         num_tracks=num_candidates,
     )
+
+
+def _normalized(camera: Camera, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(M, 2) pixels → (M, 2) undistorted normalised coordinates (PoseLib's camera models)."""
+    if xy.shape[0] == 0:
+        return np.zeros((0, 2))
+    model = poselib.Camera(camera.model, list(camera.params), camera.width, camera.height)
+    return np.asarray(model.unproject(np.ascontiguousarray(xy, dtype=np.float64)), np.float64)
+
+
+def count_verified_points(
+    query_camera: Camera,
+    cam_from_world: Rigid3d,
+    references: list[ReferenceObservation],
+    inliers: list[NDArray[np.bool_]],
+    max_error_px: float,
+) -> tuple[int, int]:
+    """(verified points, candidate tracks) of a pose; see ``verify_by_reference_triangulation``.
+
+    Query keypoints are identified across references by their exact pixel coordinates (every
+    reference is matched against the same query keypoint array).
+    """
+    used = [i for i, mask in enumerate(inliers) if mask.any()]
+    if len(used) < 2:
+        return 0, 0
+    query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
+    _, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
+    check = verify_by_reference_triangulation(
+        cam_from_world.rotation,
+        cam_from_world.translation,
+        _normalized(query_camera, query_xy),
+        np.concatenate([np.full(int(inliers[i].sum()), j, np.int64) for j, i in enumerate(used)]),
+        np.stack([references[i].cam_from_world.rotation for i in used]),
+        np.stack([references[i].cam_from_world.translation for i in used]),
+        np.concatenate(
+            [
+                _normalized(references[i].camera, references[i].reference_xy[inliers[i]])
+                for i in used
+            ]
+        ),
+        track_ids.reshape(-1).astype(np.int64),
+        max_error_px / float(np.mean(query_camera.focal_lengths)),
+        np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
+    )
+    return check.num_verified_points, check.num_tracks
+
+
+def verify_pose(
+    result: EstimateResult,
+    query_camera: Camera,
+    references: list[ReferenceObservation],
+    options: EstimatorOptions,
+) -> EstimateResult:
+    """Turn an estimator's pose into a ``no_consensus`` failure unless at least
+    ``options.min_verified_points`` of its inlier tracks verify in 3D.
+
+    Applied by the pipeline to every estimator's answer. Results without a pose, without
+    inliers (``pose_approx`` uses no correspondences) or with the check disabled
+    (``min_verified_points = 0``) pass through unchanged.
+    """
+    if result.cam_from_world is None or options.min_verified_points <= 0 or result.num_inliers == 0:
+        return result
+    verified, tracks = count_verified_points(
+        query_camera, result.cam_from_world, references, result.inliers, options.max_error_px
+    )
+    stats = {
+        **result.stats,
+        "verified_points": float(verified),
+        "multi_reference_tracks": float(tracks),
+    }
+    if verified < options.min_verified_points:
+        return EstimateResult(None, result.inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
+    return replace(result, stats=stats)

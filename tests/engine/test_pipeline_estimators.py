@@ -3,13 +3,20 @@ retrieval → matching → estimate), with exact ground truth from the synthetic
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names
 from services.geometry.rigid import pose_error
 from services.memory_store import MemoryReferenceStore
 from services.pipeline import LocalizeParams, Localizer
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
+from services.synthetic_scene import (
+    SyntheticScene,
+    SyntheticView,
+    encode_depth_png,
+    encode_png,
+    unrelated_image,
+)
 
 
 @pytest.fixture(scope="module")
@@ -45,3 +52,19 @@ def test_estimator_on_rendered_queries(
         return  # the baseline: a pose, but no accuracy promise
     for dt, dr in errors:
         assert dt < 0.01 * scene.extent and dr < 0.5, (name, errors)
+
+
+@pytest.mark.parametrize("name", [n for n in estimator_names() if n != "pose_approx"])
+def test_estimator_rejects_unrelated_image(
+    name: str, localizer: Localizer, store: MemoryReferenceStore, scene: SyntheticScene
+) -> None:
+    image = unrelated_image(7)
+    depth = encode_depth_png(np.full(image.shape[:2], 3.0, np.float32))
+    result = localizer.localize(
+        encode_png(image),
+        LocalizeParams(camera=scene.camera, estimator=name),
+        store,
+        depth if name in DEPTH_ESTIMATORS else None,
+    )
+    assert not result.localized and result.cam_from_world is None
+    assert result.reason in ("no_consensus", "too_few_matches", "degenerate_geometry")
