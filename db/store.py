@@ -91,16 +91,18 @@ class SqlReferenceStore:
             if image is None or "keypoints" not in stored:  # deleted since retrieval
                 continue
             depth = stored.get("depth")
+            camera = camera_of(image)
             views.append(
                 ReferenceView(
                     image_id=image.id,
                     name=image.name,
-                    camera=camera_of(image),
+                    camera=camera,
                     cam_from_world=pose_of(image),
                     features=LocalFeatures(
                         stored["keypoints"].astype(np.float32),
                         stored["descriptors"].astype(np.float32),
                         stored["scores"].astype(np.float32),
+                        (camera.width, camera.height),
                     ),
                     depth=depth.astype(np.float32) if depth is not None else None,
                 )

@@ -18,11 +18,14 @@ class LocalFeatures:
             (centre of the top-left pixel at (0.5, 0.5)).
         descriptors: (N, D) float32, L2-normalised rows.
         scores: (N,) float32 detection scores (higher is better).
+        image_size: (width, height) of the original image; learned matchers normalise
+            keypoints by it.
     """
 
     keypoints: NDArray[np.float32]
     descriptors: NDArray[np.float32]
     scores: NDArray[np.float32]
+    image_size: tuple[int, int]
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])

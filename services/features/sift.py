@@ -53,6 +53,7 @@ class SiftExtractor:
                 np.zeros((0, 2), np.float32),
                 np.zeros((0, 128), np.float32),
                 np.zeros(0, np.float32),
+                (width, height),
             )
         xy = np.array([kp.pt for kp in cv_keypoints], dtype=np.float32)
         scores = np.array([kp.response for kp in cv_keypoints], dtype=np.float32)
@@ -66,4 +67,5 @@ class SiftExtractor:
             np.ascontiguousarray(xy[order]),
             np.ascontiguousarray(root[order].astype(np.float32)),
             np.ascontiguousarray(scores[order]),
+            (width, height),
         )

@@ -1,0 +1,1 @@
+"""Model runtime: onnxruntime sessions and the manifest of exported models."""
