@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import tempfile
 import threading
@@ -23,7 +24,8 @@ from app.evaluation.evaluate import localize_params
 from app.evaluation.runner import HttpRunner, QueryOutcome
 from app.evaluation.server import LocalServer, is_loopback, peak_rss_mb
 from app.evaluation.split import split_dataset
-from services.synthetic_scene import SyntheticScene, encode_png
+from services.estimators.registry import DEPTH_ESTIMATORS
+from services.synthetic_scene import SyntheticScene, encode_depth_png, encode_png
 
 # stages spent in model inference and solvers (``timings_ms`` of the answer)
 COMPUTE_STAGES = ("extract", "match", "estimate")
@@ -49,6 +51,8 @@ class LevelResult:
 
 
 def _synthetic(folder: Path, references: int) -> tuple[list[PosedImage], list[PosedImage]]:
+    """A rendered scene's references and 4 queries as PNG files (with depth PNGs) in
+    ``folder``."""
     scene = SyntheticScene(seed=0)
     out = []
     for views in (
@@ -57,9 +61,10 @@ def _synthetic(folder: Path, references: int) -> tuple[list[PosedImage], list[Po
     ):
         images = []
         for view in views:
-            path = folder / view.name
+            path, depth = folder / view.name, folder / f"depth-{view.name}"
             path.write_bytes(encode_png(view.image))
-            images.append(PosedImage(view.name, path, view.camera, view.cam_from_world))
+            depth.write_bytes(encode_depth_png(view.depth))
+            images.append(PosedImage(view.name, path, view.camera, view.cam_from_world, depth))
         out.append(images)
     return out[0], out[1]
 
@@ -68,13 +73,13 @@ def run_level(
     url: str,
     api_key: str | None,
     map_id: str,
-    queries: list[tuple[bytes, dict[str, Any]]],
+    queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
     clients: int,
     max_requests: int,
     max_seconds: float,
 ) -> LevelResult:
-    """``clients`` threads, each with its own HTTP client, send queries round-robin until
-    ``max_requests`` were sent or ``max_seconds`` passed."""
+    """``clients`` threads, each with its own HTTP client, send queries (image, depth,
+    params) round-robin until ``max_requests`` were sent or ``max_seconds`` passed."""
     outcomes: list[QueryOutcome] = []
     lock = threading.Lock()
     issued = 0
@@ -88,9 +93,9 @@ def run_level(
                 with lock:
                     if issued >= max_requests or time.monotonic() >= deadline:
                         return
-                    image, params = queries[issued % len(queries)]
+                    image, depth, params = queries[issued % len(queries)]
                     issued += 1
-                outcome = runner.localize(image, None, params)
+                outcome = runner.localize(image, depth, params)
                 with lock:
                     outcomes.append(outcome)
         finally:
@@ -152,6 +157,7 @@ def _server(args: argparse.Namespace) -> Iterator[tuple[str, int | None]]:
 
 
 def bench_main(args: argparse.Namespace) -> int:
+    logging.getLogger().setLevel(logging.WARNING)  # no INFO line per request
     if args.url and not is_loopback(args.url):
         print("slloc bench: --url must be a loopback address", file=sys.stderr)
         return 2
@@ -182,11 +188,16 @@ def bench_main(args: argparse.Namespace) -> int:
             file=sys.stderr,
             flush=True,
         )
+        with_depth = args.estimator in DEPTH_ESTIMATORS
         queries = [
-            (q.image_path.read_bytes(), localize_params(q.camera, args.estimator, args.top_k))
+            (
+                q.image_path.read_bytes(),
+                q.depth_path.read_bytes() if with_depth and q.depth_path else None,
+                localize_params(q.camera, args.estimator, args.top_k),
+            )
             for q in query_images
         ]
-        loader.localize(queries[0][0], None, queries[0][1])  # warm-up, not counted
+        loader.localize(*queries[0])  # warm-up, not counted
         levels = []
         for clients in levels_wanted:
             level = run_level(

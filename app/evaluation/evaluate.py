@@ -202,4 +202,6 @@ def write_outputs(
     md_path.write_text(evaluation.markdown)
     evaluation.files = [md_path, json_path]
     if evaluation.records:
-        evaluation.files += write_plots(out_dir, evaluation.summaries, evaluation.records)
+        evaluation.files += write_plots(
+            out_dir, evaluation.summaries, evaluation.records, thresholds
+        )

@@ -101,10 +101,13 @@ def write_json(
 
 
 def write_plots(
-    out_dir: Path, summaries: dict[str, dict[str, Any]], records: list[QueryRecord]
+    out_dir: Path,
+    summaries: dict[str, dict[str, Any]],
+    records: list[QueryRecord],
+    thresholds: tuple[tuple[float, float], ...],
 ) -> list[Path]:
-    """``errors.png`` (cumulative position and rotation error per configuration) and
-    ``timings.png`` (median time per stage per configuration, stacked)."""
+    """``errors.png`` (cumulative position and rotation error per configuration, up to twice
+    the largest recall threshold) and ``timings.png`` (median time per stage, stacked)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -127,6 +130,7 @@ def write_plots(
     )
     ax_rot.set(xlabel="rotation error (°)", xlim=(0, 10), ylim=(0, 1))
     for ax in (ax_pos, ax_rot):
+        ax.set_ylim(0, 1)
         ax.grid(alpha=0.3)
     ax_rot.legend(fontsize=8, loc="lower right")
     fig.suptitle("Cumulative error (failures never reach 1)")
