@@ -169,9 +169,13 @@ def bench_main(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="slloc-bench-")))
         if args.dataset is not None:
-            split = split_dataset(
-                open_dataset(args.dataset, args.images), args.references, args.queries
-            )
+            try:
+                split = split_dataset(
+                    open_dataset(args.dataset, args.images), args.references, args.queries
+                )
+            except (OSError, ValueError) as exc:
+                print(f"slloc bench: {exc}", file=sys.stderr)
+                return 2
             references, query_images = split.references, split.queries
         else:
             references, query_images = _synthetic(tmp, args.synthetic_references)

@@ -49,6 +49,8 @@ def eval_main(args: argparse.Namespace) -> int:
         estimators = _names(args.estimators, estimator_names(), "estimators")
         features = _names(args.features, feature_config_names(), "feature configurations")
         thresholds = _thresholds(args.threshold)
+        if args.max_queries is not None and args.max_queries < 1:
+            raise ValueError("--max-queries must be at least 1")
     except (OSError, ValueError) as exc:
         print(f"slloc eval: {exc}", file=sys.stderr)
         return 2
@@ -91,4 +93,6 @@ def eval_main(args: argparse.Namespace) -> int:
     write_outputs(evaluation, args.out, meta, thresholds)
     print(evaluation.markdown)
     _log(f"wrote {', '.join(str(p) for p in evaluation.files)} in {meta['seconds']:.0f} s")
+    if evaluation.error is not None:
+        return 1
     return 130 if evaluation.interrupted else 0

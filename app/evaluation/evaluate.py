@@ -5,6 +5,7 @@ interrupted (Ctrl-C leaves the results so far)."""
 from __future__ import annotations
 
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,6 +54,7 @@ class Evaluation:
     records: list[QueryRecord] = field(default_factory=list)
     summaries: dict[str, dict[str, Any]] = field(default_factory=dict)
     interrupted: bool = False
+    error: str | None = None
     markdown: str = ""
     files: list[Path] = field(default_factory=list)
 
@@ -106,7 +108,8 @@ def run_evaluation(
     on_record: Callable[[QueryRecord], None] | None = None,
 ) -> Evaluation:
     """Run every feature configuration (one runner each) × estimator; stops early, keeping
-    what it has, on KeyboardInterrupt. ``on_record`` sees each record as it is made."""
+    what it has, on KeyboardInterrupt (``interrupted``) or an error (``error``).
+    ``on_record`` sees each record as it is made."""
     evaluation = Evaluation()
     references = ReferencePoses.of({r.name: r.cam_from_world for r in split.references})
     queries = _queries(split, options)
@@ -121,6 +124,10 @@ def run_evaluation(
     except KeyboardInterrupt:
         evaluation.interrupted = True
         log("interrupted: writing the results so far")
+    except Exception as exc:  # a long run keeps what it measured; the error is reported
+        evaluation.error = f"{type(exc).__name__}: {exc}"
+        log(traceback.format_exc())
+        log(f"failed ({evaluation.error}): writing the results so far")
     return evaluation
 
 
@@ -196,7 +203,7 @@ def write_outputs(
     }
     evaluation.markdown = markdown_tables(evaluation.summaries, thresholds)
     out_dir.mkdir(parents=True, exist_ok=True)
-    meta = {**meta, "interrupted": evaluation.interrupted}
+    meta = {**meta, "interrupted": evaluation.interrupted, "error": evaluation.error}
     json_path, md_path = out_dir / "results.json", out_dir / "report.md"
     write_json(json_path, meta, evaluation.summaries, evaluation.records)
     md_path.write_text(evaluation.markdown)

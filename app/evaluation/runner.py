@@ -147,17 +147,19 @@ class HttpRunner:
         headers = {"X-API-Key": api_key} if api_key else {}
         self._client = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=600.0)
         self.keep_map = keep_map or map_id is not None
-        health = self._check(self._client.get("/v1/health")).json()
+        health = self._request("GET", "/v1/health").json()
         self.features = str(health["models"]["features"])
         if map_id is None:
             name = f"{map_name}-{uuid.uuid4().hex[:8]}"
-            map_id = str(
-                self._check(self._client.post("/v1/maps", json={"name": name})).json()["id"]
-            )
+            map_id = str(self._request("POST", "/v1/maps", json={"name": name}).json()["id"])
         self.map_id = map_id
 
-    @staticmethod
-    def _check(response: httpx.Response) -> httpx.Response:
+    def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        """The response; RuntimeError on a transport error or an error status."""
+        try:
+            response = self._client.request(method, url, **kwargs)
+        except httpx.HTTPError as exc:
+            raise RuntimeError(f"{method} {url}: {exc}") from exc
         if response.is_error:
             raise RuntimeError(
                 f"{response.request.method} {response.request.url}: {response.status_code} "
@@ -174,23 +176,21 @@ class HttpRunner:
         return files
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
-        self._check(
-            self._client.post(
-                f"/v1/maps/{self.map_id}/images",
-                files=self._files(image.image_path.read_bytes(), image.image_path.name, depth),
-                data={"metadata": metadata_of(image).model_dump_json()},
-            )
+        self._request(
+            "POST",
+            f"/v1/maps/{self.map_id}/images",
+            files=self._files(image.image_path.read_bytes(), image.image_path.name, depth),
+            data={"metadata": metadata_of(image).model_dump_json()},
         )
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
         name = "query.png" if image.startswith(b"\x89PNG") else "query.jpg"
-        response = self._check(
-            self._client.post(
-                f"/v1/maps/{self.map_id}/localize",
-                files=self._files(image, name, depth),
-                data={"params": json.dumps(params)},
-            )
+        response = self._request(
+            "POST",
+            f"/v1/maps/{self.map_id}/localize",
+            files=self._files(image, name, depth),
+            data={"params": json.dumps(params)},
         )
         client_ms = (time.perf_counter() - start) * 1000.0
         body = response.json()

@@ -15,7 +15,7 @@ import pytest
 
 from app import cli
 from app.evaluation.runner import InProcessRunner
-from app.evaluation.server import LocalServer
+from app.evaluation.server import LocalServer, free_port
 from services.synthetic_scene import SyntheticScene
 from tests.evaluation.conftest import NUM_QUERIES, SPLIT_ARGS
 
@@ -134,3 +134,10 @@ def test_http_mode_gives_the_same_poses(
         assert list(summary["recall"].values()) == [1.0], config
     # the evaluation map was deleted at the end (no --keep-map)
     assert httpx.get(f"{server.url}/v1/maps").json()["total"] == 0
+
+
+def test_unreachable_server_is_reported(synthetic_csv: Path, tmp_path: Path) -> None:
+    code, results = run_eval(synthetic_csv, tmp_path, "--url", f"http://127.0.0.1:{free_port()}")
+    assert code == 1
+    assert "GET /v1/health" in results["meta"]["error"]
+    assert results["queries"] == []
