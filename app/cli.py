@@ -1,4 +1,4 @@
-"""The ``slloc`` command: serve, import, db upgrade, synth, openapi."""
+"""The ``slloc`` command: serve, import, db upgrade, synth, openapi, eval, bench."""
 
 from __future__ import annotations
 
@@ -46,6 +46,13 @@ def main(argv: list[str] | None = None) -> int:
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
+    from app.evaluation.arguments import add_bench_arguments, add_eval_arguments
+
+    add_eval_arguments(
+        sub.add_parser("eval", help="accuracy and timings of configurations on a posed dataset")
+    )
+    add_bench_arguments(sub.add_parser("bench", help="latency and throughput of /localize"))
+
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -56,6 +63,14 @@ def main(argv: list[str] | None = None) -> int:
         return _import(args)
     if args.command == "db":
         return _db_upgrade()
+    if args.command == "eval":
+        from app.evaluation.command import eval_main
+
+        return eval_main(args)
+    if args.command == "bench":
+        from app.evaluation.bench import bench_main
+
+        return bench_main(args)
     if args.command == "synth":
         from app.synthetic_dataset import write_synthetic_dataset
 

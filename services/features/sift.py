@@ -20,7 +20,7 @@ class SiftOptions:
     At OpenCV's default threshold a 640×480 indoor frame (redkitchen) yields only 240-1760
     keypoints, so the budget never binds and weakly textured frames starve; 0.02 roughly
     doubles the keypoints and raised redkitchen recall at (10 cm, 10°) from 80 % to 88 %
-    (scripts/eval_redkitchen.py)."""
+    (`slloc eval ../shared/datasets/redkitchen`)."""
 
     max_keypoints: int = 2048
     max_side: int = 1024

@@ -39,7 +39,9 @@ class TestTopK:
 class TestNearestNeighborMatcher:
     def _features(self, desc: np.ndarray) -> LocalFeatures:
         n = desc.shape[0]
-        return LocalFeatures(np.zeros((n, 2), np.float32), _unit(desc), np.ones(n, np.float32), (640, 480))
+        return LocalFeatures(
+            np.zeros((n, 2), np.float32), _unit(desc), np.ones(n, np.float32), (640, 480)
+        )
 
     def test_recovers_permutation_and_rejects_ambiguous(self) -> None:
         rng = np.random.default_rng(0)

@@ -1,0 +1,1 @@
+"""``slloc eval`` and ``slloc bench``: accuracy and speed of a map and a configuration."""

@@ -1,0 +1,93 @@
+"""Arguments of ``slloc eval`` and ``slloc bench`` (light imports: the CLI builds them for
+every command)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from app.evaluation.metrics import DEFAULT_THRESHOLDS
+from services.components import DEFAULT_FEATURES, feature_config_names
+from services.estimators.registry import DEFAULT_ESTIMATOR, estimator_names
+
+
+def add_dataset_arguments(parser: argparse.ArgumentParser, required: bool) -> None:
+    parser.add_argument(
+        "dataset",
+        type=Path,
+        nargs=None if required else "?",
+        help="an import CSV, a redkitchen-layout folder, or a COLMAP model folder (+ --images)",
+    )
+    parser.add_argument("--images", type=Path, help="image folder of a COLMAP model")
+    parser.add_argument(
+        "--references",
+        help='reference rule, e.g. "range:0-499 every:5", "list:refs.txt", "rest" '
+        "(default: the dataset's suggestion, else everything but the queries)",
+    )
+    parser.add_argument(
+        "--queries",
+        help='query rule, e.g. "range:500-999 every:10" (default: the dataset\'s suggestion, '
+        "else every:10)",
+    )
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    add_dataset_arguments(parser, required=True)
+    parser.add_argument(
+        "--estimators",
+        default=DEFAULT_ESTIMATOR,
+        help=f"comma-separated estimator names or 'all' ({', '.join(estimator_names())})",
+    )
+    parser.add_argument(
+        "--features",
+        default=DEFAULT_FEATURES,
+        help="comma-separated feature configurations or 'all', in process only "
+        f"({', '.join(feature_config_names())}); with --url the server's are used",
+    )
+    parser.add_argument("--url", help="evaluate against this running server instead")
+    parser.add_argument("--api-key", help="X-API-Key for --url (an admin key)")
+    parser.add_argument("--keep-map", action="store_true", help="with --url: keep the map")
+    parser.add_argument("--top-k", type=int, default=10)
+    parser.add_argument("--max-error-px", type=float, help="inlier threshold (service default)")
+    parser.add_argument(
+        "--threshold",
+        action="append",
+        metavar="M,DEG",
+        help="recall threshold in metres and degrees, repeatable (default: "
+        + " ".join(f"{m:g},{d:g}" for m, d in DEFAULT_THRESHOLDS)
+        + ")",
+    )
+    parser.add_argument("--no-depth", action="store_true", help="never send depth maps")
+    parser.add_argument(
+        "--unrelated",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also localize N unrelated images (false accepts)",
+    )
+    parser.add_argument("--max-queries", type=int, metavar="N", help="only the first N queries")
+    parser.add_argument("--out", type=Path, default=Path("out/eval"), help="output folder")
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    add_dataset_arguments(parser, required=False)
+    parser.add_argument(
+        "--url", help="benchmark this server on loopback (default: start one on a free port)"
+    )
+    parser.add_argument("--api-key", help="X-API-Key for --url (an admin key)")
+    parser.add_argument(
+        "--server-pid", type=int, help="with --url: the server's process id, for its peak memory"
+    )
+    parser.add_argument(
+        "--synthetic-references",
+        type=int,
+        default=24,
+        metavar="N",
+        help="without a dataset: render a synthetic scene with N references",
+    )
+    parser.add_argument("--clients", default="1,2,4", help="concurrent clients per level")
+    parser.add_argument("--requests", type=int, default=20, help="requests per level (at most)")
+    parser.add_argument("--duration", type=float, default=120.0, help="seconds per level (at most)")
+    parser.add_argument("--estimator", default=DEFAULT_ESTIMATOR, choices=estimator_names())
+    parser.add_argument("--top-k", type=int, default=10)
+    parser.add_argument("--out", type=Path, default=Path("out/bench.json"), help="JSON output")

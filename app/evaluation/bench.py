@@ -1,0 +1,234 @@
+"""``slloc bench``: ``/localize`` latency percentiles and throughput with N concurrent clients
+on loopback, the server's peak memory, and the service overhead (latency minus the time
+inside feature extraction, matching and the estimator) as a share of the latency."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.evaluation.datasets import PosedImage, open_dataset
+from app.evaluation.evaluate import localize_params
+from app.evaluation.runner import HttpRunner, QueryOutcome
+from app.evaluation.server import LocalServer, is_loopback, peak_rss_mb
+from app.evaluation.split import split_dataset
+from services.estimators.registry import DEPTH_ESTIMATORS
+from services.synthetic_scene import SyntheticScene, encode_depth_png, encode_png
+
+# stages spent in model inference and solvers (``timings_ms`` of the answer)
+COMPUTE_STAGES = ("extract", "match", "estimate")
+
+
+@dataclass(frozen=True)
+class LevelResult:
+    """One concurrency level. Latencies are client wall times in ms; ``overhead_ratio`` is
+    1 − Σ(extract + match + estimate) / Σ latency (queueing behind busy workers counts as
+    overhead); ``server_overhead_ratio`` the same against the server's own ``total``."""
+
+    clients: int
+    requests: int
+    localized: int
+    seconds: float
+    throughput_rps: float
+    latency_p50_ms: float
+    latency_p95_ms: float
+    latency_p99_ms: float
+    overhead_ratio: float
+    server_overhead_ratio: float
+    median_timings_ms: dict[str, float]
+
+
+def _synthetic(folder: Path, references: int) -> tuple[list[PosedImage], list[PosedImage]]:
+    """A rendered scene's references and 4 queries as PNG files (with depth PNGs) in
+    ``folder``."""
+    scene = SyntheticScene(seed=0)
+    out = []
+    for views in (
+        scene.views(references, stream=1, prefix="ref"),
+        scene.views(4, stream=2, prefix="query"),
+    ):
+        images = []
+        for view in views:
+            path, depth = folder / view.name, folder / f"depth-{view.name}"
+            path.write_bytes(encode_png(view.image))
+            depth.write_bytes(encode_depth_png(view.depth))
+            images.append(PosedImage(view.name, path, view.camera, view.cam_from_world, depth))
+        out.append(images)
+    return out[0], out[1]
+
+
+def run_level(
+    url: str,
+    api_key: str | None,
+    map_id: str,
+    queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
+    clients: int,
+    max_requests: int,
+    max_seconds: float,
+) -> LevelResult:
+    """``clients`` threads, each with its own HTTP client, send queries (image, depth,
+    params) round-robin until ``max_requests`` were sent or ``max_seconds`` passed."""
+    outcomes: list[QueryOutcome] = []
+    lock = threading.Lock()
+    issued = 0
+    deadline = time.monotonic() + max_seconds
+
+    def client() -> None:
+        nonlocal issued
+        runner = HttpRunner(url, api_key, map_id=map_id)
+        try:
+            while True:
+                with lock:
+                    if issued >= max_requests or time.monotonic() >= deadline:
+                        return
+                    image, depth, params = queries[issued % len(queries)]
+                    issued += 1
+                outcome = runner.localize(image, depth, params)
+                with lock:
+                    outcomes.append(outcome)
+        finally:
+            runner.close()
+
+    start = time.perf_counter()
+    threads = [threading.Thread(target=client) for _ in range(clients)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    seconds = time.perf_counter() - start
+    latency = np.array([o.timings_ms["client"] for o in outcomes])
+    compute = np.array([sum(o.timings_ms[s] for s in COMPUTE_STAGES) for o in outcomes])
+    total = np.array([o.timings_ms["total"] for o in outcomes])
+    p50, p95, p99 = np.percentile(latency, [50, 95, 99]) if len(latency) else (np.nan,) * 3
+    return LevelResult(
+        clients=clients,
+        requests=len(outcomes),
+        localized=sum(o.localized for o in outcomes),
+        seconds=seconds,
+        throughput_rps=len(outcomes) / seconds,
+        latency_p50_ms=float(p50),
+        latency_p95_ms=float(p95),
+        latency_p99_ms=float(p99),
+        overhead_ratio=float(1.0 - compute.sum() / latency.sum()) if len(latency) else np.nan,
+        server_overhead_ratio=float(1.0 - compute.sum() / total.sum()) if len(total) else np.nan,
+        median_timings_ms={
+            stage: float(np.median([o.timings_ms[stage] for o in outcomes]))
+            for stage in (outcomes[0].timings_ms if outcomes else {})
+        },
+    )
+
+
+def markdown(levels: list[LevelResult], peak_mb: float | None) -> str:
+    lines = [
+        "| clients | requests | throughput (req/s) | p50 ms | p95 ms | p99 ms "
+        "| overhead / latency | overhead / server total |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in levels:
+        lines.append(
+            f"| {r.clients} | {r.requests} | {r.throughput_rps:.2f} | {r.latency_p50_ms:.0f} "
+            f"| {r.latency_p95_ms:.0f} | {r.latency_p99_ms:.0f} | {r.overhead_ratio * 100:.1f} % "
+            f"| {r.server_overhead_ratio * 100:.1f} % |"
+        )
+    memory = f"{peak_mb:.0f} MiB" if peak_mb is not None else "unknown (give --server-pid)"
+    lines += ["", f"Server peak memory (VmHWM): {memory}"]
+    return "\n".join(lines) + "\n"
+
+
+@contextmanager
+def _server(args: argparse.Namespace) -> Iterator[tuple[str, int | None]]:
+    if args.url:
+        yield args.url, args.server_pid
+        return
+    with LocalServer() as server:
+        yield server.url, server.pid
+
+
+def bench_main(args: argparse.Namespace) -> int:
+    logging.getLogger().setLevel(logging.WARNING)  # no INFO line per request
+    if args.url and not is_loopback(args.url):
+        print("slloc bench: --url must be a loopback address", file=sys.stderr)
+        return 2
+    try:
+        levels_wanted = [int(v) for v in args.clients.split(",")]
+    except ValueError:
+        print(f"slloc bench: bad --clients {args.clients!r}", file=sys.stderr)
+        return 2
+    with ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="slloc-bench-")))
+        if args.dataset is not None:
+            try:
+                split = split_dataset(
+                    open_dataset(args.dataset, args.images), args.references, args.queries
+                )
+            except (OSError, ValueError) as exc:
+                print(f"slloc bench: {exc}", file=sys.stderr)
+                return 2
+            references, query_images = split.references, split.queries
+        else:
+            references, query_images = _synthetic(tmp, args.synthetic_references)
+        url, pid = stack.enter_context(_server(args))
+        loader = HttpRunner(url, args.api_key, "slloc-bench")
+        stack.callback(loader.close)
+        start = time.perf_counter()
+        for image in references:
+            depth = image.depth_path.read_bytes() if image.depth_path else None
+            loader.add_reference(image, depth)
+        print(
+            f"loaded {len(references)} references into map {loader.map_id} on {url} "
+            f"in {time.perf_counter() - start:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+        with_depth = args.estimator in DEPTH_ESTIMATORS
+        queries = [
+            (
+                q.image_path.read_bytes(),
+                q.depth_path.read_bytes() if with_depth and q.depth_path else None,
+                localize_params(q.camera, args.estimator, args.top_k),
+            )
+            for q in query_images
+        ]
+        loader.localize(*queries[0])  # warm-up, not counted
+        levels = []
+        for clients in levels_wanted:
+            level = run_level(
+                url, args.api_key, loader.map_id, queries, clients, args.requests, args.duration
+            )
+            print(
+                f"{clients} client(s): {level.requests} requests, "
+                f"p50 {level.latency_p50_ms:.0f} ms",
+                file=sys.stderr,
+                flush=True,
+            )
+            levels.append(level)
+        peak = peak_rss_mb(pid) if pid is not None else None
+    table = markdown(levels, peak)
+    print(table)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps(
+            {
+                "url": args.url or "local server",
+                "estimator": args.estimator,
+                "references": len(references),
+                "peak_rss_mb": peak,
+                "levels": [asdict(level) for level in levels],
+            },
+            indent=1,
+        )
+    )
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0

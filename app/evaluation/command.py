@@ -1,0 +1,98 @@
+"""``slloc eval``: the command (progress on stderr, Markdown tables on stdout)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Callable
+from functools import partial
+
+from app.evaluation.datasets import open_dataset
+from app.evaluation.evaluate import EvalOptions, run_evaluation, write_outputs
+from app.evaluation.metrics import DEFAULT_THRESHOLDS
+from app.evaluation.runner import HttpRunner, InProcessRunner, Runner
+from app.evaluation.split import split_dataset
+from app.settings import get_settings
+from services.components import feature_config_names
+from services.estimators.registry import estimator_names
+
+
+def _names(value: str, known: list[str], what: str) -> list[str]:
+    names = known if value.strip() == "all" else [v.strip() for v in value.split(",") if v.strip()]
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise ValueError(f"unknown {what} {unknown}; known: {', '.join(known)}")
+    return names
+
+
+def _thresholds(values: list[str] | None) -> tuple[tuple[float, float], ...]:
+    if not values:
+        return DEFAULT_THRESHOLDS
+    pairs = []
+    for value in values:
+        metres, _, degrees = value.partition(",")
+        pairs.append((float(metres), float(degrees)))
+    return tuple(pairs)
+
+
+def _log(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def eval_main(args: argparse.Namespace) -> int:
+    logging.getLogger().setLevel(logging.WARNING)  # per-image INFO lines would drown progress
+    try:
+        dataset = open_dataset(args.dataset, args.images)
+        split = split_dataset(dataset, args.references, args.queries)
+        estimators = _names(args.estimators, estimator_names(), "estimators")
+        features = _names(args.features, feature_config_names(), "feature configurations")
+        thresholds = _thresholds(args.threshold)
+        if args.max_queries is not None and args.max_queries < 1:
+            raise ValueError("--max-queries must be at least 1")
+    except (OSError, ValueError) as exc:
+        print(f"slloc eval: {exc}", file=sys.stderr)
+        return 2
+    options = EvalOptions(
+        estimators=estimators,
+        thresholds=thresholds,
+        top_k=args.top_k,
+        max_error_px=args.max_error_px,
+        use_depth=not args.no_depth,
+        unrelated=args.unrelated,
+        max_queries=args.max_queries,
+    )
+    factories: list[Callable[[], Runner]]
+    if args.url:
+        factories = [
+            partial(HttpRunner, args.url, args.api_key, f"slloc-eval-{dataset.name}", args.keep_map)
+        ]
+    else:
+        models_dir = get_settings().models_dir
+        factories = [partial(InProcessRunner, name, models_dir) for name in features]
+    _log(
+        f"{dataset.name}: {len(split.references)} references, {len(split.queries)} queries, "
+        f"estimators {', '.join(estimators)}, "
+        + (f"server {args.url}" if args.url else f"features {', '.join(features)}, in process")
+    )
+    start = time.perf_counter()
+    evaluation = run_evaluation(split, factories, options, _log)
+    meta = {
+        "dataset": str(args.dataset),
+        "mode": "http" if args.url else "in-process",
+        "references": len(split.references),
+        "queries": len(split.queries[: args.max_queries]),
+        "estimators": estimators,
+        "features": None if args.url else features,
+        "top_k": args.top_k,
+        "max_error_px": args.max_error_px,
+        "thresholds": thresholds,
+        "seconds": time.perf_counter() - start,
+    }
+    write_outputs(evaluation, args.out, meta, thresholds)
+    print(evaluation.markdown)
+    _log(f"wrote {', '.join(str(p) for p in evaluation.files)} in {meta['seconds']:.0f} s")
+    if evaluation.error is not None:
+        return 1
+    return 130 if evaluation.interrupted else 0

@@ -1,0 +1,214 @@
+"""The evaluation loop: per feature configuration, load the references into a fresh map once,
+then localize every query with every estimator; summarize and write the outputs, also when
+interrupted (Ctrl-C leaves the results so far)."""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from app.evaluation.datasets import PosedImage
+from app.evaluation.metrics import (
+    DEFAULT_THRESHOLDS,
+    QueryRecord,
+    ReferencePoses,
+    make_record,
+    summarize,
+)
+from app.evaluation.report import markdown_tables, write_json, write_plots
+from app.evaluation.runner import Runner
+from app.evaluation.split import Split
+from app.schemas.geometry import CameraSchema
+from services.estimators.registry import DEPTH_ESTIMATORS
+from services.geometry.camera import Camera
+from services.synthetic_scene import encode_png, unrelated_image
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """What to run: estimator names, the localize params they share, and what to report.
+
+    Attributes:
+        max_error_px: the API's ``max_error_px`` (None: the service default).
+        use_depth: send depth maps where the dataset has them (references always, queries for
+            the estimators that use depth).
+        unrelated: also localize this many images of nothing in the map (false accepts).
+        max_queries: localize only the first N queries of the split.
+    """
+
+    estimators: Sequence[str]
+    thresholds: tuple[tuple[float, float], ...] = DEFAULT_THRESHOLDS
+    top_k: int = 10
+    max_error_px: float | None = None
+    use_depth: bool = True
+    unrelated: int = 0
+    max_queries: int | None = None
+
+
+@dataclass
+class Evaluation:
+    records: list[QueryRecord] = field(default_factory=list)
+    summaries: dict[str, dict[str, Any]] = field(default_factory=dict)
+    interrupted: bool = False
+    error: str | None = None
+    markdown: str = ""
+    files: list[Path] = field(default_factory=list)
+
+
+def _depth(image: PosedImage, wanted: bool) -> bytes | None:
+    return image.depth_path.read_bytes() if wanted and image.depth_path is not None else None
+
+
+def localize_params(
+    camera: Camera, estimator: str, top_k: int, max_error_px: float | None = None
+) -> dict[str, Any]:
+    """The API's localize ``params`` object."""
+    params: dict[str, Any] = {
+        "camera": CameraSchema.from_camera(camera).model_dump(),
+        "estimator": estimator,
+        "top_k": top_k,
+    }
+    if max_error_px is not None:
+        params["max_error_px"] = max_error_px
+    return params
+
+
+@dataclass(frozen=True)
+class _Query:
+    """A query of the split (``posed``), or an unrelated image (``posed`` None, PNG bytes)."""
+
+    name: str
+    camera: Camera
+    posed: PosedImage | None
+    unrelated_png: bytes = b""
+
+    def image(self) -> bytes:
+        return self.posed.image_path.read_bytes() if self.posed is not None else self.unrelated_png
+
+
+def _queries(split: Split, options: EvalOptions) -> list[_Query]:
+    chosen = split.queries[: options.max_queries]
+    queries = [_Query(q.name, q.camera, q) for q in chosen]
+    camera = chosen[0].camera
+    for seed in range(options.unrelated):
+        png = encode_png(unrelated_image(seed, camera.width, camera.height))
+        queries.append(_Query(f"unrelated-{seed}", camera, None, png))
+    return queries
+
+
+def run_evaluation(
+    split: Split,
+    runner_factories: Sequence[Callable[[], Runner]],
+    options: EvalOptions,
+    log: Callable[[str], None] = print,
+    on_record: Callable[[QueryRecord], None] | None = None,
+) -> Evaluation:
+    """Run every feature configuration (one runner each) × estimator; stops early, keeping
+    what it has, on KeyboardInterrupt (``interrupted``) or an error (``error``).
+    ``on_record`` sees each record as it is made."""
+    evaluation = Evaluation()
+    references = ReferencePoses.of({r.name: r.cam_from_world for r in split.references})
+    queries = _queries(split, options)
+    try:
+        for make_runner in runner_factories:
+            runner = make_runner()
+            try:
+                _load_references(runner, split.references, options, log)
+                _localize_all(runner, queries, references, options, evaluation, log, on_record)
+            finally:
+                runner.close()
+    except KeyboardInterrupt:
+        evaluation.interrupted = True
+        log("interrupted: writing the results so far")
+    except Exception as exc:  # a long run keeps what it measured; the error is reported
+        evaluation.error = f"{type(exc).__name__}: {exc}"
+        log(traceback.format_exc())
+        log(f"failed ({evaluation.error}): writing the results so far")
+    return evaluation
+
+
+def _load_references(
+    runner: Runner, images: list[PosedImage], options: EvalOptions, log: Callable[[str], None]
+) -> None:
+    start = time.perf_counter()
+    for i, image in enumerate(images, start=1):
+        runner.add_reference(image, _depth(image, options.use_depth))
+        if i % 10 == 0 or i == len(images):
+            elapsed = time.perf_counter() - start
+            log(f"[{runner.features}] references {i}/{len(images)} ({elapsed:.0f} s)")
+
+
+def _localize_all(
+    runner: Runner,
+    queries: list[_Query],
+    references: ReferencePoses,
+    options: EvalOptions,
+    evaluation: Evaluation,
+    log: Callable[[str], None],
+    on_record: Callable[[QueryRecord], None] | None,
+) -> None:
+    start = time.perf_counter()
+    for i, item in enumerate(queries, start=1):
+        image, query = item.image(), item.posed
+        cells = []
+        for estimator in options.estimators:
+            depth = (
+                _depth(query, options.use_depth)
+                if query is not None and estimator in DEPTH_ESTIMATORS
+                else None
+            )
+            outcome = runner.localize(
+                image,
+                depth,
+                localize_params(item.camera, estimator, options.top_k, options.max_error_px),
+            )
+            record = make_record(
+                f"{runner.features}/{estimator}",
+                item.name,
+                outcome,
+                query.cam_from_world if query is not None else None,
+                references,
+            )
+            evaluation.records.append(record)
+            if on_record is not None:
+                on_record(record)
+            cells.append(
+                f"{estimator} {record.position_error_m * 100:.1f}cm"
+                f"/{record.rotation_error_deg:.1f}°"
+                if record.localized and query is not None
+                else f"{estimator} {'accepted' if record.localized else record.reason}"
+            )
+        eta = (time.perf_counter() - start) / i * (len(queries) - i)
+        log(
+            f"[{runner.features} {i}/{len(queries)}, eta {eta:.0f} s] {item.name}: "
+            + "; ".join(cells)
+        )
+
+
+def write_outputs(
+    evaluation: Evaluation,
+    out_dir: Path,
+    meta: dict[str, Any],
+    thresholds: tuple[tuple[float, float], ...],
+) -> None:
+    """Fill ``summaries`` and ``markdown``; write ``results.json``, ``report.md`` and the plots
+    into ``out_dir``."""
+    configs = list(dict.fromkeys(r.config for r in evaluation.records))
+    evaluation.summaries = {
+        c: summarize([r for r in evaluation.records if r.config == c], thresholds) for c in configs
+    }
+    evaluation.markdown = markdown_tables(evaluation.summaries, thresholds)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta = {**meta, "interrupted": evaluation.interrupted, "error": evaluation.error}
+    json_path, md_path = out_dir / "results.json", out_dir / "report.md"
+    write_json(json_path, meta, evaluation.summaries, evaluation.records)
+    md_path.write_text(evaluation.markdown)
+    evaluation.files = [md_path, json_path]
+    if evaluation.records:
+        evaluation.files += write_plots(
+            out_dir, evaluation.summaries, evaluation.records, thresholds
+        )

@@ -1,0 +1,172 @@
+"""Per-query records and per-configuration summaries: recall at (metres, degrees)
+thresholds, error percentiles, failures by reason, stage timings, and the ground-truth facts
+that explain failures (was a reference close enough? did retrieval find one?)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.evaluation.runner import QueryOutcome
+from services.geometry.rigid import Rigid3d, pose_error
+
+DEFAULT_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0), (0.25, 2.0))
+# a query is "localizable" when a reference lies within 0.3 m and 15° (ground truth); its
+# retrieval "hits" when a retrieved reference lies within 0.5 m and 30°
+LOCALIZABLE = (0.3, 15.0)
+RETRIEVAL_NEAR = (0.5, 30.0)
+STAGES = ("decode", "extract", "retrieve", "match", "estimate", "total", "client")
+
+
+@dataclass
+class QueryRecord:
+    """One query localized under one configuration (``features/estimator``).
+
+    Errors are ``inf`` without a pose; ``unrelated`` queries (images of nothing in the map)
+    have no ground truth and count as false accepts when localized.
+    """
+
+    config: str
+    query: str
+    localized: bool
+    reason: str | None
+    position_error_m: float
+    rotation_error_deg: float
+    num_inliers: int
+    confidence: float
+    timings_ms: dict[str, float]
+    retrieved: list[str]
+    cam_from_world: dict[str, list[float]] | None
+    localizable: bool = False
+    retrieval_covered: bool = False
+    retrieval_hit: bool = False
+    unrelated: bool = False
+
+
+@dataclass(frozen=True)
+class ReferencePoses:
+    """Ground-truth poses of the map's references, for the neighbour facts of a query."""
+
+    names: list[str]
+    centers: NDArray[np.float64]  # (N, 3)
+    rotations: NDArray[np.float64]  # (N, 3, 3) cam_from_world
+
+    @classmethod
+    def of(cls, poses: dict[str, Rigid3d]) -> ReferencePoses:
+        names = list(poses)
+        return cls(
+            names,
+            np.array([poses[n].center for n in names]).reshape(-1, 3),
+            np.array([poses[n].rotation for n in names]).reshape(-1, 3, 3),
+        )
+
+    def near(self, truth: Rigid3d, max_m: float, max_deg: float) -> NDArray[np.bool_]:
+        """(N,) references within ``max_m`` metres and ``max_deg`` degrees of ``truth``."""
+        dist = np.linalg.norm(self.centers - truth.center, axis=1)
+        rel = self.rotations @ truth.rotation.T
+        cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+        angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        near: NDArray[np.bool_] = (dist <= max_m) & (angle <= max_deg)
+        return near
+
+
+def make_record(
+    config: str,
+    query: str,
+    outcome: QueryOutcome,
+    truth: Rigid3d | None,
+    references: ReferencePoses,
+) -> QueryRecord:
+    """``truth`` None marks an unrelated image."""
+    pose = outcome.cam_from_world
+    pos_err = rot_err = float("inf")
+    if truth is not None and pose is not None:
+        pos_err, rot_err = pose_error(pose.to_rigid(), truth)
+    record = QueryRecord(
+        config=config,
+        query=query,
+        localized=outcome.localized,
+        reason=outcome.reason,
+        position_error_m=pos_err,
+        rotation_error_deg=rot_err,
+        num_inliers=outcome.num_inliers,
+        confidence=outcome.confidence,
+        timings_ms=outcome.timings_ms,
+        retrieved=outcome.retrieved,
+        cam_from_world=pose.model_dump() if pose is not None else None,
+        unrelated=truth is None,
+    )
+    if truth is not None:
+        record.localizable = bool(references.near(truth, *LOCALIZABLE).any())
+        near = references.near(truth, *RETRIEVAL_NEAR)
+        record.retrieval_covered = bool(near.any())
+        near_names = {n for n, ok in zip(references.names, near, strict=True) if ok}
+        record.retrieval_hit = any(name in near_names for name in outcome.retrieved)
+    return record
+
+
+def recall_key(max_m: float, max_deg: float) -> str:
+    return f"{max_m * 100:g}cm_{max_deg:g}deg"
+
+
+def _quantile(ordered: NDArray[np.float64], q: float) -> float:
+    """Linear-interpolated quantile of sorted values; where the upper neighbour is a
+    failure's inf, the lower order statistic (interpolating towards inf means nothing)."""
+    position = (len(ordered) - 1) * q
+    lo, hi = ordered[int(np.floor(position))], ordered[int(np.ceil(position))]
+    if lo == hi or not np.isfinite(hi):
+        return float(lo)
+    return float(lo + (hi - lo) * (position - np.floor(position)))
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"median": float("nan"), "p90": float("nan")}
+    ordered = np.sort(np.asarray(values, np.float64))
+    return {"median": _quantile(ordered, 0.5), "p90": _quantile(ordered, 0.9)}
+
+
+def summarize(
+    records: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
+) -> dict[str, Any]:
+    """Summary of one configuration's records (queries with ground truth; unrelated images
+    are counted apart)."""
+    posed = [r for r in records if not r.unrelated]
+    unrelated = [r for r in records if r.unrelated]
+    pos = np.array([r.position_error_m for r in posed])
+    rot = np.array([r.rotation_error_deg for r in posed])
+    n = len(posed)
+    easy = [r for r in posed if r.localizable]
+    covered = [r for r in posed if r.retrieval_covered]
+    lm, ld = 0.10, 5.0
+    return {
+        "queries": n,
+        "localized": sum(r.localized for r in posed),
+        "recall": {
+            recall_key(m, d): float(((pos <= m) & (rot <= d)).mean()) if n else 0.0
+            for m, d in thresholds
+        },
+        "position_error_m": _percentiles(pos.tolist()),
+        "rotation_error_deg": _percentiles(rot.tolist()),
+        "failures": dict(Counter(r.reason or "unknown" for r in posed if not r.localized)),
+        "timings_ms": {
+            stage: _percentiles([r.timings_ms[stage] for r in records if stage in r.timings_ms])
+            for stage in STAGES
+        },
+        "localizable_queries": len(easy),
+        "localizable_recall_10cm_5deg": (
+            sum(r.position_error_m <= lm and r.rotation_error_deg <= ld for r in easy) / len(easy)
+            if easy
+            else 0.0
+        ),
+        "retrieval_covered_queries": len(covered),
+        "retrieval_recall": sum(r.retrieval_hit for r in covered) / len(covered)
+        if covered
+        else 0.0,
+        "unrelated_queries": len(unrelated),
+        "unrelated_accepted": sum(r.localized for r in unrelated),
+    }

@@ -1,0 +1,157 @@
+"""Evaluation outputs: Markdown tables, a JSON file, and PNG plots (cumulative error curves per
+configuration, per-stage median times)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.evaluation.metrics import STAGES, QueryRecord, recall_key
+
+PLOT_STAGES = ("decode", "extract", "retrieve", "match", "estimate")
+
+
+def _num(value: float, scale: float = 1.0, digits: int = 1) -> str:
+    return f"{value * scale:.{digits}f}" if math.isfinite(value) else "–"
+
+
+def markdown_tables(
+    summaries: dict[str, dict[str, Any]], thresholds: tuple[tuple[float, float], ...]
+) -> str:
+    """Accuracy table and timing table, one row per configuration."""
+    recall_heads = [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
+    head = [
+        "configuration",
+        "localized",
+        *recall_heads,
+        "median / p90 position (cm)",
+        "median / p90 rotation (°)",
+        "failures",
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for config, s in summaries.items():
+        pos, rot = s["position_error_m"], s["rotation_error_deg"]
+        failures = ", ".join(f"{k} {v}" for k, v in sorted(s["failures"].items())) or "–"
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    config,
+                    f"{s['localized']}/{s['queries']}",
+                    *(f"{s['recall'][recall_key(m, d)] * 100:.1f} %" for m, d in thresholds),
+                    f"{_num(pos['median'], 100)} / {_num(pos['p90'], 100)}",
+                    f"{_num(rot['median'], 1, 2)} / {_num(rot['p90'], 1, 2)}",
+                    failures,
+                ]
+            )
+            + " |"
+        )
+    stage_head = ["configuration", *(f"{stage} ms" for stage in STAGES)]
+    lines += ["", "Stage timings, median / p90 (`client` = wall time seen by the evaluator):", ""]
+    lines += ["| " + " | ".join(stage_head) + " |", "|" + "---|" * len(stage_head)]
+    for config, s in summaries.items():
+        t = s["timings_ms"]
+        cells = [f"{_num(t[st]['median'], 1, 0)} / {_num(t[st]['p90'], 1, 0)}" for st in STAGES]
+        lines.append("| " + " | ".join([config, *cells]) + " |")
+    extra = [
+        f"| {config} | {s['localizable_queries']} | "
+        f"{s['localizable_recall_10cm_5deg'] * 100:.1f} % | {s['retrieval_covered_queries']} | "
+        f"{s['retrieval_recall'] * 100:.1f} % | "
+        + (f"{s['unrelated_accepted']}/{s['unrelated_queries']}" if s["unrelated_queries"] else "–")
+        + " |"
+        for config, s in summaries.items()
+    ]
+    lines += [
+        "",
+        "Localizable queries have a reference within 0.3 m and 15°; retrieval recall counts "
+        "queries with a reference within 0.5 m and 30° whose retrieved set holds one:",
+        "",
+        "| configuration | localizable | their recall (10 cm, 5°) | covered | retrieval recall "
+        "| unrelated accepted |",
+        "|---|---|---|---|---|---|",
+        *extra,
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats (failed queries' errors) become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def write_json(
+    path: Path,
+    meta: dict[str, Any],
+    summaries: dict[str, dict[str, Any]],
+    records: list[QueryRecord],
+) -> None:
+    payload = {"meta": meta, "summaries": summaries, "queries": [asdict(r) for r in records]}
+    path.write_text(json.dumps(_json_safe(payload), indent=1))
+
+
+def write_plots(
+    out_dir: Path,
+    summaries: dict[str, dict[str, Any]],
+    records: list[QueryRecord],
+    thresholds: tuple[tuple[float, float], ...],
+) -> list[Path]:
+    """``errors.png`` (cumulative position and rotation error per configuration, up to twice
+    the largest recall threshold) and ``timings.png`` (median time per stage, stacked)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    configs = list(summaries)
+    fig, (ax_pos, ax_rot) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for config in configs:
+        posed = [r for r in records if r.config == config and not r.unrelated]
+        if not posed:
+            continue
+        fractions = np.arange(1, len(posed) + 1) / len(posed)
+        for ax, values, scale in (
+            (ax_pos, [r.position_error_m for r in posed], 100.0),
+            (ax_rot, [r.rotation_error_deg for r in posed], 1.0),
+        ):
+            ax.step(np.sort(np.asarray(values)) * scale, fractions, where="post", label=config)
+    ax_pos.set(
+        xlabel="position error (cm)", ylabel="fraction of queries", xlim=(0, 50), ylim=(0, 1)
+    )
+    ax_rot.set(xlabel="rotation error (°)", xlim=(0, 10), ylim=(0, 1))
+    for ax in (ax_pos, ax_rot):
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+    ax_rot.legend(fontsize=8, loc="lower right")
+    fig.suptitle("Cumulative error (failures never reach 1)")
+    fig.tight_layout()
+    errors_png = out_dir / "errors.png"
+    fig.savefig(errors_png, dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.0 + 0.9 * len(configs)), 4.5))
+    bottom = np.zeros(len(configs))
+    for stage in PLOT_STAGES:
+        heights = np.array(
+            [np.nan_to_num(summaries[c]["timings_ms"][stage]["median"]) for c in configs]
+        )
+        ax.bar(configs, heights, bottom=bottom, label=stage)
+        bottom += heights
+    ax.set(ylabel="median time (ms)", title="Per-stage median time")
+    ax.tick_params(axis="x", rotation=30)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    timings_png = out_dir / "timings.png"
+    fig.savefig(timings_png, dpi=100)
+    plt.close(fig)
+    return [errors_png, timings_png]

@@ -1,0 +1,215 @@
+"""Runners: load references into a fresh map and localize queries, either in this process
+(the server's own code path on a temporary SQLite database) or against a running server over
+HTTP exactly as a client does (multipart uploads with ``metadata`` / ``params`` JSON).
+
+Both take the localize ``params`` as the API's JSON object and answer ``QueryOutcome``.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import httpx
+
+from app.api.routes.localize import _to_params
+from app.evaluation.datasets import PosedImage
+from app.operations import add_reference_image
+from app.schemas.geometry import CameraSchema, PoseSchema
+from app.schemas.images import ImageMetadata
+from app.schemas.localize import LocalizeParamsIn
+from db.migrate import upgrade
+from db.repositories.maps import MapRepository
+from db.session import make_engine, make_session_factory
+from db.store import SqlReferenceStore
+from services.components import build_localizer
+from services.estimators.registry import DEFAULT_ESTIMATOR
+
+
+@dataclass(frozen=True)
+class QueryOutcome:
+    """A localize answer as the evaluation needs it.
+
+    Attributes:
+        cam_from_world: the pose as the API's ``{"rotation": [w, x, y, z], "translation"}``.
+        retrieved: names of the retrieved references, best first.
+        timings_ms: the answer's stages plus ``client`` (wall time seen by the evaluator).
+    """
+
+    localized: bool
+    reason: str | None
+    cam_from_world: PoseSchema | None
+    num_inliers: int
+    confidence: float
+    retrieved: list[str]
+    timings_ms: dict[str, float]
+
+
+class Runner(Protocol):
+    """One map of references under one feature configuration."""
+
+    features: str
+
+    def add_reference(self, image: PosedImage, depth: bytes | None) -> None: ...
+
+    def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
+        """``params``: the API's localize ``params`` object."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def metadata_of(image: PosedImage) -> ImageMetadata:
+    return ImageMetadata(
+        name=image.name,
+        camera=CameraSchema.from_camera(image.camera),
+        cam_from_world=PoseSchema.from_rigid(image.cam_from_world),
+    )
+
+
+class InProcessRunner:
+    """The server's code path without HTTP: ``add_reference_image`` into a temporary SQLite
+    database and ``Localizer.localize`` on its ``SqlReferenceStore``."""
+
+    def __init__(self, features: str, models_dir: Path, max_pixels: int = 40_000_000) -> None:
+        self.localizer = build_localizer(models_dir, max_pixels, features)
+        self.features = features
+        self._tmp = tempfile.TemporaryDirectory(prefix="slloc-eval-")
+        self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")
+        upgrade(self._engine)
+        self._sessions = make_session_factory(self._engine)
+        with self._sessions.begin() as session:
+            self._map_id = MapRepository(session).create("eval", None).id
+        self._store = SqlReferenceStore(
+            self._sessions,
+            self._map_id,
+            self.localizer.extractor.name,
+            self.localizer.global_descriptor.name,
+        )
+
+    def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
+        add_reference_image(
+            self._sessions,
+            self.localizer,
+            self._map_id,
+            metadata_of(image),
+            image.image_path.read_bytes(),
+            depth,
+        )
+
+    def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
+        start = time.perf_counter()
+        engine_params = _to_params(
+            LocalizeParamsIn.model_validate(params), DEFAULT_ESTIMATOR, max_top_k=1_000_000
+        )
+        result = self.localizer.localize(image, engine_params, self._store, depth)
+        timings = dict(result.timings_ms)
+        timings["client"] = (time.perf_counter() - start) * 1000.0
+        pose = result.cam_from_world
+        return QueryOutcome(
+            localized=result.localized,
+            reason=result.reason,
+            cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
+            num_inliers=result.num_inliers,
+            confidence=result.confidence,
+            retrieved=[r.name for r in result.retrieved],
+            timings_ms=timings,
+        )
+
+    def close(self) -> None:
+        self._engine.dispose()
+        self._tmp.cleanup()
+
+
+def _media_type(name: str) -> str:
+    suffix = Path(name).suffix.lower()
+    return {".png": "image/png", ".npy": "application/octet-stream"}.get(suffix, "image/jpeg")
+
+
+class HttpRunner:
+    """A client of a running server: creates a map named ``map_name`` plus a random suffix (or
+    uses ``map_id``), uploads references, localizes, and on ``close`` deletes the map it created
+    unless ``keep_map``."""
+
+    def __init__(
+        self,
+        url: str,
+        api_key: str | None,
+        map_name: str = "slloc-eval",
+        keep_map: bool = False,
+        map_id: str | None = None,
+    ) -> None:
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self._client = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=600.0)
+        self.keep_map = keep_map or map_id is not None
+        health = self._request("GET", "/v1/health").json()
+        self.features = str(health["models"]["features"])
+        if map_id is None:
+            name = f"{map_name}-{uuid.uuid4().hex[:8]}"
+            map_id = str(self._request("POST", "/v1/maps", json={"name": name}).json()["id"])
+        self.map_id = map_id
+
+    def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        """The response; RuntimeError on a transport error or an error status."""
+        try:
+            response = self._client.request(method, url, **kwargs)
+        except httpx.HTTPError as exc:
+            raise RuntimeError(f"{method} {url}: {exc}") from exc
+        if response.is_error:
+            raise RuntimeError(
+                f"{response.request.method} {response.request.url}: {response.status_code} "
+                f"{response.text[:500]}"
+            )
+        return response
+
+    @staticmethod
+    def _files(image: bytes, name: str, depth: bytes | None) -> dict[str, tuple[str, bytes, str]]:
+        files = {"image": (name, image, _media_type(name))}
+        if depth is not None:
+            depth_name = "depth.npy" if depth.startswith(b"\x93NUMPY") else "depth.png"
+            files["depth"] = (depth_name, depth, _media_type(depth_name))
+        return files
+
+    def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
+        self._request(
+            "POST",
+            f"/v1/maps/{self.map_id}/images",
+            files=self._files(image.image_path.read_bytes(), image.image_path.name, depth),
+            data={"metadata": metadata_of(image).model_dump_json()},
+        )
+
+    def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
+        start = time.perf_counter()
+        name = "query.png" if image.startswith(b"\x89PNG") else "query.jpg"
+        response = self._request(
+            "POST",
+            f"/v1/maps/{self.map_id}/localize",
+            files=self._files(image, name, depth),
+            data={"params": json.dumps(params)},
+        )
+        client_ms = (time.perf_counter() - start) * 1000.0
+        body = response.json()
+        timings = {k: float(v) for k, v in body["timings_ms"].items()}
+        timings["client"] = client_ms
+        pose = body["cam_from_world"]
+        return QueryOutcome(
+            localized=bool(body["localized"]),
+            reason=body["reason"],
+            cam_from_world=PoseSchema.model_validate(pose) if pose is not None else None,
+            num_inliers=int(body["num_inliers"]),
+            confidence=float(body["confidence"]),
+            retrieved=[r["name"] for r in body["retrieved"]],
+            timings_ms=timings,
+        )
+
+    def close(self) -> None:
+        try:
+            if not self.keep_map:
+                self._client.delete(f"/v1/maps/{self.map_id}")
+        finally:
+            self._client.close()

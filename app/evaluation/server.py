@@ -1,0 +1,115 @@
+"""A ``slloc serve`` subprocess on a free loopback port with its own SQLite database (for
+``slloc bench`` and the tests), and the peak memory of a server process."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from urllib.parse import urlparse
+
+import httpx
+
+LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def is_loopback(url: str) -> bool:
+    return urlparse(url).hostname in LOOPBACK_HOSTS
+
+
+def peak_rss_mb(pid: int) -> float | None:
+    """Peak resident set size (``VmHWM``) of process ``pid`` in MiB; None where ``/proc`` has
+    no such process (not Linux, or it ended)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+class LocalServer:
+    """``slloc serve`` on 127.0.0.1 and a free port, auth off, SQLite in a temporary folder;
+    a context manager that waits for ``/v1/health`` and stops the process on exit."""
+
+    def __init__(self, extra_env: dict[str, str] | None = None, start_timeout_s: float = 120.0):
+        self._tmp = tempfile.TemporaryDirectory(prefix="slloc-server-")
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {
+            **os.environ,
+            "SLLOC_DATABASE_URL": f"sqlite:///{self._tmp.name}/slloc.db",
+            "SLLOC_DATA_DIR": self._tmp.name,
+            "SLLOC_API_KEYS": "",
+            **(extra_env or {}),
+        }
+        self._log = open(Path(self._tmp.name) / "server.log", "w+b")  # noqa: SIM115
+        self.process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "app.cli",
+                "serve",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--log-level",
+                "warning",
+            ],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
+        self._wait(start_timeout_s)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def _wait(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                self.close()
+                raise RuntimeError(f"slloc serve exited with {self.process.returncode}")
+            try:
+                if httpx.get(f"{self.url}/v1/health", timeout=2.0).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        self.close()
+        raise RuntimeError(f"slloc serve did not answer on {self.url} in {timeout_s:.0f} s")
+
+    def log_text(self) -> str:
+        self._log.flush()
+        return (Path(self._tmp.name) / "server.log").read_text(errors="replace")
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._log.close()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> LocalServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,67 @@
+"""A rendered synthetic scene written as an import CSV (24 references, then 4 queries, each
+with a 16-bit depth PNG), shared by the evaluation tests."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from app.importers import CSV_COLUMNS
+from services.synthetic_scene import SyntheticView, encode_depth_png, encode_png
+
+NUM_REFERENCES = 24
+NUM_QUERIES = 4
+SPLIT_ARGS = [
+    "--references",
+    f"range:0-{NUM_REFERENCES - 1}",
+    "--queries",
+    f"range:{NUM_REFERENCES}-{NUM_REFERENCES + NUM_QUERIES - 1}",
+]
+
+
+def write_images(views: list[SyntheticView], root: Path) -> None:
+    """``images/<name>`` PNGs and ``depth/<name>`` 16-bit depth PNGs (millimetres)."""
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    (root / "depth").mkdir(exist_ok=True)
+    for view in views:
+        (root / "images" / view.name).write_bytes(encode_png(view.image))
+        (root / "depth" / view.name).write_bytes(encode_depth_png(view.depth))
+
+
+def write_csv(views: list[SyntheticView], path: Path) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow([*CSV_COLUMNS, "depth"])
+        for view in views:
+            cam, pose = view.camera, view.cam_from_world
+            writer.writerow(
+                [
+                    f"images/{view.name}",
+                    cam.model,
+                    cam.width,
+                    cam.height,
+                    " ".join(f"{p:.17g}" for p in cam.params),
+                    *(f"{v:.17g}" for v in pose.quaternion),
+                    *(f"{v:.17g}" for v in pose.translation),
+                    f"depth/{view.name}",
+                ]
+            )
+
+
+@pytest.fixture(scope="session")
+def eval_views(
+    reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> list[SyntheticView]:
+    return [*reference_views[:NUM_REFERENCES], *query_views[:NUM_QUERIES]]
+
+
+@pytest.fixture(scope="session")
+def synthetic_csv(
+    eval_views: list[SyntheticView], tmp_path_factory: pytest.TempPathFactory
+) -> Path:
+    root = tmp_path_factory.mktemp("synthetic-csv")
+    write_images(eval_views, root)
+    write_csv(eval_views, root / "scene.csv")
+    return root / "scene.csv"

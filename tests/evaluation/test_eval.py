@@ -1,0 +1,143 @@
+"""``slloc eval`` through the CLI on a rendered scene: the recall the estimator tests
+guarantee, depth reaching depth estimators, partial results after Ctrl-C, and the same poses
+in process and against a real ``slloc serve`` subprocess."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from app import cli
+from app.evaluation.runner import InProcessRunner
+from app.evaluation.server import LocalServer, free_port
+from services.synthetic_scene import SyntheticScene
+from tests.evaluation.conftest import NUM_QUERIES, SPLIT_ARGS
+
+ESTIMATORS = "e5p1,e3p1,local_tri_all"
+
+
+def run_eval(csv_path: Path, out: Path, *extra: str) -> tuple[int, dict[str, Any]]:
+    code = cli.main(["eval", str(csv_path), *SPLIT_ARGS, "--out", str(out), *extra])
+    return code, json.loads((out / "results.json").read_text())
+
+
+def compared_args(scene: SyntheticScene) -> list[str]:
+    """Estimators, the guaranteed accuracy as the recall threshold, one unrelated image."""
+    threshold = f"{0.01 * scene.extent},0.5"
+    return ["--estimators", ESTIMATORS, "--threshold", threshold, "--unrelated", "1"]
+
+
+@pytest.fixture(scope="module")
+def in_process(
+    synthetic_csv: Path, scene: SyntheticScene, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, Any]:
+    # the estimator tests guarantee < 1 % of the scene extent and < 0.5° on these queries
+    out = tmp_path_factory.mktemp("eval-in-process")
+    code, results = run_eval(synthetic_csv, out, *compared_args(scene))
+    assert code == 0
+    return results
+
+
+def test_in_process_reaches_guaranteed_recall(
+    in_process: dict[str, Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    summaries = in_process["summaries"]
+    assert list(summaries) == [f"sift/{name}" for name in ESTIMATORS.split(",")]
+    for config, summary in summaries.items():
+        assert summary["queries"] == NUM_QUERIES
+        assert list(summary["recall"].values()) == [1.0], config  # e3p1 too: depth was sent
+        assert summary["failures"] == {}
+        assert summary["unrelated_queries"] == 1 and summary["unrelated_accepted"] == 0
+        assert summary["timings_ms"]["total"]["median"] > 0
+    assert len(in_process["queries"]) == 3 * (NUM_QUERIES + 1)
+    assert not in_process["meta"]["interrupted"]
+
+
+def test_outputs_written(
+    synthetic_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _ = run_eval(synthetic_csv, tmp_path, "--estimators", "pose_approx")
+    assert code == 0
+    table = capsys.readouterr().out
+    assert "| sift/pose_approx | 4/4 |" in table and "(10 cm, 10°)" in table
+    assert (tmp_path / "report.md").read_text() in table
+    for plot in ("errors.png", "timings.png"):
+        assert (tmp_path / plot).read_bytes().startswith(b"\x89PNG")
+
+
+def test_ctrl_c_leaves_partial_results(
+    synthetic_csv: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    original = InProcessRunner.localize
+    calls = 0
+
+    def interrupting(self: InProcessRunner, *args: Any) -> Any:
+        nonlocal calls
+        calls += 1
+        if calls == 3:
+            raise KeyboardInterrupt
+        return original(self, *args)
+
+    monkeypatch.setattr(InProcessRunner, "localize", interrupting)
+    code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "e5p1")
+    assert code == 130
+    assert results["meta"]["interrupted"] is True
+    assert [q["query"] for q in results["queries"]] == [
+        "images/query0000.png",
+        "images/query0001.png",
+    ]
+    assert results["summaries"]["sift/e5p1"]["queries"] == 2
+    assert (tmp_path / "errors.png").is_file()
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[LocalServer]:
+    with LocalServer() as running:
+        yield running
+
+
+def test_http_mode_gives_the_same_poses(
+    in_process: dict[str, Any],
+    server: LocalServer,
+    synthetic_csv: Path,
+    tmp_path: Path,
+    scene: SyntheticScene,
+) -> None:
+    """Same inputs, same seed, same code path behind the HTTP layer: identical poses (the
+    JSON round trip of float64 is exact; 1e-9 leaves room for nothing else)."""
+    code, results = run_eval(synthetic_csv, tmp_path, "--url", server.url, *compared_args(scene))
+    assert code == 0
+    assert results["meta"]["mode"] == "http"
+
+    def poses(res: dict[str, Any]) -> dict[tuple[str, str], Any]:
+        return {
+            (q["config"].split("/")[-1], q["query"]): q["cam_from_world"] for q in res["queries"]
+        }
+
+    http, local = poses(results), poses(in_process)
+    assert http.keys() == local.keys()
+    for key, pose in local.items():
+        if pose is None:
+            assert http[key] is None, key
+            continue
+        for part in ("rotation", "translation"):
+            np.testing.assert_allclose(
+                http[key][part], pose[part], rtol=0, atol=1e-9, err_msg=str(key)
+            )
+    for config, summary in results["summaries"].items():
+        assert list(summary["recall"].values()) == [1.0], config
+    # the evaluation map was deleted at the end (no --keep-map)
+    assert httpx.get(f"{server.url}/v1/maps").json()["total"] == 0
+
+
+def test_unreachable_server_is_reported(synthetic_csv: Path, tmp_path: Path) -> None:
+    code, results = run_eval(synthetic_csv, tmp_path, "--url", f"http://127.0.0.1:{free_port()}")
+    assert code == 1
+    assert "GET /v1/health" in results["meta"]["error"]
+    assert results["queries"] == []
