@@ -43,6 +43,19 @@ def main(argv: list[str] | None = None) -> int:
     synth.add_argument("--queries", type=int, default=3)
     synth.add_argument("--seed", type=int, default=0)
 
+    models = sub.add_parser("models", help="exported ONNX models")
+    models_sub = models.add_subparsers(dest="models_command", required=True)
+    build = models_sub.add_parser(
+        "build", help="export ALIKED and LightGlue to ONNX (needs scripts/build_models.sh's tools)"
+    )
+    build.add_argument("--models-dir", type=Path, default=None, help="default: SLLOC_MODELS_DIR")
+    build.add_argument(
+        "--models",
+        default=None,
+        help="comma-separated model names (default: aliked-n16,lightglue-aliked)",
+    )
+    build.add_argument("--force", action="store_true", help="rebuild models that are up to date")
+
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
@@ -63,6 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         return _import(args)
     if args.command == "db":
         return _db_upgrade()
+    if args.command == "models":
+        return _models_build(args)
     if args.command == "eval":
         from app.evaluation.command import eval_main
 
@@ -97,6 +112,26 @@ def _db_upgrade() -> int:
     engine = make_engine(settings.database_url)
     upgrade(engine)
     print(f"database at {engine.url.render_as_string(hide_password=True)} is at head")
+    return 0
+
+
+def _models_build(args: argparse.Namespace) -> int:
+    try:
+        from services.export.build import DEFAULT_MODELS, build_models
+    except ImportError as exc:
+        print(
+            f"the export tools are not installed ({exc}); run scripts/build_models.sh",
+            file=sys.stderr,
+        )
+        return 2
+    models_dir = args.models_dir or get_settings().models_dir
+    names = tuple(n.strip() for n in args.models.split(",")) if args.models else DEFAULT_MODELS
+    try:
+        build_models(models_dir, names, force=args.force)
+    except ValueError as exc:
+        print(f"models build failed: {exc}", file=sys.stderr)
+        return 1
+    print(f"models in {models_dir} are up to date")
     return 0
 
 
@@ -145,7 +180,9 @@ def _import(args: argparse.Namespace) -> int:
         f"{len(pending)} to add",
         flush=True,
     )
-    localizer = build_localizer(settings.models_dir, settings.max_image_pixels)
+    localizer = build_localizer(
+        settings.models_dir, settings.max_image_pixels, settings.features, settings.onnx_options()
+    )
     failed = 0
     start = time.perf_counter()
     for done, item in enumerate(pending, start=1):

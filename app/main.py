@@ -35,7 +35,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.localizer = localizer or build_localizer(
-            settings.models_dir, settings.max_image_pixels
+            settings.models_dir,
+            settings.max_image_pixels,
+            settings.features,
+            settings.onnx_options(),
         )
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
         if not settings.api_keys:

@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import BaseModel, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from services.runtime.onnx import OnnxOptions
+
 Role = Literal["admin", "client"]
 
 
@@ -30,6 +32,17 @@ class Settings(BaseSettings):
     models_dir: Path = Field(
         Path("./models"), description="Where `slloc models build` writes ONNX models"
     )
+    features: str = Field(
+        "auto",
+        description="Feature configuration: auto (ALIKED + LightGlue when `slloc models build` "
+        "has run, else SIFT), sift, aliked, aliked-full or aliked-fast",
+    )
+    onnx_providers: str = Field(
+        "auto",
+        description="Comma-separated onnxruntime execution providers in order of preference; "
+        "auto = CUDA when this onnxruntime has it, then CPU",
+    )
+    onnx_threads: int = Field(0, ge=0, description="Threads per ONNX operator; 0 = all cores")
     api_keys: str = Field(
         "",
         description="Comma-separated `key:role` pairs, role admin or client; empty = auth off",
@@ -45,6 +58,14 @@ class Settings(BaseSettings):
     def _check_keys(cls, value: str) -> str:
         parse_api_keys(value)
         return value
+
+    def onnx_options(self) -> OnnxOptions:
+        providers = (
+            ("CUDAExecutionProvider", "CPUExecutionProvider")
+            if self.onnx_providers.strip() == "auto"
+            else tuple(p.strip() for p in self.onnx_providers.split(",") if p.strip())
+        )
+        return OnnxOptions(providers=providers, intra_op_threads=self.onnx_threads)
 
     def parsed_api_keys(self) -> list[ApiKey]:
         return parse_api_keys(self.api_keys)

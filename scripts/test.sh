@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
-# Set up, then lint, type-check and run the whole test suite (SQLite and PostgreSQL).
+# Set up, export the models, then lint, type-check and run the whole test suite (SQLite and
+# PostgreSQL, weight-free and ONNX pipelines).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh dev
+scripts/build_models.sh
 scripts/postgres.sh
 scripts/lint.sh
 .venv/bin/python -m pytest -q -ra "$@"

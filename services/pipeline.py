@@ -208,8 +208,10 @@ class Localizer:
         references = store.load_references([index.image_ids[i] for i in rows])
         score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
         lap("retrieve")
+        pairs = self.matcher.match_many(query, [ref.features for ref in references])
         observations = [
-            self._observe(query, query_depth, ref, score_of[ref.image_id]) for ref in references
+            _observe(query, query_depth, ref, score_of[ref.image_id], ref_pairs)
+            for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
         lap("match")
         if not observations:
@@ -253,26 +255,27 @@ class Localizer:
             stats=outcome.stats if outcome is not None else {},
         )
 
-    def _observe(
-        self,
-        query: LocalFeatures,
-        query_depth: NDArray[np.float32] | None,
-        ref: ReferenceView,
-        score: float,
-    ) -> ReferenceObservation:
-        pairs = self.matcher.match(query, ref.features)
-        query_xy = query.keypoints[pairs[:, 0]].astype(np.float64)
-        reference_xy = ref.features.keypoints[pairs[:, 1]].astype(np.float64)
-        return ReferenceObservation(
-            image_id=ref.image_id,
-            camera=ref.camera,
-            cam_from_world=ref.cam_from_world,
-            query_xy=query_xy,
-            reference_xy=reference_xy,
-            retrieval_score=score,
-            reference_depth=_sample_depth(ref.depth, reference_xy),
-            query_depth=_sample_depth(query_depth, query_xy),
-        )
+
+def _observe(
+    query: LocalFeatures,
+    query_depth: NDArray[np.float32] | None,
+    ref: ReferenceView,
+    score: float,
+    pairs: NDArray[np.int64],
+) -> ReferenceObservation:
+    """The correspondences of ``pairs`` ((M, 2) query/reference keypoint indices)."""
+    query_xy = query.keypoints[pairs[:, 0]].astype(np.float64)
+    reference_xy = ref.features.keypoints[pairs[:, 1]].astype(np.float64)
+    return ReferenceObservation(
+        image_id=ref.image_id,
+        camera=ref.camera,
+        cam_from_world=ref.cam_from_world,
+        query_xy=query_xy,
+        reference_xy=reference_xy,
+        retrieval_score=score,
+        reference_depth=_sample_depth(ref.depth, reference_xy),
+        query_depth=_sample_depth(query_depth, query_xy),
+    )
 
 
 def _check_camera_matches(camera: Camera, image: NDArray[np.uint8]) -> None:

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from app.evaluation.metrics import DEFAULT_THRESHOLDS
-from services.components import DEFAULT_FEATURES, feature_config_names
+from services.components import AUTO, feature_config_names
 from services.estimators.registry import DEFAULT_ESTIMATOR, estimator_names
 
 
@@ -40,8 +40,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--features",
-        default=DEFAULT_FEATURES,
-        help="comma-separated feature configurations or 'all', in process only "
+        default=AUTO,
+        help="comma-separated feature configurations or 'all', in process only; auto = the "
+        "server's default "
         f"({', '.join(feature_config_names())}); with --url the server's are used",
     )
     parser.add_argument("--url", help="evaluate against this running server instead")

@@ -15,7 +15,7 @@ from app.evaluation.metrics import DEFAULT_THRESHOLDS
 from app.evaluation.runner import HttpRunner, InProcessRunner, Runner
 from app.evaluation.split import split_dataset
 from app.settings import get_settings
-from services.components import feature_config_names
+from services.components import AUTO, feature_config_names, resolve_features
 from services.estimators.registry import estimator_names
 
 
@@ -47,7 +47,9 @@ def eval_main(args: argparse.Namespace) -> int:
         dataset = open_dataset(args.dataset, args.images)
         split = split_dataset(dataset, args.references, args.queries)
         estimators = _names(args.estimators, estimator_names(), "estimators")
-        features = _names(args.features, feature_config_names(), "feature configurations")
+        models_dir = get_settings().models_dir
+        requested = _names(args.features, [AUTO, *feature_config_names()], "features")
+        features = list(dict.fromkeys(resolve_features(models_dir, n) for n in requested))
         thresholds = _thresholds(args.threshold)
         if args.max_queries is not None and args.max_queries < 1:
             raise ValueError("--max-queries must be at least 1")
@@ -69,7 +71,6 @@ def eval_main(args: argparse.Namespace) -> int:
             partial(HttpRunner, args.url, args.api_key, f"slloc-eval-{dataset.name}", args.keep_map)
         ]
     else:
-        models_dir = get_settings().models_dir
         factories = [partial(InProcessRunner, name, models_dir) for name in features]
     _log(
         f"{dataset.name}: {len(split.references)} references, {len(split.queries)} queries, "

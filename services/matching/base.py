@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -15,4 +16,10 @@ class Matcher(Protocol):
 
     def match(self, query: LocalFeatures, reference: LocalFeatures) -> NDArray[np.int64]:
         """(M, 2) index pairs ``[query_index, reference_index]`` of matched keypoints."""
+        ...
+
+    def match_many(
+        self, query: LocalFeatures, references: Sequence[LocalFeatures]
+    ) -> list[NDArray[np.int64]]:
+        """``match(query, r)`` for every reference, in order; backends may share work."""
         ...

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,3 +41,8 @@ class NearestNeighborMatcher:
         mutual = best_of_reference[best] == rows
         keep &= mutual
         return np.stack([rows[keep], best[keep]], axis=1).astype(np.int64)
+
+    def match_many(
+        self, query: LocalFeatures, references: Sequence[LocalFeatures]
+    ) -> list[NDArray[np.int64]]:
+        return [self.match(query, reference) for reference in references]

@@ -41,7 +41,7 @@ def create_session(
     available = set(ort.get_available_providers())
     providers = [p for p in options.providers if p in available]
     for missing in sorted(set(options.providers) - available):
-        logger.warning("onnxruntime has no %s here; skipping it", missing)
+        logger.info("onnxruntime has no %s here; skipping it", missing)
     if "CPUExecutionProvider" not in providers:
         providers.append("CPUExecutionProvider")
     so = ort.SessionOptions()

@@ -1,0 +1,70 @@
+"""ALIKED features from the exported ONNX graph (``slloc models build``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from services.errors import InvalidInputError
+from services.features.base import LocalFeatures
+
+MIN_SIDE = 64  # the graph's smallest input side (and enough candidates for its top-k)
+
+
+@dataclass(frozen=True)
+class ResizeOptions:
+    """max_keypoints: keypoint budget (at most the exported graph's); max_side: the longer
+    image side the image is resized to before detection (never enlarged)."""
+
+    max_keypoints: int = 2048
+    max_side: int = 640
+
+
+class OnnxAlikedExtractor:
+    """Runs an ALIKED graph whose outputs are the exported budget's keypoints, best first, in
+    pixels with pixel centres at integers; a smaller budget takes a prefix."""
+
+    def __init__(
+        self, session: Any, model_name: str, exported_budget: int, options: ResizeOptions
+    ) -> None:
+        if not 0 < options.max_keypoints <= exported_budget:
+            raise ValueError(
+                f"max_keypoints must be in 1…{exported_budget} (the exported budget of "
+                f"{model_name}), got {options.max_keypoints}"
+            )
+        if options.max_side < MIN_SIDE:
+            raise ValueError(f"max_side must be at least {MIN_SIDE}, got {options.max_side}")
+        self.session = session
+        self.options = options
+        self.name = f"{model_name}-{options.max_keypoints}-{options.max_side}"
+
+    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+        height, width = image.shape[:2]
+        scale = min(1.0, self.options.max_side / max(height, width))
+        new_w, new_h = round(width * scale), round(height * scale)
+        if min(new_w, new_h) < MIN_SIDE:
+            raise InvalidInputError(
+                f"image is too small for ALIKED: {width}×{height} resized to {new_w}×{new_h}, "
+                f"needs at least {MIN_SIDE} px a side"
+            )
+        resized = (
+            cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
+            if (new_w, new_h) != (width, height)
+            else image
+        )
+        tensor = resized.transpose(2, 0, 1)[None].astype(np.float32) / np.float32(255.0)
+        keypoints, scores, descriptors = self.session.run(None, {"image": tensor})
+        n = self.options.max_keypoints
+        # graph pixels have centres at integers; COLMAP's at +0.5, where scaling about the
+        # image corner is exact
+        xy = (keypoints[:n] + 0.5) * np.array([width / new_w, height / new_h], np.float32)
+        return LocalFeatures(
+            np.ascontiguousarray(xy, dtype=np.float32),
+            np.ascontiguousarray(descriptors[:n], dtype=np.float32),
+            np.ascontiguousarray(scores[:n], dtype=np.float32),
+            (width, height),
+        )

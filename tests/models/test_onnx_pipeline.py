@@ -1,0 +1,123 @@
+"""ALIKED + LightGlue at run time: pixel conventions, geometric consistency of the matches,
+and localization through the whole pipeline on rendered images with exact ground truth."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from services.components import ModelStore, build_localizer
+from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
+from services.geometry.rigid import pose_error
+from services.matching.lightglue_onnx import OnnxLightGlueMatcher
+from services.memory_store import MemoryReferenceStore
+from services.pipeline import LocalizeParams
+from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
+from tests.models.conftest import MODELS_DIR
+
+
+def _extractor(models: ModelStore, keypoints: int, max_side: int) -> OnnxAlikedExtractor:
+    budget = models.entry("aliked-n16").keypoint_budget or keypoints
+    return OnnxAlikedExtractor(
+        models.session("aliked-n16"), "aliked-n16", budget, ResizeOptions(keypoints, max_side)
+    )
+
+
+def _epipolar_errors(
+    a: SyntheticView, b: SyntheticView, xy_a: np.ndarray, xy_b: np.ndarray
+) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distances (px) under the true relative pose."""
+    b_from_a = b.cam_from_world.compose(a.cam_from_world.inverse())
+    t = b_from_a.translation
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ b_from_a.rotation
+    K_a, K_b = a.camera.K, b.camera.K
+    F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
+    pa = np.column_stack([xy_a, np.ones(len(xy_a))])
+    pb = np.column_stack([xy_b, np.ones(len(xy_b))])
+    lines_b, lines_a = pa @ F.T, pb @ F
+    num = np.abs(np.sum(pb * lines_b, axis=1))
+    return 0.5 * (num / np.hypot(*lines_b[:, :2].T) + num / np.hypot(*lines_a[:, :2].T))
+
+
+def test_keypoints_follow_the_colmap_convention(
+    models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    image = reference_views[0].image
+    height, width = image.shape[:2]
+    full = _extractor(models, 512, width // 2).extract(image)  # resized inside
+    half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    small = _extractor(models, 512, width // 2).extract(half)
+    assert full.image_size == (width, height) and small.image_size == (width // 2, height // 2)
+    np.testing.assert_allclose(full.keypoints, 2.0 * small.keypoints, atol=1e-3)
+    np.testing.assert_array_equal(full.descriptors, small.descriptors)
+    assert (full.keypoints > 0).all() and (full.keypoints < [width, height]).all()
+    np.testing.assert_allclose(np.linalg.norm(full.descriptors, axis=1), 1.0, atol=1e-4)
+
+
+def test_budget_is_a_prefix(models: ModelStore, reference_views: list[SyntheticView]) -> None:
+    image = reference_views[1].image
+    few, many = (
+        _extractor(models, 256, 640).extract(image),
+        _extractor(models, 1024, 640).extract(image),
+    )
+    assert len(few) == 256 and len(many) == 1024
+    np.testing.assert_array_equal(few.keypoints, many.keypoints[:256])
+
+
+def test_lightglue_matches_are_geometrically_correct(
+    models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    extractor = _extractor(models, 1024, 640)
+    matcher = OnnxLightGlueMatcher(models.session("lightglue-aliked"), "lightglue-aliked")
+    a, b = reference_views[0], reference_views[1]
+    fa, fb = extractor.extract(a.image), extractor.extract(b.image)
+    pairs = matcher.match(fa, fb)
+    assert len(pairs) > 50
+    errors = _epipolar_errors(a, b, fa.keypoints[pairs[:, 0]], fb.keypoints[pairs[:, 1]])
+    assert np.mean(errors < 2.0) > 0.9, np.median(errors)
+
+
+def test_match_many_equals_one_at_a_time(
+    models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    extractor = _extractor(models, 512, 640)
+    features = [extractor.extract(v.image) for v in reference_views[:4]]
+    session = models.session("lightglue-aliked")
+    every = OnnxLightGlueMatcher(session, "lightglue-aliked")
+    top2 = OnnxLightGlueMatcher(session, "lightglue-aliked", lightglue_pairs=2)
+    one_by_one = [every.match(features[0], f) for f in features[1:]]
+    for got, expected in zip(every.match_many(features[0], features[1:]), one_by_one, strict=True):
+        np.testing.assert_array_equal(got, expected)
+    mixed = top2.match_many(features[0], features[1:])
+    assert sum(np.array_equal(m, e) for m, e in zip(mixed, one_by_one, strict=True)) >= 2
+
+
+@pytest.mark.parametrize("features", ["aliked", "aliked-fast"])
+def test_localizes_rendered_queries(
+    features: str,
+    models: ModelStore,
+    scene: SyntheticScene,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> None:
+    localizer = build_localizer(MODELS_DIR, 40_000_000, features)
+    store = MemoryReferenceStore()
+    for view in reference_views:
+        store.add(
+            view.name,
+            view.camera,
+            view.cam_from_world,
+            localizer.describe_reference(encode_png(view.image), view.camera),
+        )
+    for view in query_views[:3]:
+        result = localizer.localize(
+            encode_png(view.image), LocalizeParams(camera=view.camera), store
+        )
+        assert result.localized and result.cam_from_world is not None, result.reason
+        dt, dr = pose_error(result.cam_from_world, view.cam_from_world)
+        assert dt < 0.01 * scene.extent and dr < 0.5, (view.name, dt, dr)
+    unrelated = localizer.localize(
+        encode_png(unrelated_image(3)), LocalizeParams(camera=scene.camera), store
+    )
+    assert not unrelated.localized
