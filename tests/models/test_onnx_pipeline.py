@@ -9,6 +9,7 @@ import pytest
 
 from services.components import ModelStore, build_localizer
 from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
+from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.memory_store import MemoryReferenceStore
@@ -22,22 +23,6 @@ def _extractor(models: ModelStore, keypoints: int, max_side: int) -> OnnxAlikedE
     return OnnxAlikedExtractor(
         models.session("aliked-n16"), "aliked-n16", budget, ResizeOptions(keypoints, max_side)
     )
-
-
-def _epipolar_errors(
-    a: SyntheticView, b: SyntheticView, xy_a: np.ndarray, xy_b: np.ndarray
-) -> np.ndarray:
-    """Symmetric point-to-epipolar-line distances (px) under the true relative pose."""
-    b_from_a = b.cam_from_world.compose(a.cam_from_world.inverse())
-    t = b_from_a.translation
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ b_from_a.rotation
-    K_a, K_b = a.camera.K, b.camera.K
-    F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
-    pa = np.column_stack([xy_a, np.ones(len(xy_a))])
-    pb = np.column_stack([xy_b, np.ones(len(xy_b))])
-    lines_b, lines_a = pa @ F.T, pb @ F
-    num = np.abs(np.sum(pb * lines_b, axis=1))
-    return 0.5 * (num / np.hypot(*lines_b[:, :2].T) + num / np.hypot(*lines_a[:, :2].T))
 
 
 def test_keypoints_follow_the_colmap_convention(
@@ -74,7 +59,14 @@ def test_lightglue_matches_are_geometrically_correct(
     fa, fb = extractor.extract(a.image), extractor.extract(b.image)
     pairs = matcher.match(fa, fb)
     assert len(pairs) > 50
-    errors = _epipolar_errors(a, b, fa.keypoints[pairs[:, 0]], fb.keypoints[pairs[:, 1]])
+    errors = epipolar_errors(
+        a.camera,
+        a.cam_from_world,
+        fa.keypoints[pairs[:, 0]].astype(np.float64),
+        b.camera,
+        b.cam_from_world,
+        fb.keypoints[pairs[:, 1]].astype(np.float64),
+    )
     assert np.mean(errors < 2.0) > 0.9, np.median(errors)
 
 

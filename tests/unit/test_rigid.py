@@ -61,3 +61,20 @@ class TestRigid3d:
         dt, dr = pose_error(b, a)
         assert dt == pytest.approx(5.0) and dr == pytest.approx(10.0)
         assert rotation_error_deg(R, R) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_epipolar_errors_zero_for_true_matches_and_exact_for_a_shift() -> None:
+    from services.geometry.camera import Camera
+    from services.geometry.epipolar import epipolar_errors
+
+    camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], size=(20, 3))
+    a = Rigid3d(np.eye(3), np.zeros(3))
+    b = Rigid3d(np.eye(3), np.array([-1.0, 0.0, 0.0]))  # camera b one unit to the right
+    xy_a = (points[:, :2] / points[:, 2:]) * 500.0 + [320.0, 240.0]
+    xy_b = ((points[:, :2] + [-1.0, 0.0]) / points[:, 2:]) * 500.0 + [320.0, 240.0]
+    np.testing.assert_allclose(epipolar_errors(camera, a, xy_a, camera, b, xy_b), 0.0, atol=1e-9)
+    # a pure sideways baseline has horizontal epipolar lines: a 3 px vertical shift is 3 px off
+    shifted = xy_b + [0.0, 3.0]
+    np.testing.assert_allclose(epipolar_errors(camera, a, xy_a, camera, b, shifted), 3.0)
