@@ -181,7 +181,11 @@ def _import(args: argparse.Namespace) -> int:
         flush=True,
     )
     localizer = build_localizer(
-        settings.models_dir, settings.max_image_pixels, settings.features, settings.onnx_options()
+        settings.models_dir,
+        settings.max_image_pixels,
+        settings.features,
+        settings.onnx_options(),
+        settings.global_model,
     )
     failed = 0
     start = time.perf_counter()

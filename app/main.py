@@ -39,6 +39,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             settings.max_image_pixels,
             settings.features,
             settings.onnx_options(),
+            settings.global_model,
         )
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
         if not settings.api_keys:

@@ -42,6 +42,11 @@ class Settings(BaseSettings):
         description="Comma-separated onnxruntime execution providers in order of preference; "
         "auto = CUDA when this onnxruntime has it, then CPU",
     )
+    global_model: Path | None = Field(
+        None,
+        description="ONNX global-descriptor model for retrieval (contract in "
+        "services/retrieval/onnx_global.py); default: weight-free thumbnails",
+    )
     onnx_threads: int = Field(0, ge=0, description="Threads per ONNX operator; 0 = all cores")
     api_keys: str = Field(
         "",

@@ -22,6 +22,8 @@ from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.pipeline import Localizer
+from services.retrieval.base import GlobalDescriptor
+from services.retrieval.onnx_global import OnnxGlobalDescriptor
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.runtime.manifest import ModelEntry, read_manifest, verified_path
 from services.runtime.onnx import OnnxOptions, create_session
@@ -139,8 +141,10 @@ def build_localizer(
     max_pixels: int,
     features: str | None = None,
     onnx: OnnxOptions | None = None,
+    global_model: Path | None = None,
 ) -> Localizer:
-    """The localizer with feature configuration ``features`` and thumbnail retrieval.
+    """The localizer with feature configuration ``features``; retrieval by the ONNX model at
+    ``global_model`` (its contract: ``services/retrieval/onnx_global.py``) or by thumbnails.
 
     ``None`` or ``"auto"`` takes ``PREFERRED_FEATURES`` when its models are in ``models_dir``
     and the weight-free ``FALLBACK_FEATURES`` otherwise (logged with the reason).
@@ -157,8 +161,17 @@ def build_localizer(
             f"unknown feature configuration {name!r}; known: "
             f"{', '.join([AUTO, *feature_config_names()])}"
         ) from None
-    extractor, matcher = factory(ModelStore(models_dir, onnx or OnnxOptions()))
+    onnx = onnx or OnnxOptions()
+    extractor, matcher = factory(ModelStore(models_dir, onnx))
+    global_descriptor: GlobalDescriptor = ThumbnailDescriptor()
+    if global_model is not None:
+        global_descriptor = OnnxGlobalDescriptor(create_session(global_model, onnx), global_model)
     logger.info(
-        "features: %s (%s + %s), models from %s", name, extractor.name, matcher.name, models_dir
+        "features: %s (%s + %s), models from %s; retrieval: %s",
+        name,
+        extractor.name,
+        matcher.name,
+        models_dir,
+        global_descriptor.name,
     )
-    return Localizer(extractor, matcher, ThumbnailDescriptor(), max_pixels)
+    return Localizer(extractor, matcher, global_descriptor, max_pixels)

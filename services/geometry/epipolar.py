@@ -30,7 +30,7 @@ def epipolar_errors(
     pb = np.column_stack([xy_b, np.ones(len(xy_b))])
     lines_b, lines_a = pa @ fundamental.T, pb @ fundamental
     residual = np.abs(np.sum(pb * lines_b, axis=1))
-    return 0.5 * (
-        residual / np.maximum(np.hypot(lines_b[:, 0], lines_b[:, 1]), 1e-12)
-        + residual / np.maximum(np.hypot(lines_a[:, 0], lines_a[:, 1]), 1e-12)
-    )
+    distance_b = residual / np.maximum(np.hypot(lines_b[:, 0], lines_b[:, 1]), 1e-12)
+    distance_a = residual / np.maximum(np.hypot(lines_a[:, 0], lines_a[:, 1]), 1e-12)
+    errors: Array = 0.5 * (distance_a + distance_b)
+    return errors

@@ -76,5 +76,5 @@ def test_epipolar_errors_zero_for_true_matches_and_exact_for_a_shift() -> None:
     xy_b = ((points[:, :2] + [-1.0, 0.0]) / points[:, 2:]) * 500.0 + [320.0, 240.0]
     np.testing.assert_allclose(epipolar_errors(camera, a, xy_a, camera, b, xy_b), 0.0, atol=1e-9)
     # a pure sideways baseline has horizontal epipolar lines: a 3 px vertical shift is 3 px off
-    shifted = xy_b + [0.0, 3.0]
+    shifted = xy_b + np.array([0.0, 3.0])
     np.testing.assert_allclose(epipolar_errors(camera, a, xy_a, camera, b, shifted), 3.0)
