@@ -124,6 +124,8 @@ def _models_build(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    for noisy in ("onnxscript", "onnx_ir", "torch"):  # per-node INFO lines of the exporter
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     models_dir = args.models_dir or get_settings().models_dir
     names = tuple(n.strip() for n in args.models.split(",")) if args.models else DEFAULT_MODELS
     try:
