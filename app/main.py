@@ -16,6 +16,7 @@ from app.limits import BodySizeLimit
 from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
+from db.store import RetrievalIndexCache
 from services.components import build_localizer
 from services.pipeline import Localizer
 
@@ -41,6 +42,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             settings.onnx_options(),
             settings.global_model,
         )
+        app.state.retrieval_cache = RetrievalIndexCache()
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
         if not settings.api_keys:
             logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")

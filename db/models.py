@@ -50,6 +50,8 @@ class Map(Base):
     name: Mapped[str] = mapped_column(String(255), unique=True)
     description: Mapped[str | None] = mapped_column(Text)
     default_estimator: Mapped[str] = mapped_column(String(64), default="e5p1")
+    # bumped by every image add and delete (cached retrieval indexes compare it)
+    revision: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     images: Mapped[list[ReferenceImage]] = relationship(

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import threading
 from collections import defaultdict
+from dataclasses import dataclass, field
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import ColumnElement, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
-from db.models import FeatureArray, ReferenceImage
+from db.models import FeatureArray, Map, ReferenceImage
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import ReferenceView, RetrievalIndex
+
+_EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
 
 
 def camera_of(row: ReferenceImage) -> Camera:
@@ -28,7 +32,8 @@ def pose_of(row: ReferenceImage) -> Rigid3d:
 
 class SqlReferenceStore:
     """Reads the references of ``map_id`` whose features were made by ``feature_model`` and
-    ``descriptor_model``; each call runs in its own short read transaction."""
+    ``descriptor_model``; each call runs in its own short read transaction. With a ``cache``,
+    the retrieval index is kept in memory between requests and caught up incrementally."""
 
     def __init__(
         self,
@@ -36,33 +41,53 @@ class SqlReferenceStore:
         map_id: str,
         feature_model: str,
         descriptor_model: str,
+        cache: RetrievalIndexCache | None = None,
     ) -> None:
         self.sessions = sessions
+        self.cache = cache
         self.map_id = map_id
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
 
     def retrieval_index(self) -> RetrievalIndex:
+        if self.cache is None:
+            return self.load_index()
+        return self.cache.index(self)
+
+    def load_index(self, only_ids: list[str] | None = None) -> RetrievalIndex:
+        """Descriptors and centres of the map's references (of ``only_ids`` when given)."""
         stmt = (
             select(ReferenceImage, FeatureArray)
             .join(FeatureArray, FeatureArray.image_id == ReferenceImage.id)
-            .where(
-                ReferenceImage.map_id == self.map_id,
-                ReferenceImage.feature_model == self.feature_model,
-                ReferenceImage.descriptor_model == self.descriptor_model,
-                FeatureArray.kind == "global_descriptor",
-            )
+            .where(*self._references(), FeatureArray.kind == "global_descriptor")
             .order_by(ReferenceImage.id)
         )
+        if only_ids is not None:
+            stmt = stmt.where(ReferenceImage.id.in_(only_ids))
         with self.sessions() as session:
             rows = session.execute(stmt).all()
         if not rows:
-            return RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
+            return _EMPTY_INDEX
         return RetrievalIndex(
             image_ids=[image.id for image, _ in rows],
             descriptors=np.stack([from_row(array) for _, array in rows]).astype(np.float32),
             centers=np.stack([pose_of(image).center for image, _ in rows]),
         )
+
+    def _references(self) -> tuple[ColumnElement[bool], ...]:
+        return (
+            ReferenceImage.map_id == self.map_id,
+            ReferenceImage.feature_model == self.feature_model,
+            ReferenceImage.descriptor_model == self.descriptor_model,
+        )
+
+    def revision(self) -> int | None:
+        with self.sessions() as session:
+            return session.scalar(select(Map.revision).where(Map.id == self.map_id))
+
+    def reference_ids(self) -> list[str]:
+        with self.sessions() as session:
+            return list(session.scalars(select(ReferenceImage.id).where(*self._references())))
 
     def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
         if not image_ids:
@@ -108,3 +133,60 @@ class SqlReferenceStore:
                 )
             )
         return views
+
+
+@dataclass
+class _CachedIndex:
+    revision: int
+    index: RetrievalIndex
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class RetrievalIndexCache:
+    """Retrieval indexes of every map this process localizes against, kept in memory.
+
+    Each request reads the map's revision (one indexed row; every add and delete bumps it, in
+    any process). While it is unchanged the cached index is served as is; otherwise the index
+    catches up: the ids of the map's references are listed, descriptors are read only for the
+    new ones, and deleted ones are dropped. The revision is read before the ids, so a write
+    racing with the catch-up leaves the cache at most one request behind, never wrong for good.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[str, str, str], _CachedIndex] = {}
+        self._lock = threading.Lock()
+
+    def index(self, store: SqlReferenceStore) -> RetrievalIndex:
+        key = (store.map_id, store.feature_model, store.descriptor_model)
+        revision = store.revision()
+        if revision is None:  # the map is gone
+            with self._lock:
+                self._entries.pop(key, None)
+            return _EMPTY_INDEX
+        with self._lock:
+            entry = self._entries.setdefault(key, _CachedIndex(-1, _EMPTY_INDEX))
+        with entry.lock:
+            if entry.revision != revision:
+                entry.index = _catch_up(entry.index, store)
+                entry.revision = revision
+            return entry.index
+
+
+def _catch_up(index: RetrievalIndex, store: SqlReferenceStore) -> RetrievalIndex:
+    current = set(store.reference_ids())
+    keep = [i for i, image_id in enumerate(index.image_ids) if image_id in current]
+    new_ids = sorted(current - set(index.image_ids))
+    added = store.load_index(new_ids) if new_ids else _EMPTY_INDEX
+    if not added.image_ids:
+        if len(keep) == len(index.image_ids):
+            return index
+        if not keep:
+            return _EMPTY_INDEX
+    parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
+    if added.image_ids:
+        parts.append((added.descriptors, added.centers))
+    return RetrievalIndex(
+        image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
+        descriptors=np.concatenate([d for d, _ in parts]),
+        centers=np.concatenate([c for _, c in parts]),
+    )

@@ -26,7 +26,7 @@ from app.schemas.localize import LocalizeParamsIn
 from db.migrate import upgrade
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
-from db.store import SqlReferenceStore
+from db.store import RetrievalIndexCache, SqlReferenceStore
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
 
@@ -90,6 +90,7 @@ class InProcessRunner:
             self._map_id,
             self.localizer.extractor.name,
             self.localizer.global_descriptor.name,
+            RetrievalIndexCache(),
         )
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:

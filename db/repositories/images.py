@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from db.arrays import to_row
-from db.models import FeatureArray, ReferenceImage
+from db.models import FeatureArray, Map, ReferenceImage
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import ReferenceData
@@ -57,6 +57,7 @@ class ImageRepository:
         if data.depth is not None:
             arrays["depth"] = data.depth.astype("float16")
         self.session.add_all(to_row(row.id, kind, array) for kind, array in arrays.items())
+        self._bump_revision(map_id)
         self.session.flush()
         return row
 
@@ -103,7 +104,13 @@ class ImageRepository:
                 ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
             )
         )
-        return bool(result.rowcount)  # type: ignore[attr-defined]
+        deleted = bool(result.rowcount)  # type: ignore[attr-defined]
+        if deleted:
+            self._bump_revision(map_id)
+        return deleted
+
+    def _bump_revision(self, map_id: str) -> None:
+        self.session.execute(update(Map).where(Map.id == map_id).values(revision=Map.revision + 1))
 
     def count_orphan_arrays(self) -> int:
         """Feature arrays whose image no longer exists (0 in a healthy database)."""

@@ -124,7 +124,11 @@ async def localize(
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
     store = SqlReferenceStore(
-        sessions, map_id, localizer.extractor.name, localizer.global_descriptor.name
+        sessions,
+        map_id,
+        localizer.extractor.name,
+        localizer.global_descriptor.name,
+        request.app.state.retrieval_cache,
     )
     slots: threading.BoundedSemaphore = request.app.state.localize_slots
 
