@@ -47,9 +47,14 @@ def eval_main(args: argparse.Namespace) -> int:
         dataset = open_dataset(args.dataset, args.images)
         split = split_dataset(dataset, args.references, args.queries)
         estimators = _names(args.estimators, estimator_names(), "estimators")
-        models_dir = get_settings().models_dir
+        settings = get_settings()
         requested = _names(args.features, [AUTO, *feature_config_names()], "features")
-        features = list(dict.fromkeys(resolve_features(models_dir, n) for n in requested))
+        features = list(
+            dict.fromkeys(  # auto = what the server runs with (SLLOC_FEATURES)
+                resolve_features(settings.models_dir, settings.features if n == AUTO else n)
+                for n in requested
+            )
+        )
         thresholds = _thresholds(args.threshold)
         if args.max_queries is not None and args.max_queries < 1:
             raise ValueError("--max-queries must be at least 1")
@@ -71,7 +76,7 @@ def eval_main(args: argparse.Namespace) -> int:
             partial(HttpRunner, args.url, args.api_key, f"slloc-eval-{dataset.name}", args.keep_map)
         ]
     else:
-        factories = [partial(InProcessRunner, name, models_dir) for name in features]
+        factories = [partial(InProcessRunner, name, settings.models_dir) for name in features]
     _log(
         f"{dataset.name}: {len(split.references)} references, {len(split.queries)} queries, "
         f"estimators {', '.join(estimators)}, "

@@ -4,11 +4,14 @@ with a 16-bit depth PNG), shared by the evaluation tests."""
 from __future__ import annotations
 
 import csv
+import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from app.importers import CSV_COLUMNS
+from app.settings import get_settings
 from services.synthetic_scene import SyntheticView, encode_depth_png, encode_png
 
 NUM_REFERENCES = 24
@@ -19,6 +22,21 @@ SPLIT_ARGS = [
     "--queries",
     f"range:{NUM_REFERENCES}-{NUM_REFERENCES + NUM_QUERIES - 1}",
 ]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def weight_free_features() -> Iterator[None]:
+    """These tests are about the evaluation machinery: in process and in the servers they
+    start, run the weight-free pipeline whether or not ONNX models are built."""
+    previous = os.environ.get("SLLOC_FEATURES")
+    os.environ["SLLOC_FEATURES"] = "sift"
+    get_settings.cache_clear()
+    yield
+    if previous is None:
+        del os.environ["SLLOC_FEATURES"]
+    else:
+        os.environ["SLLOC_FEATURES"] = previous
+    get_settings.cache_clear()
 
 
 def write_images(views: list[SyntheticView], root: Path) -> None:

