@@ -35,10 +35,12 @@ def add_reference_image(
         InvalidInputError: the image, depth or camera is unusable.
     """
     with sessions() as session:
-        if MapRepository(session).get(map_id) is None:
+        map_row = MapRepository(session).get(map_id)
+        if map_row is None:
             raise not_found("map", map_id)
         if ImageRepository(session).name_exists(map_id, metadata.name):
             raise conflict(f"map already has an image named {metadata.name!r}")
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
     camera = metadata.camera.to_camera()
     data = localizer.describe_reference(image_bytes, camera, depth_bytes)
     try:

@@ -152,6 +152,20 @@ class Localizer:
         self.global_descriptor = global_descriptor
         self.max_pixels = max_pixels
 
+    def for_map(self, max_keypoints: int | None, max_side: int | None) -> Localizer:
+        """This localizer with a map's keypoint budget and image size (None = the default).
+
+        Raises:
+            InvalidInputError: the extractor cannot honour them.
+        """
+        if max_keypoints is None and max_side is None:
+            return self
+        try:
+            extractor = self.extractor.with_budget(max_keypoints, max_side)
+        except ValueError as exc:
+            raise InvalidInputError(f"map feature options: {exc}") from None
+        return Localizer(extractor, self.matcher, self.global_descriptor, self.max_pixels)
+
     def describe_reference(
         self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None
     ) -> ReferenceData:

@@ -20,11 +20,26 @@ def _known_estimator(name: str) -> str:
 EstimatorName = Annotated[str, AfterValidator(_known_estimator)]
 
 
+class FeatureOptions(BaseModel):
+    """Per-map local-feature options; null keeps the service's default."""
+
+    max_keypoints: int | None = Field(
+        None, ge=1, le=20_000, description="Keypoint budget per image (ALIKED: at most 2048)"
+    )
+    max_side: int | None = Field(
+        None, ge=64, le=8192, description="Longer image side features are extracted at (px)"
+    )
+
+
 class MapCreate(BaseModel):
     name: str = Field(min_length=1, max_length=255)
     description: str | None = Field(None, max_length=10_000)
     default_estimator: EstimatorName = Field(
         "e5p1", description="Estimator used when a localize request names none"
+    )
+    features: FeatureOptions = Field(
+        default_factory=FeatureOptions,
+        description="Keypoint budget and image size for this map's references and queries",
     )
 
 
@@ -33,6 +48,7 @@ class MapOut(BaseModel):
     name: str
     description: str | None
     default_estimator: str
+    features: FeatureOptions
     image_count: int
     created_at: datetime
 

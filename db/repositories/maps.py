@@ -12,8 +12,21 @@ class MapRepository:
     def __init__(self, session: Session) -> None:
         self.session = session
 
-    def create(self, name: str, description: str | None, default_estimator: str = "e5p1") -> Map:
-        row = Map(name=name, description=description, default_estimator=default_estimator)
+    def create(
+        self,
+        name: str,
+        description: str | None,
+        default_estimator: str = "e5p1",
+        max_keypoints: int | None = None,
+        max_side: int | None = None,
+    ) -> Map:
+        row = Map(
+            name=name,
+            description=description,
+            default_estimator=default_estimator,
+            max_keypoints=max_keypoints,
+            max_side=max_side,
+        )
         self.session.add(row)
         self.session.flush()
         return row

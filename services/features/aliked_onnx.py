@@ -39,8 +39,18 @@ class OnnxAlikedExtractor:
         if options.max_side < MIN_SIDE:
             raise ValueError(f"max_side must be at least {MIN_SIDE}, got {options.max_side}")
         self.session = session
+        self.model_name = model_name
+        self.exported_budget = exported_budget
         self.options = options
         self.name = f"{model_name}-{options.max_keypoints}-{options.max_side}"
+
+    def with_budget(self, max_keypoints: int | None, max_side: int | None) -> OnnxAlikedExtractor:
+        if max_keypoints is None and max_side is None:
+            return self
+        options = ResizeOptions(
+            max_keypoints or self.options.max_keypoints, max_side or self.options.max_side
+        )
+        return OnnxAlikedExtractor(self.session, self.model_name, self.exported_budget, options)
 
     def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
         height, width = image.shape[:2]

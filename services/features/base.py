@@ -43,3 +43,12 @@ class FeatureExtractor(Protocol):
     def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
         """Features of an (H, W, 3) RGB uint8 image."""
         ...
+
+    def with_budget(self, max_keypoints: int | None, max_side: int | None) -> FeatureExtractor:
+        """The same extractor with another keypoint budget and/or longer image side (None
+        keeps the current one); shares the heavy parts (model sessions).
+
+        Raises:
+            ValueError: a value this extractor cannot honour (the message says why).
+        """
+        ...

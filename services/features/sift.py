@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -34,6 +34,21 @@ class SiftExtractor:
         self.options = options or SiftOptions()
         o = self.options
         self.name = f"sift-rootsift-{o.max_keypoints}-{o.max_side}-c{o.contrast_threshold:g}"
+
+    def with_budget(self, max_keypoints: int | None, max_side: int | None) -> SiftExtractor:
+        if max_keypoints is None and max_side is None:
+            return self
+        if (max_keypoints is not None and max_keypoints < 1) or (
+            max_side is not None and max_side < 16
+        ):
+            raise ValueError("max_keypoints must be >= 1 and max_side >= 16")
+        return SiftExtractor(
+            replace(
+                self.options,
+                max_keypoints=max_keypoints or self.options.max_keypoints,
+                max_side=max_side or self.options.max_side,
+            )
+        )
 
     def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select
 
 from db.models import FeatureArray, ReferenceImage
-from services.synthetic_scene import SyntheticView
-from tests.conftest import create_map, upload_view
+from services.synthetic_scene import SyntheticView, encode_png
+from tests.conftest import create_map, image_metadata, upload_view
 
 PROBLEM = "application/problem+json"
 
@@ -82,3 +84,43 @@ def test_delete_map_removes_images_and_features(
     engine.dispose()
     assert images == 1  # only the other map's image is left
     assert arrays == kept and arrays > 0
+
+
+def test_feature_options_per_map(
+    client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    small = client.post(
+        "/v1/maps", json={"name": "small", "features": {"max_keypoints": 300, "max_side": 320}}
+    )
+    assert small.status_code == 201
+    assert small.json()["features"] == {"max_keypoints": 300, "max_side": 320}
+    default_id = create_map(client, "default")
+    assert client.get(f"/v1/maps/{default_id}").json()["features"] == {
+        "max_keypoints": None,
+        "max_side": None,
+    }
+    small_id = small.json()["id"]
+    counts = []
+    for map_id in (small_id, default_id):
+        response = upload_view(client, map_id, reference_views[0])
+        assert response.status_code == 201  # type: ignore[attr-defined]
+        counts.append(response.json()["num_keypoints"])  # type: ignore[attr-defined]
+    assert counts[0] <= 300 < counts[1]
+    for view in reference_views[1:8]:
+        upload_view(client, small_id, view)
+    query = query_views[0]
+    result = client.post(
+        f"/v1/maps/{small_id}/localize",
+        files={"image": ("q.png", encode_png(query.image), "image/png")},
+        data={"params": json.dumps({"camera": image_metadata(query)["camera"]})},
+    ).json()
+    # every retrieved reference was described with the map's options, so it is matchable
+    assert result["retrieved"] and all(r["num_matches"] > 0 for r in result["retrieved"])
+
+
+def test_bad_feature_options_are_422(client: TestClient) -> None:
+    for features in ({"max_keypoints": 0}, {"max_side": 10}, {"max_keypoints": "many"}):
+        response = client.post("/v1/maps", json={"name": "bad", "features": features})
+        assert response.status_code == 422, features
+        assert response.headers["content-type"] == PROBLEM
+    assert client.get("/v1/maps").json()["total"] == 0

@@ -113,3 +113,11 @@ def test_localizes_rendered_queries(
         encode_png(unrelated_image(3)), LocalizeParams(camera=scene.camera), store
     )
     assert not unrelated.localized
+
+
+def test_budget_beyond_the_exported_one_is_refused(models: ModelStore) -> None:
+    extractor = _extractor(models, 512, 640)
+    assert extractor.with_budget(None, None) is extractor
+    assert extractor.with_budget(256, 320).name == "aliked-n16-256-320"
+    with pytest.raises(ValueError, match="exported budget"):
+        extractor.with_budget(extractor.exported_budget + 1, None)

@@ -120,6 +120,7 @@ async def localize(
         if map_row is None:
             raise not_found("map", map_id)
         default_estimator = map_row.default_estimator
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
     engine_params = _to_params(body, default_estimator, settings.max_top_k)
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None

@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Query, Response
 from sqlalchemy.exc import IntegrityError
 
-from app.api.deps import AdminKey, ClientKey, SessionsDep
+from app.api.deps import AdminKey, ClientKey, LocalizerDep, SessionsDep
 from app.errors import conflict, not_found, problem_responses
-from app.schemas.maps import MapCreate, MapOut, MapPage
+from app.schemas.maps import FeatureOptions, MapCreate, MapOut, MapPage
 from db.models import Map
 from db.repositories.maps import MapRepository
 
@@ -20,6 +20,7 @@ def _out(row: Map, image_count: int) -> MapOut:
         name=row.name,
         description=row.description,
         default_estimator=row.default_estimator,
+        features=FeatureOptions(max_keypoints=row.max_keypoints, max_side=row.max_side),
         image_count=image_count,
         created_at=row.created_at,
     )
@@ -32,13 +33,22 @@ def _out(row: Map, image_count: int) -> MapOut:
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 409, 422),
 )
-def create_map(body: MapCreate, sessions: SessionsDep) -> MapOut:
+def create_map(body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep) -> MapOut:
+    """``features`` must be honourable by the service's extractor (else 422)."""
+    options = body.features
+    localizer.for_map(options.max_keypoints, options.max_side)
     try:
         with sessions.begin() as session:
             repo = MapRepository(session)
             if repo.get_by_name(body.name) is not None:
                 raise conflict(f"a map named {body.name!r} exists")
-            row = repo.create(body.name, body.description, body.default_estimator)
+            row = repo.create(
+                body.name,
+                body.description,
+                body.default_estimator,
+                options.max_keypoints,
+                options.max_side,
+            )
             return _out(row, 0)
     except IntegrityError as exc:
         raise conflict(f"a map named {body.name!r} exists") from exc
