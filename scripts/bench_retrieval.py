@@ -2,10 +2,11 @@
 
 1. Search: ``top_k`` over 1k / 10k / 100k random unit descriptors (the thumbnail's 768
    dimensions and a compact 256), median and p90 ms over 50 queries, and the index memory.
-2. Recall@k (k = 1, 5, 10) of the thumbnail descriptor on redkitchen's suggested split
-   (references frames 0…499 every 5th, queries 500…999 every 10th): a query counts when a
-   top-k reference lies within 0.5 m and 30° of it, over the queries that have such a
-   reference at all.
+2. Recall@k (k = 1, 5, 10) on redkitchen's suggested split (references frames 0…499 every
+   5th, queries 500…999 every 10th) of the thumbnail (the service's retrieval today) and of
+   VLAD over the map's own vocabulary of SIFT descriptors (``services/retrieval/vlad.py``;
+   not wired into the service yet): a query counts when a top-k reference lies within 0.5 m
+   and 30° of it, over the queries that have such a reference at all.
 
 Run from the repository root: ``.venv/bin/python scripts/bench_retrieval.py [--dataset DIR]``
 """
@@ -14,16 +15,21 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from app.evaluation.datasets import redkitchen_dataset
 from services.features.base import LocalFeatures
+from services.features.sift import SiftExtractor
 from services.geometry.rigid import rotation_error_deg
 from services.retrieval.search import top_k
 from services.retrieval.thumbnail import ThumbnailDescriptor
+from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
 
 NEAR_M, NEAR_DEG = 0.5, 30.0
 
@@ -53,43 +59,56 @@ def recall(dataset: Path) -> None:
     images = redkitchen_dataset(dataset).images
     references = images[0:500:5]
     queries = images[500:1000:10]
-    descriptor = ThumbnailDescriptor()
-    no_features = LocalFeatures(
-        np.zeros((0, 2), np.float32),
-        np.zeros((0, 128), np.float32),
-        np.zeros(0, np.float32),
-        (0, 0),
-    )
+    rgb = {
+        i.name: np.ascontiguousarray(cv2.imread(str(i.image_path))[:, :, ::-1])
+        for i in references + queries
+    }
+    sift = SiftExtractor()
+    features = {name: sift.extract(image) for name, image in rgb.items()}
+    thumbnail = ThumbnailDescriptor()
+    describers: dict[str, Callable[[str], NDArray[np.float32]]] = {
+        thumbnail.name: lambda name: thumbnail.compute(rgb[name], features[name])
+    }
+    for centers in (16, 64):
+        vocabulary = train_vocabulary(
+            [features[r.name].descriptors for r in references], num_centers=centers
+        )
+        describers[f"vlad-sift-k{centers}"] = partial(_vlad, features, vocabulary)
 
-    def describe(path: Path) -> np.ndarray:
-        rgb = np.ascontiguousarray(cv2.imread(str(path))[:, :, ::-1])
-        return descriptor.compute(rgb, no_features)
-
-    table = np.stack([describe(r.image_path) for r in references])
-    centers = np.stack([r.cam_from_world.center for r in references])
-    hits = {1: 0, 5: 0, 10: 0}
-    counted = 0
-    for query in queries:
-        near = np.array(
+    near = [
+        np.array(
             [
-                np.linalg.norm(c - query.cam_from_world.center) <= NEAR_M
-                and rotation_error_deg(r.cam_from_world.rotation, query.cam_from_world.rotation)
+                np.linalg.norm(r.cam_from_world.center - q.cam_from_world.center) <= NEAR_M
+                and rotation_error_deg(r.cam_from_world.rotation, q.cam_from_world.rotation)
                 <= NEAR_DEG
-                for r, c in zip(references, centers, strict=True)
+                for r in references
             ]
         )
-        if not near.any():
-            continue
-        counted += 1
-        rows, _ = top_k(describe(query.image_path), table, 10)
-        for k in hits:
-            hits[k] += bool(near[rows[:k]].any())
+        for q in queries
+    ]
+    counted = sum(bool(n.any()) for n in near)
     print(
-        f"\n{descriptor.name}: {counted} of {len(queries)} queries have a reference within "
-        f"{NEAR_M} m and {NEAR_DEG:g}°"
+        f"\n{counted} of {len(queries)} queries have a reference within {NEAR_M} m and "
+        f"{NEAR_DEG:g}°; recall over those:\n"
     )
-    for k, h in hits.items():
-        print(f"recall@{k}: {100 * h / counted:.1f} % ({h}/{counted})")
+    print("| descriptor | dims | recall@1 | recall@5 | recall@10 |")
+    print("|---|---|---|---|---|")
+    for label, describe in describers.items():
+        table = np.stack([describe(r.name) for r in references])
+        hits = {1: 0, 5: 0, 10: 0}
+        for query, ok in zip(queries, near, strict=True):
+            if ok.any():
+                rows, _ = top_k(describe(query.name), table, 10)
+                for k in hits:
+                    hits[k] += bool(ok[rows[:k]].any())
+        cells = " | ".join(f"{100 * h / counted:.1f} %" for h in hits.values())
+        print(f"| {label} | {table.shape[1]} | {cells} |", flush=True)
+
+
+def _vlad(
+    features: dict[str, LocalFeatures], vocabulary: Vocabulary, name: str
+) -> NDArray[np.float32]:
+    return encode(features[name].descriptors, vocabulary)
 
 
 def main() -> None:
