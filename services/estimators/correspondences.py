@@ -170,6 +170,14 @@ def pose_sampson_errors_px(
     return np.asarray(err * stacked.focal[idx][None], dtype=np.float64)
 
 
+def random_subset(num: int, cap: int, rng: np.random.Generator) -> IntArray:
+    """Sorted indices of at most ``cap`` of ``num`` items, uniformly at random (all of them,
+    in order, when ``num <= cap``)."""
+    if num <= cap:
+        return np.arange(num, dtype=np.int64)
+    return np.sort(rng.choice(num, size=cap, replace=False)).astype(np.int64)
+
+
 def precheck(
     references: list[ReferenceObservation], min_matches: int, min_pairs: int = 2
 ) -> FailureReason | None:

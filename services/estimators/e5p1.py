@@ -5,6 +5,14 @@ query is a single pinhole camera. PoseLib's 5+1 solver in LO-RANSAC (with Sampso
 refinement) gives the query's ``cam_from_world`` directly, metric scale from the references'
 known baselines.
 
+Speed: LO-RANSAC's cost is its iterations (at least ``min_iterations``, the guide's 1000)
+times the correspondences each hypothesis is scored on. The hypotheses are therefore scored
+on a seeded random sample of at most ``RANSAC_SAMPLE_PER_PAIR`` matches per reference; the
+winning pose is then re-scored and refined on every match (generalized Sampson refinement,
+``pose_triangulation.local_optimisation``), so the answer's inliers and accuracy come from all
+of them. At the guide's setting (10 references × 1000 matches) this is ~4× faster for the same
+accuracy (``scripts/bench_estimators.py``).
+
 The pipeline then verifies the pose in 3D (``services.estimators.verification``).
 """
 
@@ -18,19 +26,14 @@ from services.estimators.base import (
     EstimatorOptions,
     FailureReason,
     ReferenceObservation,
-    confidence_from_inliers,
 )
-from services.estimators.correspondences import Deadline
-from services.estimators.poselib_bridge import ransac_options
+from services.estimators.correspondences import Deadline, finish, random_subset, stack_matches
+from services.estimators.pose_triangulation import local_optimisation
+from services.estimators.poselib_bridge import from_poselib, ransac_options, to_poselib
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
-
-def _poselib_pose(pose: Rigid3d) -> poselib.CameraPose:
-    out = poselib.CameraPose()
-    out.q = pose.quaternion
-    out.t = pose.translation
-    return out
+RANSAC_SAMPLE_PER_PAIR = 100  # matches per reference that RANSAC hypotheses are scored on
 
 
 class E5p1Estimator:
@@ -51,13 +54,16 @@ class E5p1Estimator:
         if np.ptp(centers, axis=0).max() < 1e-9:
             return EstimateResult.failure(FailureReason.DEGENERATE_GEOMETRY, references)
 
+        rng = np.random.default_rng(options.seed)
         matches = []
         for pair_index, i in enumerate(used):
+            ref = references[i]
+            sample = random_subset(ref.num_matches, RANSAC_SAMPLE_PER_PAIR, rng)
             m = poselib.PairwiseMatches()
             m.cam_id1 = pair_index
             m.cam_id2 = 0
-            m.x1 = np.ascontiguousarray(references[i].reference_xy, dtype=np.float64)
-            m.x2 = np.ascontiguousarray(references[i].query_xy, dtype=np.float64)
+            m.x1 = np.ascontiguousarray(ref.reference_xy[sample], dtype=np.float64)
+            m.x2 = np.ascontiguousarray(ref.query_xy[sample], dtype=np.float64)
             matches.append(m)
         deadline = Deadline(options.time_budget_s)
         if deadline.expired():
@@ -67,36 +73,31 @@ class E5p1Estimator:
             options,
             deadline,
             epipolar_px=options.max_error_px,
-            num_matches=sum(references[i].num_matches for i in used),
+            num_matches=sum(len(m.x1) for m in matches),
         )
         pose, info = poselib.estimate_generalized_relative_pose(
             matches,
-            [_poselib_pose(references[i].cam_from_world) for i in used],
+            [to_poselib(references[i].cam_from_world) for i in used],
             [references[i].camera.to_poselib() for i in used],
-            [_poselib_pose(Rigid3d.identity())],
+            [to_poselib(Rigid3d.identity())],
             [query_camera.to_poselib()],
             ransac,
             {},
         )
-        masks = [np.zeros(ref.num_matches, dtype=bool) for ref in references]
-        for pair_index, i in enumerate(used):
-            masks[i] = np.asarray(info["inliers"][pair_index], dtype=bool)
-        num_inliers = int(sum(int(m.sum()) for m in masks))
-        refs_with_inliers = sum(int(m.sum() >= 3) for m in masks)
-        total = sum(ref.num_matches for ref in references)
-        stats = {
-            "iterations": float(info.get("iterations", 0)),
-            "num_matches": float(total),
-            "inlier_ratio": num_inliers / max(total, 1),
-            "references_with_inliers": float(refs_with_inliers),
-        }
-        if num_inliers < options.min_inliers or refs_with_inliers < options.min_references:
-            return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
-        cam_from_world = Rigid3d.from_quaternion(np.asarray(pose.q), np.asarray(pose.t))
-        if not (
-            np.all(np.isfinite(cam_from_world.rotation))
-            and np.all(np.isfinite(cam_from_world.translation))
-        ):
-            return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
-        confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
-        return EstimateResult(cam_from_world, masks, confidence, stats, None)
+        stats = {"iterations": float(info.get("iterations", 0))}
+        hypothesis = from_poselib(pose)
+        if not np.all(np.isfinite(hypothesis.matrix)):
+            return EstimateResult.failure(FailureReason.NO_CONSENSUS, references, stats)
+        stacked = stack_matches(query_camera, references)
+        cam_from_world, inliers = local_optimisation(
+            hypothesis,
+            stacked,
+            references,
+            query_camera,
+            options,
+            deadline,
+            rounds=2,
+            refine_iterations=10,
+        )
+        stats["score"] = float(inliers.sum())
+        return finish(cam_from_world, stacked.split(inliers), references, options, stats)

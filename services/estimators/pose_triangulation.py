@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +30,7 @@ from services.estimators.correspondences import (
     finish,
     pose_sampson_errors_px,
     precheck,
+    random_subset,
     stack_matches,
 )
 from services.estimators.depth_relative_pose import (
@@ -48,6 +49,7 @@ from services.geometry.averaging import (
     ransac_ray_intersection,
 )
 from services.geometry.camera import Camera
+from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.geometry.rigid import Rigid3d
 
@@ -139,6 +141,47 @@ def solve_3pt_depth(
     return PairPose(-1, refined, inliers, model.iterations)
 
 
+def sampled_solver(solver: RelativePoseSolver, cap: int) -> RelativePoseSolver:
+    """``solver`` run on a seeded random sample of at most ``cap`` of a pair's matches (its
+    hypotheses are scored on fewer matches: RANSAC's cost is iterations × matches); the
+    returned inlier mask covers all the pair's matches (Sampson error within
+    ``max_error_px``). The pose itself is as precise as the sample allows: a proposal for
+    robust averaging, not a final answer."""
+
+    def solve(
+        ref: ReferenceObservation,
+        query_camera: Camera,
+        options: EstimatorOptions,
+        deadline: Deadline,
+        calls_left: int,
+        rng: np.random.Generator,
+    ) -> PairPose | None:
+        if ref.num_matches <= cap:
+            return solver(ref, query_camera, options, deadline, calls_left, rng)
+        s = random_subset(ref.num_matches, cap, rng)
+        sample = replace(
+            ref,
+            query_xy=ref.query_xy[s],
+            reference_xy=ref.reference_xy[s],
+            query_depth=None if ref.query_depth is None else ref.query_depth[s],
+            reference_depth=None if ref.reference_depth is None else ref.reference_depth[s],
+        )
+        pair = solver(sample, query_camera, options, deadline, calls_left, rng)
+        if pair is None:
+            return None
+        pose = pair.query_from_ref
+        errors = sampson_errors(
+            pose.rotation[None],
+            pose.translation[None],
+            normalized_from_pixels(ref.camera, ref.reference_xy),
+            normalized_from_pixels(query_camera, ref.query_xy),
+        )[0]
+        focal = 0.5 * (mean_focal(ref.camera) + mean_focal(query_camera))
+        return PairPose(pair.index, pose, errors * focal < options.max_error_px, pair.iterations)
+
+    return solve
+
+
 def pairwise_poses(
     query_camera: Camera,
     references: list[ReferenceObservation],
@@ -217,10 +260,12 @@ def local_optimisation(
     options: EstimatorOptions,
     deadline: Deadline,
     rounds: int = 3,
+    refine_iterations: int = 100,
 ) -> tuple[Rigid3d, BoolArray]:
     """Step 4: generalized Sampson refinement (PoseLib, Cauchy loss) of the query pose on all
     pairs at once, ``rounds`` times; each round re-selects the matches within an adaptive
-    threshold (``adaptive_threshold_px``). A round that loses more than 5 % of the inliers at
+    threshold (``adaptive_threshold_px``), with at most ``refine_iterations`` Levenberg–Marquardt
+    steps. A round that loses more than 5 % of the inliers at
     ``max_error_px`` is rejected. Returns the pose and its (N,) inlier mask at ``max_error_px``
     over the stacked matches."""
     thr = options.max_error_px
@@ -231,7 +276,12 @@ def local_optimisation(
             break
         refine_thr = adaptive_threshold_px(errors, thr)
         refined = refine_query_pose(
-            references, stacked.split(errors < refine_thr), query_camera, pose, refine_thr / 4.0
+            references,
+            stacked.split(errors < refine_thr),
+            query_camera,
+            pose,
+            refine_thr / 4.0,
+            refine_iterations,
         )
         new_errors = pose_sampson_errors_px(stacked, refined.rotation[None], refined.center[None])[
             0

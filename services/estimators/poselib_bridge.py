@@ -134,10 +134,12 @@ def refine_query_pose(
     query_camera: Camera,
     initial: Rigid3d,
     loss_scale_px: float,
+    max_iterations: int = 100,
 ) -> Rigid3d:
     """Refine the query ``cam_from_world`` on the masked matches of all references at once
     (PoseLib generalized relative pose refinement: the references form a rig whose frame is
-    the world; Sampson error). Returns ``initial`` when the guard refuses the call."""
+    the world; Sampson error; at most ``max_iterations`` Levenberg–Marquardt steps). Returns
+    ``initial`` when the guard refuses the call."""
     used = [i for i, m in enumerate(masks) if int(m.sum()) > 0]
     if not generalized_refinement_possible([int(masks[i].sum()) for i in used]):
         return initial
@@ -156,7 +158,7 @@ def refine_query_pose(
         [references[i].camera.to_poselib() for i in used],
         [to_poselib(Rigid3d.identity())],
         [query_camera.to_poselib()],
-        bundle_options(loss_scale_px),
+        bundle_options(loss_scale_px, max_iterations),
     )
     out = from_poselib(pose)
     return out if np.all(np.isfinite(out.matrix)) else initial

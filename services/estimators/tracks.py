@@ -73,7 +73,10 @@ def build_tracks(stacked: StackedMatches, merge_px: float = 0.0) -> Tracks:
     if n == 0:
         return Tracks(np.zeros((0, num_refs), np.int64), np.zeros(0, np.int64))
     keys = np.floor(stacked.query_xy / merge_px) if merge_px > 0 else stacked.query_xy
-    _, first, track_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    # (x, y) rows as complex numbers: a 1-D unique in the same (lexicographic) order, ~5×
+    # faster than np.unique(axis=0)
+    rows = np.ascontiguousarray(keys, dtype=np.float64).view(np.complex128).reshape(-1)
+    _, first, track_of = np.unique(rows, return_index=True, return_inverse=True)
     track_of = track_of.reshape(-1)
     match_index = np.full((first.shape[0], num_refs), -1, dtype=np.int64)
     # later matches of the same keypoint in the same reference overwrite earlier ones
@@ -159,19 +162,22 @@ def refine_on_points(
     deadline: Deadline,
     rounds: int = 3,
     min_points: int = 6,
+    initial_px: float | None = None,
 ) -> tuple[Rigid3d, int]:
     """Refine the query pose on 2D–3D matches (PoseLib absolute-pose refinement, Cauchy loss)
     ``rounds`` times; each round keeps the points that reproject within an adaptive threshold
-    (3σ of the errors below ``max_error_px``, at least 1 px). Returns the pose and the number
-    of points used in the last round (0 if it never refined)."""
+    (3σ of the errors below ``max_error_px``, at least 1 px; below ``initial_px`` instead in
+    the first round, which lets a coarse initial pose converge). Returns the pose and the
+    number of points used in the last round (0 if it never refined)."""
     used = 0
-    for _ in range(rounds):
+    for round_index in range(rounds):
         if deadline.expired():
             break
         projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
         err = np.linalg.norm(projected - query_xy, axis=1)
         err = np.where(np.isfinite(err), err, np.inf)
-        thr = adaptive_threshold_px(err, options.max_error_px)
+        cap = initial_px if round_index == 0 and initial_px is not None else options.max_error_px
+        thr = adaptive_threshold_px(err, cap)
         inl = err < thr
         if inl.sum() < min_points:
             break

@@ -6,8 +6,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.estimators.base import ReferenceObservation
-from services.estimators.correspondences import pose_sampson_errors_px, stack_matches
+from services.estimators.base import EstimatorOptions, ReferenceObservation
+from services.estimators.correspondences import (
+    Deadline,
+    pose_sampson_errors_px,
+    random_subset,
+    stack_matches,
+)
+from services.estimators.pose_triangulation import sampled_solver, solve_5pt
 from services.estimators.tracks import build_tracks
 from services.geometry.averaging import (
     average_rotations,
@@ -100,3 +106,27 @@ def test_world_frame_sampson_matches_pairwise_sampson() -> None:
             rel.rotation[None], rel.translation[None], stacked.ref_norm[sl], stacked.query_norm[sl]
         )[0]
         np.testing.assert_allclose(world[sl], pair * 500.0, rtol=1e-8, atol=1e-9)
+
+
+def test_sampled_solver_scores_every_match() -> None:
+    """RANSAC on a 100-match sample returns a proposal of the pair's pose (robust averaging
+    refines it later) and an inlier mask over all its matches that agrees with the truth."""
+    scene = make_correspondences(seed=5, num_references=2, matches_per_reference=1000)
+    ref, truth = scene.references[0], scene.inlier_masks[0]
+    options = EstimatorOptions()
+    pair = sampled_solver(solve_5pt, 100)(
+        ref, scene.query_camera, options, Deadline(None), 1, np.random.default_rng(0)
+    )
+    assert pair is not None and pair.inliers.shape == (ref.num_matches,)
+    expected = scene.query_pose.compose(ref.cam_from_world.inverse())
+    assert rotation_error_deg(pair.query_from_ref.rotation, expected.rotation) < 2.5
+    agree = (pair.inliers == truth).mean()
+    assert agree > 0.97, agree
+
+
+def test_random_subset() -> None:
+    rng = np.random.default_rng(0)
+    assert np.array_equal(random_subset(5, 10, rng), np.arange(5))
+    picked = random_subset(1000, 100, rng)
+    assert picked.shape == (100,) and np.unique(picked).size == 100
+    assert np.all(np.diff(picked) > 0) and picked.max() < 1000
