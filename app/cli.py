@@ -33,6 +33,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     imp.add_argument("--images", type=Path, help="image folder (with --colmap)")
 
+    reindex = sub.add_parser(
+        "reindex", help="train a new VLAD retrieval vocabulary for a map and re-encode it"
+    )
+    reindex.add_argument("--map", required=True, help="map name")
+
     db = sub.add_parser("db", help="database maintenance")
     db_sub = db.add_subparsers(dest="db_command", required=True)
     db_sub.add_parser("upgrade", help="migrate the schema to the newest revision")
@@ -76,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         return _import(args)
     if args.command == "db":
         return _db_upgrade()
+    if args.command == "reindex":
+        return _reindex(args.map)
     if args.command == "models":
         return _models_build(args)
     if args.command == "eval":
@@ -143,6 +150,43 @@ def _openapi(out: Path) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(openapi_document())
     print(f"wrote {out}")
+    return 0
+
+
+def _reindex(map_name: str) -> int:
+    from app.errors import ProblemError
+    from app.operations import reindex_map
+    from db.migrate import upgrade
+    from db.repositories.maps import MapRepository
+    from db.session import make_engine, make_session_factory
+    from services.components import build_localizer
+
+    settings = get_settings()
+    engine = make_engine(settings.database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions() as session:
+        row = MapRepository(session).get_by_name(map_name)
+        if row is None:
+            print(f"no map named {map_name!r}", file=sys.stderr)
+            return 2
+        map_id = row.id
+    localizer = build_localizer(
+        settings.models_dir,
+        settings.max_image_pixels,
+        settings.features,
+        settings.onnx_options(),
+        settings.global_model,
+    )
+    try:
+        out = reindex_map(sessions, localizer, map_id, settings.global_model is None)
+    except ProblemError as exc:
+        print(f"reindex failed: {exc.detail}", file=sys.stderr)
+        return 1
+    print(
+        f"map {map_name!r}: vocabulary v{out.vocabulary_version} (K={out.num_centers}, "
+        f"{out.feature_model}), {out.encoded_images} references encoded in {out.seconds:.1f} s"
+    )
     return 0
 
 

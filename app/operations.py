@@ -10,10 +10,12 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.errors import conflict, not_found
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata, ImageOut
+from app.schemas.maps import ReindexOut
 from db.models import ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.store import camera_of, pose_of
+from db.vocabulary import VladIndexer, VocabularyError
 from services.pipeline import Localizer
 
 logger = logging.getLogger(__name__)
@@ -71,4 +73,47 @@ def image_out(row: ReferenceImage) -> ImageOut:
         num_keypoints=row.num_keypoints,
         has_depth=row.has_depth,
         created_at=row.created_at,
+    )
+
+
+def reindex_map(
+    sessions: sessionmaker[Session], localizer: Localizer, map_id: str, vlad: bool
+) -> ReindexOut:
+    """Train a new VLAD vocabulary version from the map's stored descriptors and re-encode
+    every reference with it (no image is re-read).
+
+    Raises:
+        ProblemError: 404 unknown map; 409 when retrieval uses an ONNX global model
+            (``vlad`` False) or the map has too few descriptors.
+    """
+    with sessions() as session:
+        map_row = MapRepository(session).get(map_id)
+        if map_row is None:
+            raise not_found("map", map_id)
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+    if not vlad:
+        raise conflict(
+            "retrieval uses the ONNX global-descriptor model (SLLOC_GLOBAL_MODEL); "
+            "there is no vocabulary to train"
+        )
+    feature_model = localizer.extractor.name
+    try:
+        report = VladIndexer(sessions, map_id, feature_model).train()
+    except VocabularyError as exc:
+        raise conflict(str(exc)) from exc
+    logger.info(
+        "map %s: reindexed %d references with vocabulary v%d in %.1f s",
+        map_id,
+        report.encoded_images,
+        report.version,
+        report.seconds,
+    )
+    return ReindexOut(
+        map_id=map_id,
+        feature_model=feature_model,
+        vocabulary_version=report.version,
+        num_centers=report.num_centers,
+        trained_images=report.trained_images,
+        encoded_images=report.encoded_images,
+        seconds=round(report.seconds, 3),
     )

@@ -86,6 +86,8 @@ class ReferenceImage(Base):
     has_depth: Mapped[bool] = mapped_column(default=False)
     feature_model: Mapped[str] = mapped_column(String(128))
     descriptor_model: Mapped[str] = mapped_column(String(128))
+    # version of the map vocabulary its stored "vlad" array was encoded with (None: none yet)
+    vlad_version: Mapped[int | None] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     map: Mapped[Map] = relationship(back_populates="images")
@@ -109,3 +111,19 @@ class FeatureArray(Base):
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
     image: Mapped[ReferenceImage] = relationship(back_populates="arrays")
+
+
+class MapVocabulary(Base):
+    """The current VLAD vocabulary of a map for one local-feature model: (K, D) float32
+    k-means centres of the map's own stored descriptors. ``version`` grows with every
+    training; reference images record the version their VLAD vector was encoded with."""
+
+    __tablename__ = "map_vocabularies"
+
+    map_id: Mapped[str] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True)
+    feature_model: Mapped[str] = mapped_column(String(128), primary_key=True)
+    version: Mapped[int] = mapped_column(Integer)
+    trained_images: Mapped[int] = mapped_column(Integer)
+    shape: Mapped[list[int]] = mapped_column(JSON)
+    centers: Mapped[bytes] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from sqlalchemy import ColumnElement, select
@@ -12,12 +12,21 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
+from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyState
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import ReferenceView, RetrievalIndex
 
 _EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
+
+
+def _empty_index(vocabulary: VocabularyState | None) -> RetrievalIndex:
+    if vocabulary is None:
+        return _EMPTY_INDEX
+    return replace(
+        _EMPTY_INDEX, vocabulary=vocabulary.vocabulary, vocabulary_version=vocabulary.version
+    )
 
 
 def camera_of(row: ReferenceImage) -> Camera:
@@ -42,36 +51,57 @@ class SqlReferenceStore:
         feature_model: str,
         descriptor_model: str,
         cache: RetrievalIndexCache | None = None,
+        vlad: bool = True,
     ) -> None:
+        """``vlad``: retrieve by VLAD over the map's vocabulary once the map has one
+        (``db.vocabulary``); False keeps the localizer's global descriptor (an ONNX model)."""
         self.sessions = sessions
         self.cache = cache
         self.map_id = map_id
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
+        self.vlad = vlad
 
     def retrieval_index(self) -> RetrievalIndex:
         if self.cache is None:
-            return self.load_index()
+            return self.load_index(self.vocabulary())
         return self.cache.index(self)
 
-    def load_index(self, only_ids: list[str] | None = None) -> RetrievalIndex:
-        """Descriptors and centres of the map's references (of ``only_ids`` when given)."""
+    def vocabulary(self) -> VocabularyState | None:
+        """The map's current VLAD vocabulary, trained and applied first when due; None when
+        the map retrieves by global descriptor (too small, or ``vlad`` off)."""
+        if not self.vlad:
+            return None
+        return VladIndexer(self.sessions, self.map_id, self.feature_model).refresh()
+
+    def load_index(
+        self, vocabulary: VocabularyState | None, only_ids: list[str] | None = None
+    ) -> RetrievalIndex:
+        """Descriptors and centres of the map's references (of ``only_ids`` when given):
+        their VLAD vectors of ``vocabulary``'s version, or without one their global
+        descriptors."""
+        kind = "global_descriptor" if vocabulary is None else VLAD_KIND
         stmt = (
             select(ReferenceImage, FeatureArray)
             .join(FeatureArray, FeatureArray.image_id == ReferenceImage.id)
-            .where(*self._references(), FeatureArray.kind == "global_descriptor")
+            .where(*self._references(), FeatureArray.kind == kind)
             .order_by(ReferenceImage.id)
         )
+        if vocabulary is not None:
+            stmt = stmt.where(ReferenceImage.vlad_version == vocabulary.version)
         if only_ids is not None:
             stmt = stmt.where(ReferenceImage.id.in_(only_ids))
         with self.sessions() as session:
             rows = session.execute(stmt).all()
+        version = 0 if vocabulary is None else vocabulary.version
         if not rows:
-            return _EMPTY_INDEX
+            return _empty_index(vocabulary)
         return RetrievalIndex(
             image_ids=[image.id for image, _ in rows],
             descriptors=np.stack([from_row(array) for _, array in rows]).astype(np.float32),
             centers=np.stack([pose_of(image).center for image, _ in rows]),
+            vocabulary=None if vocabulary is None else vocabulary.vocabulary,
+            vocabulary_version=version,
         )
 
     def _references(self) -> tuple[ColumnElement[bool], ...]:
@@ -167,25 +197,33 @@ class RetrievalIndexCache:
             entry = self._entries.setdefault(key, _CachedIndex(-1, _EMPTY_INDEX))
         with entry.lock:
             if entry.revision != revision:
-                entry.index = _catch_up(entry.index, store)
+                vocabulary = store.vocabulary()  # trains / encodes first when due
+                version = 0 if vocabulary is None else vocabulary.version
+                if version != entry.index.vocabulary_version:  # other descriptors: reload
+                    entry.index = store.load_index(vocabulary)
+                else:
+                    entry.index = _catch_up(entry.index, store, vocabulary)
                 entry.revision = revision
             return entry.index
 
 
-def _catch_up(index: RetrievalIndex, store: SqlReferenceStore) -> RetrievalIndex:
+def _catch_up(
+    index: RetrievalIndex, store: SqlReferenceStore, vocabulary: VocabularyState | None
+) -> RetrievalIndex:
     current = set(store.reference_ids())
     keep = [i for i, image_id in enumerate(index.image_ids) if image_id in current]
     new_ids = sorted(current - set(index.image_ids))
-    added = store.load_index(new_ids) if new_ids else _EMPTY_INDEX
+    added = store.load_index(vocabulary, new_ids) if new_ids else _EMPTY_INDEX
     if not added.image_ids:
         if len(keep) == len(index.image_ids):
             return index
         if not keep:
-            return _EMPTY_INDEX
+            return _empty_index(vocabulary)
     parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
     if added.image_ids:
         parts.append((added.descriptors, added.centers))
-    return RetrievalIndex(
+    return replace(
+        index,
         image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
         descriptors=np.concatenate([d for d, _ in parts]),
         centers=np.concatenate([c for _, c in parts]),

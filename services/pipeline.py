@@ -29,6 +29,7 @@ from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
+from services.retrieval.vlad import Vocabulary, encode
 
 logger = logging.getLogger(__name__)
 
@@ -60,11 +61,16 @@ class RetrievalIndex:
         image_ids: N ids.
         descriptors: (N, D) float32 unit rows.
         centers: (N, 3) float64 camera centres.
+        vocabulary: with VLAD retrieval, the map's vocabulary (``descriptors`` are VLAD
+            vectors; the query is encoded with it); None: the localizer's global descriptor.
+        vocabulary_version: its version (0 without one).
     """
 
     image_ids: list[str]
     descriptors: NDArray[np.float32]
     centers: NDArray[np.float64]
+    vocabulary: Vocabulary | None = None
+    vocabulary_version: int = 0
 
 
 @dataclass(frozen=True)
@@ -213,9 +219,13 @@ class Localizer:
         )
         lap("decode")
         query = self.extractor.extract(image)
-        query_global = self.global_descriptor.compute(image, query)
         lap("extract")
         index = store.retrieval_index()
+        query_global = (
+            encode(query.descriptors, index.vocabulary)
+            if index.vocabulary is not None
+            else self.global_descriptor.compute(image, query)
+        )
         rows, scores = top_k(
             query_global, index.descriptors, params.top_k, index.centers, params.prior
         )

@@ -58,3 +58,15 @@ class MapPage(BaseModel):
     total: int
     offset: int
     limit: int
+
+
+class ReindexOut(BaseModel):
+    """A new VLAD vocabulary for the map's references of the service's feature model."""
+
+    map_id: str
+    feature_model: str
+    vocabulary_version: int = Field(description="Grows by one with every training")
+    num_centers: int = Field(description="k-means centres K (VLAD length K × descriptor size)")
+    trained_images: int = Field(description="References in the map when it was trained")
+    encoded_images: int = Field(description="References re-encoded with it")
+    seconds: float

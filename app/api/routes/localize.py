@@ -130,6 +130,7 @@ async def localize(
         localizer.extractor.name,
         localizer.global_descriptor.name,
         request.app.state.retrieval_cache,
+        vlad=settings.global_model is None,
     )
     slots: threading.BoundedSemaphore = request.app.state.localize_slots
 

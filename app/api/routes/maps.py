@@ -1,13 +1,15 @@
-"""Maps: create, list, get, delete."""
+"""Maps: create, list, get, delete, reindex."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Query, Response
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.exc import IntegrityError
 
-from app.api.deps import AdminKey, ClientKey, LocalizerDep, SessionsDep
+from app.api.deps import AdminKey, ClientKey, LocalizerDep, SessionsDep, SettingsDep
 from app.errors import conflict, not_found, problem_responses
-from app.schemas.maps import FeatureOptions, MapCreate, MapOut, MapPage
+from app.operations import reindex_map
+from app.schemas.maps import FeatureOptions, MapCreate, MapOut, MapPage, ReindexOut
 from db.models import Map
 from db.repositories.maps import MapRepository
 
@@ -100,3 +102,20 @@ def delete_map(map_id: str, sessions: SessionsDep) -> Response:
         if not MapRepository(session).delete(map_id):
             raise not_found("map", map_id)
     return Response(status_code=204)
+
+
+@router.post(
+    "/{map_id}/reindex",
+    operation_id="reindex_map",
+    dependencies=[AdminKey],
+    responses=problem_responses(401, 403, 404, 409),
+)
+async def reindex(
+    map_id: str, sessions: SessionsDep, localizer: LocalizerDep, settings: SettingsDep
+) -> ReindexOut:
+    """Train a new VLAD retrieval vocabulary from the map's stored local descriptors and
+    re-encode every reference with it (no image is re-read). Maps train one automatically
+    at 16 references and again each time they have grown fourfold; this forces it."""
+    return await run_in_threadpool(
+        reindex_map, sessions, localizer, map_id, settings.global_model is None
+    )

@@ -1,0 +1,148 @@
+"""VLAD retrieval over a map's own vocabulary: trained automatically once the map is big
+enough, versioned, kept up to date through adds and deletes without retraining, re-trained on
+demand (API and CLI path) from stored descriptors only; on a real SQLite file and PostgreSQL."""
+
+from __future__ import annotations
+
+import numpy as np
+from sqlalchemy import select
+
+from app.operations import add_reference_image
+from app.schemas.images import ImageMetadata
+from db.migrate import upgrade
+from db.models import FeatureArray, MapVocabulary, ReferenceImage
+from db.repositories.images import ImageRepository
+from db.repositories.maps import MapRepository
+from db.session import make_engine, make_session_factory
+from db.store import RetrievalIndexCache, SqlReferenceStore
+from db.vocabulary import MIN_IMAGES, NUM_CENTERS, VladIndexer
+from services.geometry.rigid import rotation_error_deg
+from services.pipeline import Localizer
+from services.retrieval.search import top_k
+from services.retrieval.vlad import encode
+from services.synthetic_scene import SyntheticView, encode_png
+from tests.conftest import create_map, image_metadata, make_client, upload_view
+
+
+def test_vocabulary_lifecycle(
+    database_url: str,
+    localizer: Localizer,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> None:
+    engine = make_engine(database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions.begin() as session:
+        map_id = MapRepository(session).create("vlad", None).id
+
+    def add(view: SyntheticView) -> str:
+        metadata = ImageMetadata.model_validate(image_metadata(view))
+        return add_reference_image(sessions, localizer, map_id, metadata, encode_png(view.image)).id
+
+    def store(cache: RetrievalIndexCache | None = None) -> SqlReferenceStore:
+        return SqlReferenceStore(
+            sessions, map_id, localizer.extractor.name, localizer.global_descriptor.name, cache
+        )
+
+    ids = [add(v) for v in reference_views[: MIN_IMAGES - 1]]
+    small = store().retrieval_index()
+    assert small.vocabulary is None and len(small.image_ids) == MIN_IMAGES - 1  # thumbnails
+
+    ids += [add(v) for v in reference_views[MIN_IMAGES - 1 :]]
+    cache = RetrievalIndexCache()
+    index = store(cache).retrieval_index()  # the map is big enough: trained and encoded
+    assert index.vocabulary is not None and index.vocabulary_version == 1
+    assert sorted(index.image_ids) == sorted(ids)
+    assert index.descriptors.shape == (len(ids), NUM_CENTERS * 128)
+    with sessions() as session:
+        versions = session.scalars(
+            select(ReferenceImage.vlad_version).where(ReferenceImage.map_id == map_id)
+        ).all()
+        assert set(versions) == {1}
+
+    # the query's top-5 by VLAD holds one of its three nearest references in pose
+    # (distance in scene units + rotation / 30°); the thumbnail manages 8 of 10 here
+    poses = {
+        image_id: view.cam_from_world for image_id, view in zip(ids, reference_views, strict=True)
+    }
+    hits = 0
+    for view in query_views:
+        query = encode(localizer.extractor.extract(view.image).descriptors, index.vocabulary)
+        rows, _ = top_k(query, index.descriptors, 5)
+        pose = view.cam_from_world
+        gap = {
+            i: float(np.linalg.norm(p.center - pose.center))
+            + rotation_error_deg(p.rotation, pose.rotation) / 30.0
+            for i, p in poses.items()
+        }
+        nearest = sorted(gap, key=gap.__getitem__)[:3]
+        hits += any(index.image_ids[r] in nearest for r in rows)
+    assert hits >= 9, hits
+
+    # deletes and adds follow without retraining
+    with sessions.begin() as session:
+        assert ImageRepository(session).delete(map_id, ids[0])
+    ids = ids[1:]
+    ids.append(add(query_views[0]))
+    index = store(cache).retrieval_index()
+    assert index.vocabulary_version == 1 and sorted(index.image_ids) == sorted(ids)
+    fresh = store().retrieval_index()
+    order = [fresh.image_ids.index(i) for i in index.image_ids]
+    np.testing.assert_array_equal(index.descriptors, fresh.descriptors[order])
+
+    # forced re-training: a new version, every reference re-encoded, the cache reloads
+    report = VladIndexer(sessions, map_id, localizer.extractor.name).train()
+    assert (report.version, report.encoded_images, report.trained_images) == (2, len(ids), len(ids))
+    index = store(cache).retrieval_index()
+    assert index.vocabulary_version == 2 and sorted(index.image_ids) == sorted(ids)
+    with sessions() as session:
+        assert session.get(MapVocabulary, (map_id, localizer.extractor.name)).version == 2
+        vlad_rows = session.scalars(
+            select(FeatureArray.image_id).where(FeatureArray.kind == "vlad")
+        ).all()
+        assert sorted(vlad_rows) == sorted(ids)  # the deleted reference's vector went with it
+
+    with sessions.begin() as session:
+        MapRepository(session).delete(map_id)
+    with sessions() as session:
+        assert session.scalars(select(MapVocabulary)).all() == []
+    engine.dispose()
+
+
+def test_reindex_endpoint(
+    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+) -> None:
+    keys = "adm:admin,cli:client"
+    with make_client(database_url, localizer, api_keys=keys) as client:
+        admin = {"X-API-Key": "adm"}
+        missing = client.post("/v1/maps/nope/reindex", headers=admin)
+        assert missing.status_code == 404
+        assert missing.headers["content-type"] == "application/problem+json"
+        assert missing.json()["type"] == "https://slloc.dev/problems/not-found"
+
+        client.headers.update(admin)
+        map_id = create_map(client, "reindexed")
+        empty = client.post(f"/v1/maps/{map_id}/reindex")
+        assert empty.status_code == 409, empty.text
+        assert "too few" in empty.json()["detail"]
+
+        for view in reference_views[:3]:
+            assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
+        forbidden = client.post(f"/v1/maps/{map_id}/reindex", headers={"X-API-Key": "cli"})
+        assert forbidden.status_code == 403
+
+        body = client.post(f"/v1/maps/{map_id}/reindex").json()
+        assert body["vocabulary_version"] == 1 and body["encoded_images"] == 3
+        assert body["num_centers"] == NUM_CENTERS and body["trained_images"] == 3
+        again = client.post(f"/v1/maps/{map_id}/reindex").json()
+        assert again["vocabulary_version"] == 2
+
+
+def test_global_model_maps_have_no_vocabulary(database_url: str, localizer: Localizer) -> None:
+    """With an ONNX global-descriptor model configured, retrieval never uses VLAD."""
+    with make_client(database_url, localizer, global_model="/models/global.onnx") as client:
+        map_id = create_map(client, "learned")
+        response = client.post(f"/v1/maps/{map_id}/reindex")
+        assert response.status_code == 409
+        assert "SLLOC_GLOBAL_MODEL" in response.json()["detail"]
