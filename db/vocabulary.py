@@ -123,12 +123,15 @@ class VladIndexer:
         with self.sessions() as session:
             ids = list(
                 session.scalars(
-                    select(ReferenceImage.id).where(*self._images()).order_by(ReferenceImage.id)
+                    select(ReferenceImage.id)
+                    .where(*self._images())
+                    .order_by(ReferenceImage.created_at, ReferenceImage.id)
                 )
             )
             rng = np.random.default_rng(0)
             picked = [ids[i] for i in np.sort(rng.permutation(len(ids))[:TRAINING_IMAGES])]
-            descriptors = list(self._descriptors(session, picked).values()) if picked else []
+            stored = self._descriptors(session, picked) if picked else {}
+            descriptors = [stored[i] for i in picked if i in stored]  # in insertion order
         if sum(d.shape[0] for d in descriptors) < NUM_CENTERS:
             raise VocabularyError(
                 f"map {self.map_id} has too few {self.feature_model} descriptors to train a "

@@ -1,12 +1,13 @@
 """Retrieval: top-10 search time over large maps, and recall@k on redkitchen.
 
-1. Search: ``top_k`` over 1k / 10k / 100k random unit descriptors (the thumbnail's 768
-   dimensions and a compact 256), median and p90 ms over 50 queries, and the index memory.
+1. Search: ``top_k`` over 1k / 10k / 100k random unit descriptors (the service's VLAD,
+   K = 8 × 128 = 1024 dimensions, and the thumbnail's 768), median and p90 ms over 50
+   queries, and the index memory.
 2. Recall@k (k = 1, 5, 10) on redkitchen's suggested split (references frames 0…499 every
-   5th, queries 500…999 every 10th) of the thumbnail (the service's retrieval today) and of
-   VLAD over the map's own vocabulary of SIFT descriptors (``services/retrieval/vlad.py``;
-   not wired into the service yet): a query counts when a top-k reference lies within 0.5 m
-   and 30° of it, over the queries that have such a reference at all.
+   5th, queries 500…999 every 10th) of the thumbnail (small maps) and of VLAD over the map's
+   own vocabulary of SIFT descriptors (``db/vocabulary.py``: K = 8 in the service; 16 for
+   comparison): a query counts when a top-k reference lies within 0.5 m and 30° of it, over
+   the queries that have such a reference at all.
 
 Run from the repository root: ``.venv/bin/python scripts/bench_retrieval.py [--dataset DIR]``
 """
@@ -24,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.evaluation.datasets import redkitchen_dataset
+from db.vocabulary import NUM_CENTERS
 from services.features.base import LocalFeatures
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import rotation_error_deg
@@ -38,7 +40,7 @@ def search_times(rng: np.random.Generator) -> None:
     print("| references | dims | median ms | p90 ms | index MiB |")
     print("|---|---|---|---|---|")
     for n in (1_000, 10_000, 100_000):
-        for dims in (768, 256):
+        for dims in (NUM_CENTERS * 128, 768):
             rows = rng.normal(size=(n, dims)).astype(np.float32)
             rows /= np.linalg.norm(rows, axis=1, keepdims=True)
             times = []
@@ -69,7 +71,7 @@ def recall(dataset: Path) -> None:
     describers: dict[str, Callable[[str], NDArray[np.float32]]] = {
         thumbnail.name: lambda name: thumbnail.compute(rgb[name], features[name])
     }
-    for centers in (16, 64):
+    for centers in (NUM_CENTERS, 16):
         vocabulary = train_vocabulary(
             [features[r.name].descriptors for r in references], num_centers=centers
         )
