@@ -30,6 +30,7 @@ DISK_MODELS = ("disk",)
 NMS_WINDOW = 5
 DETECTION_THRESHOLD = 0.0
 UNET_STRIDE = 16
+DESCRIPTOR_DIM = 128  # the depth weights' (kornia's U-Net ends in 128 + 1 channels)
 
 
 class _DiskGraph(torch.nn.Module):
@@ -54,7 +55,9 @@ class _DiskGraph(torch.nn.Module):
         )
         top, index = scores.reshape(-1).topk(self.budget)
         keypoints = torch.stack((index % width, index // width), dim=1).to(torch.float32)
-        descriptors = functional.normalize(dense.reshape(self.descriptor_dim, -1)[:, index].T, dim=1)
+        descriptors = functional.normalize(
+            dense.reshape(self.descriptor_dim, -1)[:, index].T, dim=1
+        )
         return keypoints, top, descriptors
 
 
@@ -108,8 +111,7 @@ def export_disk(models_dir: Path, budget: int = 2048) -> ModelEntry:
             removed).
     """
     torch_disk = load_torch_disk(budget)
-    descriptor_dim = int(torch_disk.conf.desc_dim)
-    graph = _DiskGraph(torch_disk.model.unet, budget, descriptor_dim).eval()
+    graph = _DiskGraph(torch_disk.get_submodule("model.unet"), budget, DESCRIPTOR_DIM).eval()
     path = models_dir / "disk.onnx"
     dim_h = torch.export.Dim("height", min=64, max=4096)
     dim_w = torch.export.Dim("width", min=64, max=4096)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.components import ModelStore, build_localizer
-from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
+from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
@@ -18,9 +18,9 @@ from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png, 
 from tests.models.conftest import MODELS_DIR
 
 
-def _extractor(models: ModelStore, keypoints: int, max_side: int) -> OnnxAlikedExtractor:
+def _extractor(models: ModelStore, keypoints: int, max_side: int) -> OnnxKeypointExtractor:
     budget = models.entry("aliked-n16").keypoint_budget or keypoints
-    return OnnxAlikedExtractor(
+    return OnnxKeypointExtractor(
         models.session("aliked-n16"), "aliked-n16", budget, ResizeOptions(keypoints, max_side)
     )
 
