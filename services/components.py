@@ -84,7 +84,7 @@ def _learned(options: ResizeOptions, lightglue_pairs: int | None, model: str) ->
         extractor = OnnxKeypointExtractor(
             models.session(model), model, entry.keypoint_budget or options.max_keypoints, options
         )
-        matcher_name = str(entry.config.get("matcher", f"lightglue-{model}"))
+        matcher_name = str(entry.config.get("matcher", f"lightglue-{model.split('-')[0]}"))
         matcher: Matcher
         if lightglue_pairs == 0:
             matcher = NearestNeighborMatcher(ratio=0.95)
