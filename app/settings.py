@@ -35,7 +35,7 @@ class Settings(BaseSettings):
     features: str = Field(
         "auto",
         description="Feature configuration: auto (ALIKED + LightGlue when `slloc models build` "
-        "has run, else SIFT), sift, aliked, aliked-full or aliked-fast",
+        "has run, else SIFT), sift, aliked, aliked-fast, aliked-full or aliked-nn",
     )
     onnx_providers: str = Field(
         "auto",
