@@ -19,7 +19,7 @@ def _remainder_scalar(self: Any, other: Any) -> Any:
     return op.Mod(self, op.CastLike(other, self))
 
 
-def _batched_matmul_plan(equation: str) -> tuple[bool, bool] | None:
+def batched_matmul_plan(equation: str) -> tuple[bool, bool] | None:
     """For a two-operand einsum that is a batched matrix product (same leading batch letters
     everywhere, one contracted letter), whether each operand must be transposed (last two
     axes) before ``MatMul``; ``None`` for any other equation.
@@ -46,7 +46,7 @@ def _batched_matmul_plan(equation: str) -> tuple[bool, bool] | None:
 def _einsum(equation: str, tensors: Sequence[Any], path: Any = None) -> Any:
     # onnxruntime's Einsum kernel is several times slower than MatMul on CPU (a third of
     # LightGlue's time); batched matrix products become Transpose + MatMul.
-    plan = _batched_matmul_plan(equation)
+    plan = batched_matmul_plan(equation)
     if plan is None:
         return op.Einsum(*tensors, equation=equation)
     a, b = tensors

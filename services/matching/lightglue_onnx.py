@@ -36,9 +36,7 @@ class OnnxLightGlueMatcher:
         if lightglue_pairs is not None and lightglue_pairs < 0:
             raise ValueError(f"lightglue_pairs must be >= 0 or None, got {lightglue_pairs}")
         if lightglue_keypoints is not None and lightglue_keypoints < 2:
-            raise ValueError(
-                f"lightglue_keypoints must be >= 2 or None, got {lightglue_keypoints}"
-            )
+            raise ValueError(f"lightglue_keypoints must be >= 2 or None, got {lightglue_keypoints}")
         self.session = session
         self.lightglue_pairs = lightglue_pairs
         self.lightglue_keypoints = lightglue_keypoints
