@@ -33,7 +33,7 @@ def batched_matmul_plan(equation: str) -> tuple[bool, bool] | None:
     a, b = operands
     if not (len(a) == len(b) == len(out) >= 2 and a[:-2] == b[:-2] == out[:-2]):
         return None
-    i, j = out[-2:]
+    i, j = out[-2], out[-1]
     shared = set(a[-2:]) & set(b[-2:])
     if len(shared) != 1 or i == j:
         return None
