@@ -35,8 +35,8 @@ class Settings(BaseSettings):
     features: str = Field(
         "auto",
         description="Feature configuration: auto (ALIKED + LightGlue when `slloc models build` "
-        "has run, else SIFT), sift, aliked, aliked-full, aliked-fast, or disk / disk-fast "
-        "(after `slloc models build --models disk,lightglue-disk`)",
+        "has run, else SIFT), sift, aliked, aliked-fast, aliked-full, aliked-nn, or disk / "
+        "disk-fast (after `slloc models build --models disk,lightglue-disk`)",
     )
     onnx_providers: str = Field(
         "auto",

@@ -74,10 +74,16 @@ def _sift(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
     return SiftExtractor(), NearestNeighborMatcher()
 
 
-def _learned(options: ResizeOptions, lightglue_pairs: int | None, model: str) -> FeatureFactory:
+def _learned(
+    options: ResizeOptions,
+    lightglue_pairs: int | None,
+    model: str,
+    lightglue_keypoints: int | None = None,
+) -> FeatureFactory:
     """An exported keypoint extractor ``model``; LightGlue for its features (the manifest's
-    ``matcher``) on the ``lightglue_pairs`` best nearest-neighbour pairs (None: every pair),
-    or for 0 nearest neighbours alone (LightGlue need not be built)."""
+    ``matcher``) on the ``lightglue_pairs`` best nearest-neighbour pairs (None: every pair)
+    with each image's ``lightglue_keypoints`` best keypoints (None: all), or for 0 nearest
+    neighbours alone (LightGlue need not be built)."""
 
     def factory(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
         entry = models.entry(model)
@@ -90,24 +96,31 @@ def _learned(options: ResizeOptions, lightglue_pairs: int | None, model: str) ->
             matcher = NearestNeighborMatcher(ratio=0.95)
         else:
             matcher = OnnxLightGlueMatcher(
-                models.session(matcher_name), matcher_name, lightglue_pairs
+                models.session(matcher_name),
+                matcher_name,
+                lightglue_pairs,
+                lightglue_keypoints=lightglue_keypoints,
             )
         return extractor, matcher
 
     return factory
 
 
-# name → factory of (extractor, matcher), all at 640 px. ALIKED-n16 with 1024 keypoints:
-# "aliked": LightGlue on the 3 retrieved pairs with the most nearest-neighbour matches (the
-# others keep those); "aliked-full": LightGlue on every pair (slowest, ~0.5 s a pair on two
-# cores); "aliked-fast": nearest neighbours only. "disk" / "disk-fast": the same with DISK
-# (DISK_KEYPOINTS keypoints), built with `slloc models build --models disk,lightglue-disk`.
+# name → factory of (extractor, matcher). ALIKED-n16 with 1024 keypoints; mutual nearest
+# neighbours on every retrieved pair, then LightGlue on the pairs with the most of them (the
+# others keep theirs). "aliked" (default): 640 px, LightGlue on 3 pairs with each image's
+# 512 best keypoints (~0.2 s a pair on two cores); "aliked-fast": 480 px, LightGlue on 1 pair
+# with 512 keypoints; "aliked-full": 640 px, LightGlue on every pair with all 1024 (slowest,
+# ~0.7 s a pair); "aliked-nn": 640 px, nearest neighbours only. "disk": DISK (DISK_KEYPOINTS
+# keypoints) + LightGlue on 3 pairs, "disk-fast": DISK + nearest neighbours; both need
+# `slloc models build --models disk,lightglue-disk`.
 DISK_KEYPOINTS = 1024
 FEATURE_CONFIGS: dict[str, FeatureFactory] = {
     "sift": _sift,
-    "aliked": _learned(ResizeOptions(1024, 640), 3, "aliked-n16"),
+    "aliked": _learned(ResizeOptions(1024, 640), 3, "aliked-n16", lightglue_keypoints=512),
     "aliked-full": _learned(ResizeOptions(1024, 640), None, "aliked-n16"),
-    "aliked-fast": _learned(ResizeOptions(1024, 640), 0, "aliked-n16"),
+    "aliked-fast": _learned(ResizeOptions(1024, 480), 1, "aliked-n16", lightglue_keypoints=512),
+    "aliked-nn": _learned(ResizeOptions(1024, 640), 0, "aliked-n16"),
     "disk": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 3, "disk"),
     "disk-fast": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 0, "disk"),
 }

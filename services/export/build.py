@@ -11,25 +11,28 @@ from services.runtime.manifest import ModelEntry, read_manifest, verified_path, 
 DEFAULT_MODELS = ("aliked-n16", "lightglue-aliked")
 
 
-def _exporter(name: str) -> Callable[[Path], ModelEntry]:
+def _exporter(name: str) -> tuple[Callable[[Path], ModelEntry], int]:
+    """The export function for ``name`` and the version of the graph it writes."""
     from services.export.aliked import ALIKED_MODELS, export_aliked
     from services.export.disk import DISK_MODELS, export_disk
-    from services.export.lightglue import LIGHTGLUE_FEATURES, export_lightglue
+    from services.export.lightglue import EXPORT_VERSION, LIGHTGLUE_FEATURES, export_lightglue
 
     if name in ALIKED_MODELS:
-        return lambda models_dir: export_aliked(name, models_dir)
+        return (lambda models_dir: export_aliked(name, models_dir)), 1
     if name in DISK_MODELS:
-        return export_disk
+        return export_disk, 1
     features = name.removeprefix("lightglue-")
     if name.startswith("lightglue-") and features in LIGHTGLUE_FEATURES:
-        return lambda models_dir: export_lightglue(features, models_dir)
+        return (lambda models_dir: export_lightglue(features, models_dir)), EXPORT_VERSION
     known = [*ALIKED_MODELS, *DISK_MODELS, *(f"lightglue-{f}" for f in LIGHTGLUE_FEATURES)]
     raise ValueError(f"unknown model {name!r}; known: {', '.join(known)}")
 
 
-def _is_valid(models_dir: Path, name: str) -> bool:
+def is_current(models_dir: Path, name: str, version: int) -> bool:
+    """Whether ``name`` is in the manifest, its file intact, and exported by exporter
+    ``version`` or later (entries without ``export_version`` are version 1)."""
     entry = read_manifest(models_dir).get(name)
-    if entry is None:
+    if entry is None or int(entry.config.get("export_version", 1)) < version:
         return False
     try:
         verified_path(models_dir, entry)
@@ -48,8 +51,8 @@ def build_models(
     exporters = {name: _exporter(name) for name in names}  # unknown names fail before work
     models_dir.mkdir(parents=True, exist_ok=True)
     built = []
-    for i, (name, export) in enumerate(exporters.items(), start=1):
-        if not force and _is_valid(models_dir, name):
+    for i, (name, (export, version)) in enumerate(exporters.items(), start=1):
+        if not force and is_current(models_dir, name, version):
             log(f"[{i}/{len(names)}] {name}: up to date")
             continue
         log(f"[{i}/{len(names)}] {name}: exporting and checking against PyTorch …")

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from services.components import ModelsMissingError, ModelStore, build_localizer
+from services.features.base import LocalFeatures
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
@@ -111,7 +112,26 @@ def test_match_many_equals_one_at_a_time(
     assert sum(np.array_equal(m, e) for m, e in zip(mixed, one_by_one, strict=True)) >= 2
 
 
-@pytest.mark.parametrize("features", ["aliked", "aliked-fast", "disk", "disk-fast"])
+def test_lightglue_keypoint_cap_matches_the_leading_keypoints(
+    models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    extractor = _extractor(models, 1024, 640)
+    a, b = (extractor.extract(v.image) for v in reference_views[:2])
+    session = models.session("lightglue-aliked")
+    capped = OnnxLightGlueMatcher(session, "lightglue-aliked", lightglue_keypoints=256)
+    pairs = capped.match(a, b)
+    assert len(pairs) > 30 and pairs.max() < 256
+    a256, b256 = (
+        LocalFeatures(f.keypoints[:256], f.descriptors[:256], f.scores[:256], f.image_size)
+        for f in (a, b)
+    )
+    prefix = OnnxLightGlueMatcher(session, "lightglue-aliked").match(a256, b256)
+    np.testing.assert_array_equal(pairs, prefix)
+    with pytest.raises(ValueError, match="lightglue_keypoints"):
+        OnnxLightGlueMatcher(session, "lightglue-aliked", lightglue_keypoints=1)
+
+
+@pytest.mark.parametrize("features", ["aliked", "aliked-fast", "aliked-nn", "disk", "disk-fast"])
 def test_localizes_rendered_queries(
     features: str,
     request: pytest.FixtureRequest,
