@@ -110,7 +110,7 @@ def _learned(
 # neighbours on every retrieved pair, then LightGlue on the pairs with the most of them (the
 # others keep theirs). "aliked" (default): 640 px, LightGlue on 3 pairs with each image's
 # 512 best keypoints (~0.2 s a pair on two cores); "aliked-fast": 480 px, LightGlue on 1 pair
-# with 512 keypoints; "aliked-full": 640 px, LightGlue on every pair with all 1024 (slowest,
+# with 256 keypoints; "aliked-full": 640 px, LightGlue on every pair with all 1024 (slowest,
 # ~0.7 s a pair); "aliked-nn": 640 px, nearest neighbours only. "disk": DISK (DISK_KEYPOINTS
 # keypoints) + LightGlue on 3 pairs, "disk-fast": DISK + nearest neighbours; both need
 # `slloc models build --models disk,lightglue-disk`.
@@ -119,7 +119,7 @@ FEATURE_CONFIGS: dict[str, FeatureFactory] = {
     "sift": _sift,
     "aliked": _learned(ResizeOptions(1024, 640), 3, "aliked-n16", lightglue_keypoints=512),
     "aliked-full": _learned(ResizeOptions(1024, 640), None, "aliked-n16"),
-    "aliked-fast": _learned(ResizeOptions(1024, 480), 1, "aliked-n16", lightglue_keypoints=512),
+    "aliked-fast": _learned(ResizeOptions(1024, 480), 1, "aliked-n16", lightglue_keypoints=256),
     "aliked-nn": _learned(ResizeOptions(1024, 640), 0, "aliked-n16"),
     "disk": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 3, "disk"),
     "disk-fast": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 0, "disk"),
