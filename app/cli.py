@@ -161,7 +161,6 @@ def _reindex(map_name: str) -> int:
     from db.migrate import upgrade
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
-    from services.components import build_localizer
 
     settings = get_settings()
     engine = make_engine(settings.database_url)
@@ -173,13 +172,7 @@ def _reindex(map_name: str) -> int:
             print(f"no map named {map_name!r}", file=sys.stderr)
             return 2
         map_id = row.id
-    localizer = build_localizer(
-        settings.models_dir,
-        settings.max_image_pixels,
-        settings.features,
-        settings.onnx_options(),
-        settings.global_model,
-    )
+    localizer = settings.build_localizer()
     try:
         out = reindex_map(sessions, localizer, map_id, settings.global_model is None)
     except ProblemError as exc:
@@ -200,7 +193,6 @@ def _import(args: argparse.Namespace) -> int:
     from db.repositories.images import ImageRepository
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
-    from services.components import build_localizer
     from services.errors import InvalidInputError
 
     settings = get_settings()
@@ -228,13 +220,7 @@ def _import(args: argparse.Namespace) -> int:
         f"{len(pending)} to add",
         flush=True,
     )
-    localizer = build_localizer(
-        settings.models_dir,
-        settings.max_image_pixels,
-        settings.features,
-        settings.onnx_options(),
-        settings.global_model,
-    )
+    localizer = settings.build_localizer()
     failed = 0
     start = time.perf_counter()
     for done, item in enumerate(pending, start=1):

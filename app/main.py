@@ -17,7 +17,6 @@ from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from db.store import RetrievalIndexCache
-from services.components import build_localizer
 from services.pipeline import Localizer
 
 logger = logging.getLogger(__name__)
@@ -35,13 +34,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.settings = settings
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
-        app.state.localizer = localizer or build_localizer(
-            settings.models_dir,
-            settings.max_image_pixels,
-            settings.features,
-            settings.onnx_options(),
-            settings.global_model,
-        )
+        app.state.localizer = localizer or settings.build_localizer()
         app.state.retrieval_cache = RetrievalIndexCache()
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
         if not settings.api_keys:
