@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import sys
 import time
@@ -87,11 +88,19 @@ def main(argv: list[str] | None = None) -> int:
         return _reindex(args.map)
     if args.command == "models":
         return _models_build(args)
-    if args.command == "eval":
-        from app.evaluation.command import eval_main
+    if args.command in ("eval", "bench"):
+        missing = _missing_modules("httpx", "matplotlib")
+        if missing:
+            print(
+                f"slloc {args.command} needs the optional evaluation tools ({', '.join(missing)} "
+                "missing): pip install '.[eval]'",
+                file=sys.stderr,
+            )
+            return 2
+        if args.command == "eval":
+            from app.evaluation.command import eval_main
 
-        return eval_main(args)
-    if args.command == "bench":
+            return eval_main(args)
         from app.evaluation.bench import bench_main
 
         return bench_main(args)
@@ -102,6 +111,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.references} references and {args.queries} queries to {args.out}")
         return 0
     return _openapi(args.out)
+
+
+def _missing_modules(*names: str) -> list[str]:
+    """The named top-level modules that cannot be imported in this environment."""
+    return [name for name in names if importlib.util.find_spec(name) is None]
 
 
 def _serve(host: str, port: int, log_level: str) -> int:
