@@ -207,6 +207,7 @@ def _import(args: argparse.Namespace) -> int:
     from db.repositories.images import ImageRepository
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
+    from db.vocabulary import VladIndexer, VocabularyError
     from services.errors import InvalidInputError
 
     settings = get_settings()
@@ -226,7 +227,7 @@ def _import(args: argparse.Namespace) -> int:
     with sessions.begin() as session:
         maps = MapRepository(session)
         row = maps.get_by_name(args.map) or maps.create(args.map, None)
-        map_id = row.id
+        map_id, max_keypoints, max_side = row.id, row.max_keypoints, row.max_side
         existing = ImageRepository(session).names(map_id)
     pending = list(iter_pending(items, existing))
     print(
@@ -235,6 +236,7 @@ def _import(args: argparse.Namespace) -> int:
         flush=True,
     )
     localizer = settings.build_localizer()
+    feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = 0
     start = time.perf_counter()
     for done, item in enumerate(pending, start=1):
@@ -253,6 +255,18 @@ def _import(args: argparse.Namespace) -> int:
             f"[{done}/{len(pending)}] {item.metadata.name}: {status} (eta {eta:.0f} s)", flush=True
         )
     print(f"done: {len(pending) - failed} added, {failed} failed", flush=True)
+    if settings.global_model is None:  # train the vocabulary now so the server need not
+        try:
+            report = VladIndexer(sessions, map_id, feature_model).train_if_due()
+        except VocabularyError as exc:
+            print(f"no retrieval vocabulary: {exc}", flush=True)
+        else:
+            if report is not None:
+                print(
+                    f"retrieval vocabulary v{report.version} trained on "
+                    f"{report.trained_images} references in {report.seconds:.1f} s",
+                    flush=True,
+                )
     return 1 if failed else 0
 
 

@@ -9,6 +9,7 @@ from contextlib import asynccontextmanager
 from importlib.metadata import version
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 
 from app.api.routes import health, images, localize, maps
 from app.errors import document_problems, install_error_handlers
@@ -18,6 +19,7 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from db.store import RetrievalIndexCache
 from services.pipeline import Localizer
+from services.retrieval.training import BackgroundTrainer
 
 logger = logging.getLogger(__name__)
 
@@ -36,14 +38,17 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.sessions = make_session_factory(engine)
         app.state.localizer = localizer or settings.build_localizer()
         app.state.retrieval_cache = RetrievalIndexCache()
+        app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
         if not settings.api_keys:
             logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
         yield
+        app.state.vocabulary_trainer.shutdown()
         engine.dispose()
 
-    app = FastAPI(
+    # /docs and /redoc load Swagger UI and ReDoc from the service itself (no CDN, no fonts).
+    app = FastAPIOffline(
         title="slloc",
         version=version("slloc"),
         summary="Structureless visual localization against a mutable database of posed images.",

@@ -17,6 +17,7 @@ from db.repositories.maps import MapRepository
 from db.store import camera_of, pose_of
 from db.vocabulary import VladIndexer, VocabularyError
 from services.pipeline import Localizer
+from services.retrieval.training import BackgroundTrainer
 
 logger = logging.getLogger(__name__)
 
@@ -28,9 +29,11 @@ def add_reference_image(
     metadata: ImageMetadata,
     image_bytes: bytes,
     depth_bytes: bytes | None = None,
+    trainer: BackgroundTrainer | None = None,
 ) -> ImageOut:
     """Describe and store a posed reference image: the row and all its features in one
-    transaction, or nothing.
+    transaction, or nothing. With a ``trainer``, a retrieval vocabulary that the add makes due
+    is trained in the background, so no request waits for it.
 
     Raises:
         ProblemError: 404 unknown map, 409 name taken.
@@ -61,6 +64,10 @@ def add_reference_image(
     logger.info(
         "map %s: added image %s (%s, %d keypoints)", map_id, out.id, out.name, out.num_keypoints
     )
+    if trainer is not None:
+        indexer = VladIndexer(sessions, map_id, localizer.extractor.name)
+        if indexer.due():
+            trainer.schedule((map_id, localizer.extractor.name), indexer.train_if_due)
     return out
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
@@ -12,11 +13,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
-from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyState
+from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyError, VocabularyState
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import ReferenceView, RetrievalIndex
+from services.retrieval.training import BackgroundTrainer
+
+logger = logging.getLogger(__name__)
 
 _EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
 
@@ -52,15 +56,19 @@ class SqlReferenceStore:
         descriptor_model: str,
         cache: RetrievalIndexCache | None = None,
         vlad: bool = True,
+        trainer: BackgroundTrainer | None = None,
     ) -> None:
         """``vlad``: retrieve by VLAD over the map's vocabulary once the map has one
-        (``db.vocabulary``); False keeps the localizer's global descriptor (an ONNX model)."""
+        (``db.vocabulary``); False keeps the localizer's global descriptor (an ONNX model).
+        ``trainer``: where a due vocabulary training runs, off the request; without one (offline
+        tools) it runs before the read that finds it due."""
         self.sessions = sessions
         self.cache = cache
         self.map_id = map_id
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
         self.vlad = vlad
+        self.trainer = trainer
 
     def retrieval_index(self) -> RetrievalIndex:
         if self.cache is None:
@@ -68,11 +76,20 @@ class SqlReferenceStore:
         return self.cache.index(self)
 
     def vocabulary(self) -> VocabularyState | None:
-        """The map's current VLAD vocabulary, trained and applied first when due; None when
-        the map retrieves by global descriptor (too small, or ``vlad`` off)."""
+        """The map's published VLAD vocabulary; None when the map retrieves by global
+        descriptor (too small, not trained yet, or ``vlad`` off). A training found due is
+        handed to the trainer, and the read goes on with what is published."""
         if not self.vlad:
             return None
-        return VladIndexer(self.sessions, self.map_id, self.feature_model).refresh()
+        indexer = VladIndexer(self.sessions, self.map_id, self.feature_model)
+        if self.trainer is None:
+            try:
+                indexer.train_if_due()
+            except VocabularyError as exc:
+                logger.warning("map %s: no retrieval vocabulary: %s", self.map_id, exc)
+        elif indexer.due():
+            self.trainer.schedule((self.map_id, self.feature_model), indexer.train_if_due)
+        return indexer.current()
 
     def load_index(
         self, vocabulary: VocabularyState | None, only_ids: list[str] | None = None
@@ -197,7 +214,7 @@ class RetrievalIndexCache:
             entry = self._entries.setdefault(key, _CachedIndex(-1, _EMPTY_INDEX))
         with entry.lock:
             if entry.revision != revision:
-                vocabulary = store.vocabulary()  # trains / encodes first when due
+                vocabulary = store.vocabulary()
                 version = 0 if vocabulary is None else vocabulary.version
                 if version != entry.index.vocabulary_version:  # other descriptors: reload
                     entry.index = store.load_index(vocabulary)

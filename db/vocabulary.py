@@ -1,18 +1,20 @@
-"""VLAD retrieval of a map: its vocabulary, trained from the map's own stored local
-descriptors and versioned, and each reference's VLAD vector encoded with it.
+"""VLAD retrieval of a map, stored: its versioned vocabulary, trained from the map's own stored
+local descriptors, and each reference's VLAD vector encoded with it.
 
 Nothing here reads images: training samples the stored descriptors of up to
-``TRAINING_IMAGES`` references, and encoding (new references, or every reference after a new
-vocabulary) reads each reference's stored descriptors once. A vocabulary is trained
-automatically when a map reaches ``MIN_IMAGES`` references of a feature model, and again when it
-has grown ``GROWTH``-fold since the last training; ``VladIndexer.train`` (``POST
-/v1/maps/{id}/reindex``, ``slloc reindex``) forces it. Deleting references never needs it.
+``TRAINING_IMAGES`` references, and encoding reads each reference's stored descriptors once.
+When training is due is ``services.retrieval.policy``'s decision; training is always an explicit
+step (``VladIndexer.train``), run in the background after an add, by ``POST
+/v1/maps/{id}/reindex`` or by ``slloc reindex``. A new version is staged beside the current one
+and published in one transaction once every reference is encoded with it, so retrieval keeps
+the previous index (or the global descriptors) until then. Deleting references never needs it.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+import uuid
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,16 +24,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row, to_row
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
+from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
 
 logger = logging.getLogger(__name__)
 
-NUM_CENTERS = 8  # K: 8 × 128-D descriptors = 1024-D VLAD (recall@10 100 % on redkitchen)
-MIN_IMAGES = 16  # a map with fewer references keeps thumbnail retrieval
-GROWTH = 4  # retrain when the map has this many times the references it was trained on
-TRAINING_IMAGES = 200  # references whose descriptors train the vocabulary (random sample)
 ENCODE_BATCH = 200  # references encoded per transaction
 VLAD_KIND = "vlad"  # feature_arrays.kind of the stored VLAD vectors
+STAGED_PREFIX = "vlad-staged-"  # kind prefix of vectors of a version not yet published
 
 
 class VocabularyError(ValueError):
@@ -77,9 +77,17 @@ class VladIndexer:
             ReferenceImage.feature_model == self.feature_model,
         )
 
-    def refresh(self) -> VocabularyState | None:
-        """Train when due, encode the references that lack a current VLAD vector, and return
-        the current vocabulary (None while the map is too small for one)."""
+    def current(self) -> VocabularyState | None:
+        """The published vocabulary (None while the map has none); references added since it
+        was published are encoded with it first, so the index covers them."""
+        with self.sessions() as session:
+            state = read_vocabulary(session, self.map_id, self.feature_model)
+        if state is not None:
+            self._encode_stale(state)
+        return state
+
+    def due(self) -> bool:
+        """Whether the training policy asks for a new vocabulary now."""
         with self.sessions() as session:
             count = int(
                 session.scalar(
@@ -88,39 +96,20 @@ class VladIndexer:
                 or 0
             )
             state = read_vocabulary(session, self.map_id, self.feature_model)
-        if count >= MIN_IMAGES and (state is None or count >= GROWTH * state.trained_images):
-            state = self._train()
-        if state is not None:
-            self._encode_stale(state)
-        return state
+        return training_due(count, None if state is None else state.trained_images)
+
+    def train_if_due(self) -> ReindexReport | None:
+        return self.train() if self.due() else None
 
     def train(self) -> ReindexReport:
-        """Train a new vocabulary version now and re-encode every reference with it.
+        """Train a new vocabulary version now, encode every reference with it, and publish it.
 
         Raises:
-            VocabularyError: the map has too few references or descriptors.
+            VocabularyError: the map has too few references or descriptors, or was deleted.
         """
         start = time.perf_counter()
-        state = self._train()
-        encoded = self._encode_stale(state)
-        return ReindexReport(
-            state.version,
-            int(state.vocabulary.centers.shape[0]),
-            state.trained_images,
-            encoded,
-            time.perf_counter() - start,
-        )
-
-    def _descriptors(self, session: Session, image_ids: list[str]) -> dict[str, np.ndarray]:
-        rows = session.scalars(
-            select(FeatureArray).where(
-                FeatureArray.image_id.in_(image_ids), FeatureArray.kind == "descriptors"
-            )
-        )
-        return {row.image_id: from_row(row).astype(np.float32) for row in rows}
-
-    def _train(self) -> VocabularyState:
         with self.sessions() as session:
+            previous = read_vocabulary(session, self.map_id, self.feature_model)
             ids = list(
                 session.scalars(
                     select(ReferenceImage.id)
@@ -138,37 +127,124 @@ class VladIndexer:
                 f"vocabulary ({len(ids)} reference images)"
             )
         vocabulary = train_vocabulary(descriptors, num_centers=NUM_CENTERS)
-        centers = vocabulary.centers.astype("<f4")
+        staged = STAGED_PREFIX + uuid.uuid4().hex[:8]
         try:
-            with self.sessions.begin() as session:
-                row = session.get(MapVocabulary, (self.map_id, self.feature_model))
-                version = 1 if row is None else row.version + 1
-                if row is None:
-                    row = MapVocabulary(map_id=self.map_id, feature_model=self.feature_model)
-                    session.add(row)
-                row.version = version
-                row.trained_images = len(ids)
-                row.shape = list(centers.shape)
-                row.centers = centers.tobytes()
-                session.execute(
-                    update(Map).where(Map.id == self.map_id).values(revision=Map.revision + 1)
-                )
-        except IntegrityError:  # another process trained at the same moment: take its version
-            with self.sessions() as session:
-                other = read_vocabulary(session, self.map_id, self.feature_model)
-            if other is None:
-                raise
-            return other
+            for first in range(0, len(ids), ENCODE_BATCH):
+                self._stage(ids[first : first + ENCODE_BATCH], vocabulary, staged)
+            state = self._publish(vocabulary, staged, len(ids), previous)
+        except IntegrityError as exc:  # the map was deleted while training
+            raise VocabularyError(f"map {self.map_id} changed while training: {exc}") from exc
+        seconds = time.perf_counter() - start
         logger.info(
-            "map %s: VLAD vocabulary v%d (%s, K=%d) trained on %d of %d references",
+            "map %s: VLAD vocabulary v%d (%s, K=%d) trained on %d of %d references in %.1f s",
             self.map_id,
-            version,
+            state.version,
             self.feature_model,
             NUM_CENTERS,
             len(descriptors),
             len(ids),
+            seconds,
         )
-        return VocabularyState(version, vocabulary, len(ids))
+        return ReindexReport(
+            state.version,
+            int(state.vocabulary.centers.shape[0]),
+            state.trained_images,
+            len(ids),
+            seconds,
+        )
+
+    def _descriptors(self, session: Session, image_ids: list[str]) -> dict[str, np.ndarray]:
+        rows = session.scalars(
+            select(FeatureArray).where(
+                FeatureArray.image_id.in_(image_ids), FeatureArray.kind == "descriptors"
+            )
+        )
+        return {row.image_id: from_row(row).astype(np.float32) for row in rows}
+
+    def _write_vectors(
+        self, session: Session, ids: list[str], vocabulary: Vocabulary, kind: str
+    ) -> None:
+        """Encode the references ``ids`` (those still stored) with ``vocabulary`` as ``kind``."""
+        descriptors = self._descriptors(session, ids)
+        existing = set(session.scalars(select(ReferenceImage.id).where(ReferenceImage.id.in_(ids))))
+        dim = int(vocabulary.centers.shape[1])
+        for image_id in ids:
+            if image_id in existing:
+                d = descriptors.get(image_id, np.zeros((0, dim), np.float32))
+                session.add(to_row(image_id, kind, encode(d, vocabulary)))
+
+    def _stage(self, ids: list[str], vocabulary: Vocabulary, staged: str) -> None:
+        try:
+            with self.sessions.begin() as session:
+                self._write_vectors(session, ids, vocabulary, staged)
+        except IntegrityError:  # a reference was deleted meanwhile: publishing fills gaps
+            logger.info("map %s: VLAD staging raced with a delete", self.map_id)
+
+    def _publish(
+        self,
+        vocabulary: Vocabulary,
+        staged: str,
+        trained_images: int,
+        previous: VocabularyState | None,
+    ) -> VocabularyState:
+        """Make the staged version current in one transaction: references added since staging
+        are encoded now, the staged vectors replace the current ones, the vocabulary row and
+        the map revision are written. Another trainer that published first wins."""
+        in_map = select(ReferenceImage.id).where(*self._images())
+        with self.sessions.begin() as session:
+            map_row = session.get(Map, self.map_id, with_for_update=True)
+            if map_row is None:
+                raise VocabularyError(f"map {self.map_id} was deleted while training")
+            row = session.get(MapVocabulary, (self.map_id, self.feature_model))
+            if (row is None) != (previous is None) or (
+                row is not None and previous is not None and row.version != previous.version
+            ):
+                session.execute(delete(FeatureArray).where(FeatureArray.kind == staged))
+                current = read_vocabulary(session, self.map_id, self.feature_model)
+                if current is None:
+                    raise VocabularyError(f"map {self.map_id}'s vocabulary was removed meanwhile")
+                return current
+            missing = list(
+                session.scalars(
+                    in_map.where(
+                        ~ReferenceImage.id.in_(
+                            select(FeatureArray.image_id).where(FeatureArray.kind == staged)
+                        )
+                    )
+                )
+            )
+            if missing:
+                self._write_vectors(session, missing, vocabulary, staged)
+                session.flush()
+            session.execute(
+                delete(FeatureArray).where(
+                    FeatureArray.image_id.in_(in_map), FeatureArray.kind == VLAD_KIND
+                )
+            )
+            session.execute(
+                update(FeatureArray)
+                .where(FeatureArray.image_id.in_(in_map), FeatureArray.kind == staged)
+                .values(kind=VLAD_KIND)
+            )
+            session.execute(
+                delete(FeatureArray).where(
+                    FeatureArray.image_id.in_(in_map), FeatureArray.kind.startswith(STAGED_PREFIX)
+                )
+            )
+            version = 1 if row is None else row.version + 1
+            session.execute(
+                update(ReferenceImage).where(*self._images()).values(vlad_version=version)
+            )
+            centers = vocabulary.centers.astype("<f4")
+            if row is None:
+                row = MapVocabulary(map_id=self.map_id, feature_model=self.feature_model)
+                session.add(row)
+            row.version = version
+            row.trained_images = trained_images
+            row.shape = list(centers.shape)
+            row.centers = centers.tobytes()
+            map_row.revision += 1
+        return VocabularyState(version, vocabulary, trained_images)
 
     def _encode_stale(self, state: VocabularyState) -> int:
         """Encode, in batches, the references whose VLAD vector is missing or of another
@@ -177,7 +253,6 @@ class VladIndexer:
             ReferenceImage.vlad_version.is_(None), ReferenceImage.vlad_version != state.version
         )
         written = 0
-        dim = int(state.vocabulary.centers.shape[1])
         while True:
             try:
                 with self.sessions.begin() as session:
@@ -190,15 +265,12 @@ class VladIndexer:
                     )
                     if not ids:
                         return written
-                    descriptors = self._descriptors(session, ids)
                     session.execute(
                         delete(FeatureArray).where(
                             FeatureArray.image_id.in_(ids), FeatureArray.kind == VLAD_KIND
                         )
                     )
-                    for image_id in ids:
-                        d = descriptors.get(image_id, np.zeros((0, dim), np.float32))
-                        session.add(to_row(image_id, VLAD_KIND, encode(d, state.vocabulary)))
+                    self._write_vectors(session, ids, state.vocabulary, VLAD_KIND)
                     session.execute(
                         update(ReferenceImage)
                         .where(ReferenceImage.id.in_(ids))

@@ -25,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.evaluation.datasets import redkitchen_dataset
-from db.vocabulary import NUM_CENTERS
 from services.features.base import LocalFeatures
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import rotation_error_deg
+from services.retrieval.policy import NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary

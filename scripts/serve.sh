@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
-# Set up, export the models (first run only) and serve the API on SQLite (./data/slloc.db) at
-# http://127.0.0.1:8000. Without exported models the service runs the weight-free pipeline.
+# Set up, export the serving models (first run only) and serve the API on SQLite
+# (./data/slloc.db). Arguments go to `slloc serve` (e.g. --host 0.0.0.0 --port 8000).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
-scripts/build_models.sh || echo "WARNING: model export failed; serving the weight-free SIFT pipeline" >&2
+if ! scripts/build_models.sh; then
+  echo "WARNING: the model export failed (see above). The server starts with the models that" \
+    "${SLLOC_MODELS_DIR:-./models} already holds; without ALIKED + LightGlue it serves the" \
+    "weight-free SIFT pipeline (GET /v1/health names the features in use)." >&2
+fi
 .venv/bin/slloc db upgrade
 exec .venv/bin/slloc serve "$@"

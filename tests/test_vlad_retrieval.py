@@ -4,6 +4,8 @@ demand (API and CLI path) from stored descriptors only; on a real SQLite file an
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from sqlalchemy import select
 
@@ -15,10 +17,12 @@ from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import RetrievalIndexCache, SqlReferenceStore
-from db.vocabulary import MIN_IMAGES, NUM_CENTERS, VladIndexer
+from db.vocabulary import STAGED_PREFIX, VladIndexer
 from services.geometry.rigid import rotation_error_deg
 from services.pipeline import Localizer
+from services.retrieval.policy import MIN_IMAGES, NUM_CENTERS
 from services.retrieval.search import top_k
+from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode
 from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, image_metadata, make_client, upload_view
@@ -102,6 +106,10 @@ def test_vocabulary_lifecycle(
             select(FeatureArray.image_id).where(FeatureArray.kind == "vlad")
         ).all()
         assert sorted(vlad_rows) == sorted(ids)  # the deleted reference's vector went with it
+        staged = session.scalars(
+            select(FeatureArray.kind).where(FeatureArray.kind.startswith(STAGED_PREFIX))
+        ).all()
+        assert staged == []  # the staged vectors became the current ones
 
     with sessions.begin() as session:
         MapRepository(session).delete(map_id)
@@ -146,3 +154,64 @@ def test_global_model_maps_have_no_vocabulary(database_url: str, localizer: Loca
         response = client.post(f"/v1/maps/{map_id}/reindex")
         assert response.status_code == 409
         assert "SLLOC_GLOBAL_MODEL" in response.json()["detail"]
+
+
+def test_training_runs_off_the_request_path(
+    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+) -> None:
+    """Adds that make a vocabulary due hand it to the trainer; until it is published, reads go
+    on at once with the previous index (here: global descriptors)."""
+    engine = make_engine(database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions.begin() as session:
+        map_id = MapRepository(session).create("background", None).id
+    trainer = BackgroundTrainer()
+    gate = threading.Event()
+    trainer.schedule("held", lambda: gate.wait(60))  # keeps the single worker busy
+    ids = [
+        add_reference_image(
+            sessions,
+            localizer,
+            map_id,
+            ImageMetadata.model_validate(image_metadata(view)),
+            encode_png(view.image),
+            trainer=trainer,
+        ).id
+        for view in reference_views[:MIN_IMAGES]
+    ]
+    cache = RetrievalIndexCache()
+    store = SqlReferenceStore(
+        sessions,
+        map_id,
+        localizer.extractor.name,
+        localizer.global_descriptor.name,
+        cache,
+        trainer=trainer,
+    )
+    before = store.retrieval_index()
+    assert before.vocabulary is None and sorted(before.image_ids) == sorted(ids)
+    assert trainer.pending() == 2  # the held job and one training, however many asked for it
+    gate.set()
+    trainer.wait(120)
+    after = store.retrieval_index()
+    assert after.vocabulary_version == 1 and sorted(after.image_ids) == sorted(ids)
+    assert after.descriptors.shape == (len(ids), NUM_CENTERS * 128)
+    trainer.shutdown()
+    engine.dispose()
+
+
+def test_add_endpoint_trains_in_the_background(
+    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+) -> None:
+    with make_client(database_url, localizer) as client:
+        map_id = create_map(client, "crossing")
+        for view in reference_views[:MIN_IMAGES]:
+            assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
+        client.app.state.vocabulary_trainer.wait(120)  # type: ignore[attr-defined]
+        engine = make_engine(database_url)
+        with make_session_factory(engine)() as session:
+            vocabulary = session.get(MapVocabulary, (map_id, localizer.extractor.name))
+            assert vocabulary is not None and vocabulary.version == 1
+            assert vocabulary.trained_images == MIN_IMAGES
+        engine.dispose()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Query, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import (
@@ -39,6 +39,7 @@ METADATA_HELP = (
     responses=problem_responses(401, 403, 404, 409, 413, 422),
 )
 async def add_image(
+    request: Request,
     map_id: str,
     sessions: SessionsDep,
     localizer: LocalizerDep,
@@ -53,8 +54,9 @@ async def add_image(
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
+    trainer = request.app.state.vocabulary_trainer if settings.global_model is None else None
     return await run_in_threadpool(
-        add_reference_image, sessions, localizer, map_id, meta, image_bytes, depth_bytes
+        add_reference_image, sessions, localizer, map_id, meta, image_bytes, depth_bytes, trainer
     )
 
 

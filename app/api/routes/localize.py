@@ -131,6 +131,7 @@ async def localize(
         localizer.global_descriptor.name,
         request.app.state.retrieval_cache,
         vlad=settings.global_model is None,
+        trainer=request.app.state.vocabulary_trainer,
     )
     slots: threading.BoundedSemaphore = request.app.state.localize_slots
 
