@@ -1,9 +1,11 @@
-"""Runs vocabulary training off the request path: one background worker, one pending job per
-map, so a burst of adds that crosses the threshold trains once."""
+"""Runs vocabulary training off the request path: one background worker at the lowest CPU
+priority, so requests running meanwhile keep their speed, and one pending job per map, so a
+burst of adds that crosses the threshold trains once."""
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections.abc import Callable, Hashable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -16,7 +18,9 @@ class BackgroundTrainer:
     same key is not scheduled twice. Failures are logged, never raised into a request."""
 
     def __init__(self) -> None:
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vocabulary")
+        self._executor = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="vocabulary", initializer=_lowest_priority
+        )
         self._pending: dict[Hashable, Future[None]] = {}
         self._lock = threading.Lock()
 
@@ -51,3 +55,13 @@ class BackgroundTrainer:
 
     def shutdown(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _lowest_priority() -> None:
+    """Give the calling thread the lowest scheduling priority (Linux schedules threads as
+    tasks; elsewhere the thread keeps its priority)."""
+    if hasattr(os, "setpriority"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except OSError:
+            logger.info("could not lower the vocabulary trainer's priority")
