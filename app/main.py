@@ -17,8 +17,8 @@ from app.limits import BodySizeLimit
 from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
-from db.store import RetrievalIndexCache
 from services.pipeline import Localizer
+from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
 
 logger = logging.getLogger(__name__)

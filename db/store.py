@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import logging
-import threading
 from collections import defaultdict
-from dataclasses import dataclass, field, replace
 
 import numpy as np
 from sqlalchemy import ColumnElement, select
@@ -13,24 +11,16 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
-from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyError, VocabularyState
+from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyError
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.pipeline import ReferenceView, RetrievalIndex
+from services.references import ReferenceView
+from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.index import RetrievalIndex, VocabularyState, empty_index
 from services.retrieval.training import BackgroundTrainer
 
 logger = logging.getLogger(__name__)
-
-_EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
-
-
-def _empty_index(vocabulary: VocabularyState | None) -> RetrievalIndex:
-    if vocabulary is None:
-        return _EMPTY_INDEX
-    return replace(
-        _EMPTY_INDEX, vocabulary=vocabulary.vocabulary, vocabulary_version=vocabulary.version
-    )
 
 
 def camera_of(row: ReferenceImage) -> Camera:
@@ -112,7 +102,7 @@ class SqlReferenceStore:
             rows = session.execute(stmt).all()
         version = 0 if vocabulary is None else vocabulary.version
         if not rows:
-            return _empty_index(vocabulary)
+            return empty_index(vocabulary)
         return RetrievalIndex(
             image_ids=[image.id for image, _ in rows],
             descriptors=np.stack([from_row(array) for _, array in rows]).astype(np.float32),
@@ -180,68 +170,3 @@ class SqlReferenceStore:
                 )
             )
         return views
-
-
-@dataclass
-class _CachedIndex:
-    revision: int
-    index: RetrievalIndex
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-
-class RetrievalIndexCache:
-    """Retrieval indexes of every map this process localizes against, kept in memory.
-
-    Each request reads the map's revision (one indexed row; every add and delete bumps it, in
-    any process). While it is unchanged the cached index is served as is; otherwise the index
-    catches up: the ids of the map's references are listed, descriptors are read only for the
-    new ones, and deleted ones are dropped. The revision is read before the ids, so a write
-    racing with the catch-up leaves the cache at most one request behind, never wrong for good.
-    """
-
-    def __init__(self) -> None:
-        self._entries: dict[tuple[str, str, str], _CachedIndex] = {}
-        self._lock = threading.Lock()
-
-    def index(self, store: SqlReferenceStore) -> RetrievalIndex:
-        key = (store.map_id, store.feature_model, store.descriptor_model)
-        revision = store.revision()
-        if revision is None:  # the map is gone
-            with self._lock:
-                self._entries.pop(key, None)
-            return _EMPTY_INDEX
-        with self._lock:
-            entry = self._entries.setdefault(key, _CachedIndex(-1, _EMPTY_INDEX))
-        with entry.lock:
-            if entry.revision != revision:
-                vocabulary = store.vocabulary()
-                version = 0 if vocabulary is None else vocabulary.version
-                if version != entry.index.vocabulary_version:  # other descriptors: reload
-                    entry.index = store.load_index(vocabulary)
-                else:
-                    entry.index = _catch_up(entry.index, store, vocabulary)
-                entry.revision = revision
-            return entry.index
-
-
-def _catch_up(
-    index: RetrievalIndex, store: SqlReferenceStore, vocabulary: VocabularyState | None
-) -> RetrievalIndex:
-    current = set(store.reference_ids())
-    keep = [i for i, image_id in enumerate(index.image_ids) if image_id in current]
-    new_ids = sorted(current - set(index.image_ids))
-    added = store.load_index(vocabulary, new_ids) if new_ids else _EMPTY_INDEX
-    if not added.image_ids:
-        if len(keep) == len(index.image_ids):
-            return index
-        if not keep:
-            return _empty_index(vocabulary)
-    parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
-    if added.image_ids:
-        parts.append((added.descriptors, added.centers))
-    return replace(
-        index,
-        image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
-        descriptors=np.concatenate([d for d, _ in parts]),
-        centers=np.concatenate([c for _, c in parts]),
-    )

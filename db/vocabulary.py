@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row, to_row
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
+from services.retrieval.index import VocabularyState
 from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
 
@@ -36,13 +37,6 @@ STAGED_PREFIX = "vlad-staged-"  # kind prefix of vectors of a version not yet pu
 
 class VocabularyError(ValueError):
     """A vocabulary cannot be trained (too few references or descriptors)."""
-
-
-@dataclass(frozen=True)
-class VocabularyState:
-    version: int
-    vocabulary: Vocabulary
-    trained_images: int
 
 
 @dataclass(frozen=True)

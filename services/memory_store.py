@@ -6,7 +6,8 @@ import numpy as np
 
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.pipeline import ReferenceData, ReferenceView, RetrievalIndex
+from services.references import ReferenceData, ReferenceView
+from services.retrieval.index import RetrievalIndex
 
 
 class MemoryReferenceStore:

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,72 +26,12 @@ from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
 from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
+from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
-from services.retrieval.vlad import Vocabulary, encode
+from services.retrieval.vlad import encode
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ReferenceData:
-    """Everything stored for a reference image besides its name, camera and pose.
-
-    Attributes:
-        features: its local features.
-        global_descriptor: (D,) float32 unit vector.
-        depth: (H, W) float32 metres (0 = unknown), or None.
-        feature_model: name of the extractor that made ``features``.
-        descriptor_model: name of the global-descriptor backend.
-    """
-
-    features: LocalFeatures
-    global_descriptor: NDArray[np.float32]
-    depth: NDArray[np.float32] | None
-    feature_model: str
-    descriptor_model: str
-
-
-@dataclass(frozen=True)
-class RetrievalIndex:
-    """Global descriptors of a map's reference images.
-
-    Attributes:
-        image_ids: N ids.
-        descriptors: (N, D) float32 unit rows.
-        centers: (N, 3) float64 camera centres.
-        vocabulary: with VLAD retrieval, the map's vocabulary (``descriptors`` are VLAD
-            vectors; the query is encoded with it); None: the localizer's global descriptor.
-        vocabulary_version: its version (0 without one).
-    """
-
-    image_ids: list[str]
-    descriptors: NDArray[np.float32]
-    centers: NDArray[np.float64]
-    vocabulary: Vocabulary | None = None
-    vocabulary_version: int = 0
-
-
-@dataclass(frozen=True)
-class ReferenceView:
-    """A stored reference image as the pipeline needs it."""
-
-    image_id: str
-    name: str
-    camera: Camera
-    cam_from_world: Rigid3d
-    features: LocalFeatures
-    depth: NDArray[np.float32] | None
-
-
-class ReferenceStore(Protocol):
-    """Read access to one map's references, restricted to the localizer's feature models."""
-
-    def retrieval_index(self) -> RetrievalIndex: ...
-
-    def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
-        """The references with these ids, in that order; ids deleted meanwhile are skipped."""
-        ...
 
 
 @dataclass(frozen=True)

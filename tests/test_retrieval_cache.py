@@ -12,8 +12,9 @@ from db.models import Map
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
-from db.store import RetrievalIndexCache, SqlReferenceStore
+from db.store import SqlReferenceStore
 from services.pipeline import Localizer
+from services.retrieval.cache import RetrievalIndexCache
 from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import image_metadata
 

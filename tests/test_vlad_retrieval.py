@@ -16,10 +16,11 @@ from db.models import FeatureArray, MapVocabulary, ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
-from db.store import RetrievalIndexCache, SqlReferenceStore
+from db.store import SqlReferenceStore
 from db.vocabulary import STAGED_PREFIX, VladIndexer
 from services.geometry.rigid import rotation_error_deg
 from services.pipeline import Localizer
+from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES, NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.training import BackgroundTrainer

@@ -26,9 +26,10 @@ from app.schemas.localize import LocalizeParamsIn
 from db.migrate import upgrade
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
-from db.store import RetrievalIndexCache, SqlReferenceStore
+from db.store import SqlReferenceStore
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
+from services.retrieval.cache import RetrievalIndexCache
 
 
 @dataclass(frozen=True)

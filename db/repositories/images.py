@@ -9,7 +9,7 @@ from db.arrays import to_row
 from db.models import FeatureArray, Map, ReferenceImage
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.pipeline import ReferenceData
+from services.references import ReferenceData
 
 
 class ImageRepository:

@@ -16,12 +16,9 @@ from services.estimators.verification import StructureCheck, verify_by_reference
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import Rigid3d, pose_error
 from services.matching.nearest_neighbor import NearestNeighborMatcher
-from services.pipeline import (
-    LocalizeParams,
-    Localizer,
-    ReferenceView,
-    RetrievalIndex,
-)
+from services.pipeline import LocalizeParams, Localizer
+from services.references import ReferenceView
+from services.retrieval.index import RetrievalIndex
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.synthetic_scene import SyntheticScene, encode_png, unrelated_image
 

@@ -1,0 +1,56 @@
+"""The contract between the engine and whatever stores a map's reference images (the database
+in the service, memory in tests): what is stored per reference and how the pipeline reads it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.features.base import LocalFeatures
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.retrieval.index import RetrievalIndex
+
+
+@dataclass(frozen=True)
+class ReferenceData:
+    """Everything stored for a reference image besides its name, camera and pose.
+
+    Attributes:
+        features: its local features.
+        global_descriptor: (D,) float32 unit vector.
+        depth: (H, W) float32 metres (0 = unknown), or None.
+        feature_model: name of the extractor that made ``features``.
+        descriptor_model: name of the global-descriptor backend.
+    """
+
+    features: LocalFeatures
+    global_descriptor: NDArray[np.float32]
+    depth: NDArray[np.float32] | None
+    feature_model: str
+    descriptor_model: str
+
+
+@dataclass(frozen=True)
+class ReferenceView:
+    """A stored reference image as the pipeline needs it."""
+
+    image_id: str
+    name: str
+    camera: Camera
+    cam_from_world: Rigid3d
+    features: LocalFeatures
+    depth: NDArray[np.float32] | None
+
+
+class ReferenceStore(Protocol):
+    """Read access to one map's references, restricted to the localizer's feature models."""
+
+    def retrieval_index(self) -> RetrievalIndex: ...
+
+    def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
+        """The references with these ids, in that order; ids deleted meanwhile are skipped."""
+        ...

@@ -1,0 +1,99 @@
+"""Retrieval indexes kept in memory between requests and caught up incrementally from the
+store they come from."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field, replace
+from typing import Protocol
+
+import numpy as np
+
+from services.retrieval.index import EMPTY_INDEX, RetrievalIndex, VocabularyState, empty_index
+
+
+class IndexSource(Protocol):
+    """Where one map's index comes from (the database in the service)."""
+
+    map_id: str
+    feature_model: str
+    descriptor_model: str
+
+    def revision(self) -> int | None:
+        """A number every add and delete changes (any process); None: the map is gone."""
+        ...
+
+    def reference_ids(self) -> list[str]: ...
+
+    def vocabulary(self) -> VocabularyState | None:
+        """The published vocabulary the index uses (None: global descriptors)."""
+        ...
+
+    def load_index(
+        self, vocabulary: VocabularyState | None, only_ids: list[str] | None = None
+    ) -> RetrievalIndex: ...
+
+
+@dataclass
+class _CachedIndex:
+    revision: int
+    index: RetrievalIndex
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class RetrievalIndexCache:
+    """Retrieval indexes of every map this process localizes against, kept in memory.
+
+    Each request reads the map's revision (one indexed row; every add and delete bumps it, in
+    any process). While it is unchanged the cached index is served as is; otherwise the index
+    catches up: the ids of the map's references are listed, descriptors are read only for the
+    new ones, and deleted ones are dropped. The revision is read before the ids, so a write
+    racing with the catch-up leaves the cache at most one request behind, never wrong for good.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[str, str, str], _CachedIndex] = {}
+        self._lock = threading.Lock()
+
+    def index(self, store: IndexSource) -> RetrievalIndex:
+        key = (store.map_id, store.feature_model, store.descriptor_model)
+        revision = store.revision()
+        if revision is None:  # the map is gone
+            with self._lock:
+                self._entries.pop(key, None)
+            return EMPTY_INDEX
+        with self._lock:
+            entry = self._entries.setdefault(key, _CachedIndex(-1, EMPTY_INDEX))
+        with entry.lock:
+            if entry.revision != revision:
+                vocabulary = store.vocabulary()
+                version = 0 if vocabulary is None else vocabulary.version
+                if version != entry.index.vocabulary_version:  # other descriptors: reload
+                    entry.index = store.load_index(vocabulary)
+                else:
+                    entry.index = _catch_up(entry.index, store, vocabulary)
+                entry.revision = revision
+            return entry.index
+
+
+def _catch_up(
+    index: RetrievalIndex, store: IndexSource, vocabulary: VocabularyState | None
+) -> RetrievalIndex:
+    current = set(store.reference_ids())
+    keep = [i for i, image_id in enumerate(index.image_ids) if image_id in current]
+    new_ids = sorted(current - set(index.image_ids))
+    added = store.load_index(vocabulary, new_ids) if new_ids else EMPTY_INDEX
+    if not added.image_ids:
+        if len(keep) == len(index.image_ids):
+            return index
+        if not keep:
+            return empty_index(vocabulary)
+    parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
+    if added.image_ids:
+        parts.append((added.descriptors, added.centers))
+    return replace(
+        index,
+        image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
+        descriptors=np.concatenate([d for d, _ in parts]),
+        centers=np.concatenate([c for _, c in parts]),
+    )
