@@ -209,8 +209,9 @@ def _import(args: argparse.Namespace) -> int:
     from db.repositories.images import ImageRepository
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
-    from db.vocabulary import VladIndexer, VocabularyError
+    from db.vocabulary import SqlVocabularyStore
     from services.errors import InvalidInputError
+    from services.retrieval.vlad_index import VladIndexer, VocabularyError
 
     settings = get_settings()
     if args.colmap is not None and args.images is None:
@@ -259,7 +260,7 @@ def _import(args: argparse.Namespace) -> int:
     print(f"done: {len(pending) - failed} added, {failed} failed", flush=True)
     if settings.global_model is None:  # train the vocabulary now so the server need not
         try:
-            report = VladIndexer(sessions, map_id, feature_model).train_if_due()
+            report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train_if_due()
         except VocabularyError as exc:
             print(f"no retrieval vocabulary: {exc}", flush=True)
         else:

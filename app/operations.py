@@ -15,9 +15,10 @@ from db.models import ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.store import camera_of, pose_of
-from db.vocabulary import VladIndexer, VocabularyError
+from db.vocabulary import SqlVocabularyStore
 from services.pipeline import Localizer
 from services.retrieval.training import BackgroundTrainer
+from services.retrieval.vlad_index import VladIndexer, VocabularyError
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def add_reference_image(
         "map %s: added image %s (%s, %d keypoints)", map_id, out.id, out.name, out.num_keypoints
     )
     if trainer is not None:
-        indexer = VladIndexer(sessions, map_id, localizer.extractor.name)
+        indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
         if indexer.due():
             trainer.schedule((map_id, localizer.extractor.name), indexer.train_if_due)
     return out
@@ -105,7 +106,7 @@ def reindex_map(
         )
     feature_model = localizer.extractor.name
     try:
-        report = VladIndexer(sessions, map_id, feature_model).train()
+        report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train()
     except VocabularyError as exc:
         raise conflict(str(exc)) from exc
     logger.info(

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
-from db.vocabulary import VLAD_KIND, VladIndexer, VocabularyError
+from db.vocabulary import VLAD_KIND, SqlVocabularyStore
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -19,6 +19,7 @@ from services.references import ReferenceView
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.index import RetrievalIndex, VocabularyState, empty_index
 from services.retrieval.training import BackgroundTrainer
+from services.retrieval.vlad_index import VladIndexer, VocabularyError
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +72,7 @@ class SqlReferenceStore:
         handed to the trainer, and the read goes on with what is published."""
         if not self.vlad:
             return None
-        indexer = VladIndexer(self.sessions, self.map_id, self.feature_model)
+        indexer = VladIndexer(SqlVocabularyStore(self.sessions, self.map_id, self.feature_model))
         if self.trainer is None:
             try:
                 indexer.train_if_due()

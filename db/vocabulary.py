@@ -1,23 +1,18 @@
-"""VLAD retrieval of a map, stored: its versioned vocabulary, trained from the map's own stored
-local descriptors, and each reference's VLAD vector encoded with it.
+"""Where a map's VLAD vocabulary and its references' VLAD vectors are stored: the SQL side of
+``services.retrieval.vlad_index`` (which decides when to train, trains and encodes).
 
-Nothing here reads images: training samples the stored descriptors of up to
-``TRAINING_IMAGES`` references, and encoding reads each reference's stored descriptors once.
-When training is due is ``services.retrieval.policy``'s decision; training is always an explicit
-step (``VladIndexer.train``), run in the background after an add, by ``POST
-/v1/maps/{id}/reindex`` or by ``slloc reindex``. A new version is staged beside the current one
-and published in one transaction once every reference is encoded with it, so retrieval keeps
-the previous index (or the global descriptors) until then. Deleting references never needs it.
+The published vocabulary is one ``map_vocabularies`` row per (map, feature model); each
+reference keeps one current vector (``feature_arrays`` kind ``vlad``) and the version it was
+encoded with (``reference_images.vlad_version``). A version being trained keeps its vectors
+under a staging kind until it is published in one transaction.
 """
 
 from __future__ import annotations
 
 import logging
-import time
-import uuid
-from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy import ColumnElement, delete, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
@@ -25,27 +20,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from db.arrays import from_row, to_row
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from services.retrieval.index import VocabularyState
-from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
-from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
+from services.retrieval.vlad import Vocabulary
+from services.retrieval.vlad_index import Encoder, VocabularyError
 
 logger = logging.getLogger(__name__)
 
-ENCODE_BATCH = 200  # references encoded per transaction
-VLAD_KIND = "vlad"  # feature_arrays.kind of the stored VLAD vectors
+VLAD_KIND = "vlad"  # feature_arrays.kind of the current VLAD vectors
 STAGED_PREFIX = "vlad-staged-"  # kind prefix of vectors of a version not yet published
-
-
-class VocabularyError(ValueError):
-    """A vocabulary cannot be trained (too few references or descriptors)."""
-
-
-@dataclass(frozen=True)
-class ReindexReport:
-    version: int
-    num_centers: int
-    trained_images: int
-    encoded_images: int
-    seconds: float
 
 
 def read_vocabulary(session: Session, map_id: str, feature_model: str) -> VocabularyState | None:
@@ -57,8 +38,8 @@ def read_vocabulary(session: Session, map_id: str, feature_model: str) -> Vocabu
     return VocabularyState(row.version, Vocabulary(centers, *empty), row.trained_images)
 
 
-class VladIndexer:
-    """Keeps the VLAD vectors of one map's references (of one feature model) up to date."""
+class SqlVocabularyStore:
+    """``VocabularyStore`` of one map and feature model; each call is its own transaction."""
 
     def __init__(self, sessions: sessionmaker[Session], map_id: str, feature_model: str) -> None:
         self.sessions = sessions
@@ -71,208 +52,141 @@ class VladIndexer:
             ReferenceImage.feature_model == self.feature_model,
         )
 
-    def current(self) -> VocabularyState | None:
-        """The published vocabulary (None while the map has none); references added since it
-        was published are encoded with it first, so the index covers them."""
+    def count(self) -> int:
         with self.sessions() as session:
-            state = read_vocabulary(session, self.map_id, self.feature_model)
-        if state is not None:
-            self._encode_stale(state)
-        return state
+            stmt = select(func.count()).select_from(ReferenceImage).where(*self._images())
+            return int(session.scalar(stmt) or 0)
 
-    def due(self) -> bool:
-        """Whether the training policy asks for a new vocabulary now."""
+    def published(self) -> VocabularyState | None:
         with self.sessions() as session:
-            count = int(
-                session.scalar(
-                    select(func.count()).select_from(ReferenceImage).where(*self._images())
-                )
-                or 0
-            )
-            state = read_vocabulary(session, self.map_id, self.feature_model)
-        return training_due(count, None if state is None else state.trained_images)
+            return read_vocabulary(session, self.map_id, self.feature_model)
 
-    def train_if_due(self) -> ReindexReport | None:
-        return self.train() if self.due() else None
-
-    def train(self) -> ReindexReport:
-        """Train a new vocabulary version now, encode every reference with it, and publish it.
-
-        Raises:
-            VocabularyError: the map has too few references or descriptors, or was deleted.
-        """
-        start = time.perf_counter()
+    def reference_ids(self) -> list[str]:
         with self.sessions() as session:
-            previous = read_vocabulary(session, self.map_id, self.feature_model)
-            ids = list(
+            return list(
                 session.scalars(
                     select(ReferenceImage.id)
                     .where(*self._images())
                     .order_by(ReferenceImage.created_at, ReferenceImage.id)
                 )
             )
-            rng = np.random.default_rng(0)
-            picked = [ids[i] for i in np.sort(rng.permutation(len(ids))[:TRAINING_IMAGES])]
-            stored = self._descriptors(session, picked) if picked else {}
-            descriptors = [stored[i] for i in picked if i in stored]  # in insertion order
-        if sum(d.shape[0] for d in descriptors) < NUM_CENTERS:
-            raise VocabularyError(
-                f"map {self.map_id} has too few {self.feature_model} descriptors to train a "
-                f"vocabulary ({len(ids)} reference images)"
-            )
-        vocabulary = train_vocabulary(descriptors, num_centers=NUM_CENTERS)
-        staged = STAGED_PREFIX + uuid.uuid4().hex[:8]
-        try:
-            for first in range(0, len(ids), ENCODE_BATCH):
-                self._stage(ids[first : first + ENCODE_BATCH], vocabulary, staged)
-            state = self._publish(vocabulary, staged, len(ids), previous)
-        except IntegrityError as exc:  # the map was deleted while training
-            raise VocabularyError(f"map {self.map_id} changed while training: {exc}") from exc
-        seconds = time.perf_counter() - start
-        logger.info(
-            "map %s: VLAD vocabulary v%d (%s, K=%d) trained on %d of %d references in %.1f s",
-            self.map_id,
-            state.version,
-            self.feature_model,
-            NUM_CENTERS,
-            len(descriptors),
-            len(ids),
-            seconds,
-        )
-        return ReindexReport(
-            state.version,
-            int(state.vocabulary.centers.shape[0]),
-            state.trained_images,
-            len(ids),
-            seconds,
-        )
 
-    def _descriptors(self, session: Session, image_ids: list[str]) -> dict[str, np.ndarray]:
-        rows = session.scalars(
-            select(FeatureArray).where(
-                FeatureArray.image_id.in_(image_ids), FeatureArray.kind == "descriptors"
-            )
-        )
-        return {row.image_id: from_row(row).astype(np.float32) for row in rows}
+    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+        with self.sessions() as session:
+            return _descriptors(session, image_ids)
 
-    def _write_vectors(
-        self, session: Session, ids: list[str], vocabulary: Vocabulary, kind: str
-    ) -> None:
-        """Encode the references ``ids`` (those still stored) with ``vocabulary`` as ``kind``."""
-        descriptors = self._descriptors(session, ids)
-        existing = set(session.scalars(select(ReferenceImage.id).where(ReferenceImage.id.in_(ids))))
-        dim = int(vocabulary.centers.shape[1])
-        for image_id in ids:
-            if image_id in existing:
-                d = descriptors.get(image_id, np.zeros((0, dim), np.float32))
-                session.add(to_row(image_id, kind, encode(d, vocabulary)))
-
-    def _stage(self, ids: list[str], vocabulary: Vocabulary, staged: str) -> None:
+    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
         try:
             with self.sessions.begin() as session:
-                self._write_vectors(session, ids, vocabulary, staged)
+                _write(session, vectors, STAGED_PREFIX + tag)
         except IntegrityError:  # a reference was deleted meanwhile: publishing fills gaps
             logger.info("map %s: VLAD staging raced with a delete", self.map_id)
 
-    def _publish(
+    def publish(
         self,
         vocabulary: Vocabulary,
-        staged: str,
+        tag: str,
         trained_images: int,
         previous: VocabularyState | None,
+        encoder: Encoder,
     ) -> VocabularyState:
-        """Make the staged version current in one transaction: references added since staging
-        are encoded now, the staged vectors replace the current ones, the vocabulary row and
-        the map revision are written. Another trainer that published first wins."""
+        staged = STAGED_PREFIX + tag
         in_map = select(ReferenceImage.id).where(*self._images())
-        with self.sessions.begin() as session:
-            map_row = session.get(Map, self.map_id, with_for_update=True)
-            if map_row is None:
-                raise VocabularyError(f"map {self.map_id} was deleted while training")
-            row = session.get(MapVocabulary, (self.map_id, self.feature_model))
-            if (row is None) != (previous is None) or (
-                row is not None and previous is not None and row.version != previous.version
-            ):
-                session.execute(delete(FeatureArray).where(FeatureArray.kind == staged))
+        try:
+            with self.sessions.begin() as session:
+                map_row = session.get(Map, self.map_id, with_for_update=True)
+                if map_row is None:
+                    raise VocabularyError(f"map {self.map_id} was deleted while training")
                 current = read_vocabulary(session, self.map_id, self.feature_model)
-                if current is None:
-                    raise VocabularyError(f"map {self.map_id}'s vocabulary was removed meanwhile")
-                return current
-            missing = list(
-                session.scalars(
-                    in_map.where(
-                        ~ReferenceImage.id.in_(
-                            select(FeatureArray.image_id).where(FeatureArray.kind == staged)
-                        )
+                if (None if current is None else current.version) != (
+                    None if previous is None else previous.version
+                ):  # another trainer published first
+                    session.execute(delete(FeatureArray).where(FeatureArray.kind == staged))
+                    if current is None:
+                        raise VocabularyError(f"map {self.map_id}'s vocabulary was removed")
+                    return current
+                has_staged = select(FeatureArray.image_id).where(FeatureArray.kind == staged)
+                missing = list(session.scalars(in_map.where(~ReferenceImage.id.in_(has_staged))))
+                if missing:
+                    found = _descriptors(session, missing)
+                    empty = np.zeros((0, vocabulary.centers.shape[1]), np.float32)
+                    _write(session, {i: encoder(found.get(i, empty)) for i in missing}, staged)
+                    session.flush()
+                in_map_arrays = FeatureArray.image_id.in_(in_map)
+                session.execute(
+                    delete(FeatureArray).where(in_map_arrays, FeatureArray.kind == VLAD_KIND)
+                )
+                session.execute(
+                    update(FeatureArray)
+                    .where(in_map_arrays, FeatureArray.kind == staged)
+                    .values(kind=VLAD_KIND)
+                )
+                session.execute(  # vectors left by trainers that stopped or lost
+                    delete(FeatureArray).where(
+                        in_map_arrays, FeatureArray.kind.startswith(STAGED_PREFIX)
                     )
                 )
-            )
-            if missing:
-                self._write_vectors(session, missing, vocabulary, staged)
-                session.flush()
-            session.execute(
-                delete(FeatureArray).where(
-                    FeatureArray.image_id.in_(in_map), FeatureArray.kind == VLAD_KIND
+                version = 1 if current is None else current.version + 1
+                session.execute(
+                    update(ReferenceImage).where(*self._images()).values(vlad_version=version)
                 )
-            )
-            session.execute(
-                update(FeatureArray)
-                .where(FeatureArray.image_id.in_(in_map), FeatureArray.kind == staged)
-                .values(kind=VLAD_KIND)
-            )
-            session.execute(
-                delete(FeatureArray).where(
-                    FeatureArray.image_id.in_(in_map), FeatureArray.kind.startswith(STAGED_PREFIX)
-                )
-            )
-            version = 1 if row is None else row.version + 1
-            session.execute(
-                update(ReferenceImage).where(*self._images()).values(vlad_version=version)
-            )
-            centers = vocabulary.centers.astype("<f4")
-            if row is None:
-                row = MapVocabulary(map_id=self.map_id, feature_model=self.feature_model)
-                session.add(row)
-            row.version = version
-            row.trained_images = trained_images
-            row.shape = list(centers.shape)
-            row.centers = centers.tobytes()
-            map_row.revision += 1
+                row = session.get(MapVocabulary, (self.map_id, self.feature_model))
+                if row is None:
+                    row = MapVocabulary(map_id=self.map_id, feature_model=self.feature_model)
+                    session.add(row)
+                centers = vocabulary.centers.astype("<f4")
+                row.version = version
+                row.trained_images = trained_images
+                row.shape = list(centers.shape)
+                row.centers = centers.tobytes()
+                map_row.revision += 1
+        except IntegrityError as exc:  # the map was deleted while publishing
+            raise VocabularyError(f"map {self.map_id} changed while publishing: {exc}") from exc
         return VocabularyState(version, vocabulary, trained_images)
 
-    def _encode_stale(self, state: VocabularyState) -> int:
-        """Encode, in batches, the references whose VLAD vector is missing or of another
-        version; returns how many were written."""
-        stale = or_(
-            ReferenceImage.vlad_version.is_(None), ReferenceImage.vlad_version != state.version
-        )
-        written = 0
-        while True:
-            try:
-                with self.sessions.begin() as session:
-                    ids = list(
-                        session.scalars(
-                            select(ReferenceImage.id)
-                            .where(*self._images(), stale)
-                            .limit(ENCODE_BATCH)
-                        )
-                    )
-                    if not ids:
-                        return written
-                    session.execute(
-                        delete(FeatureArray).where(
-                            FeatureArray.image_id.in_(ids), FeatureArray.kind == VLAD_KIND
-                        )
-                    )
-                    self._write_vectors(session, ids, state.vocabulary, VLAD_KIND)
-                    session.execute(
-                        update(ReferenceImage)
-                        .where(ReferenceImage.id.in_(ids))
-                        .values(vlad_version=state.version)
-                    )
-            except IntegrityError:  # a reference was deleted meanwhile; the next call retries
-                logger.info(
-                    "map %s: VLAD encoding raced with a delete; retrying later", self.map_id
+    def stale_ids(self, version: int, limit: int) -> list[str]:
+        stale = or_(ReferenceImage.vlad_version.is_(None), ReferenceImage.vlad_version != version)
+        with self.sessions() as session:
+            return list(
+                session.scalars(
+                    select(ReferenceImage.id).where(*self._images(), stale).limit(limit)
                 )
-                return written
-            written += len(ids)
+            )
+
+    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
+        ids = list(vectors)
+        try:
+            with self.sessions.begin() as session:
+                session.execute(
+                    delete(FeatureArray).where(
+                        FeatureArray.image_id.in_(ids), FeatureArray.kind == VLAD_KIND
+                    )
+                )
+                _write(session, vectors, VLAD_KIND)
+                session.execute(
+                    update(ReferenceImage)
+                    .where(ReferenceImage.id.in_(ids))
+                    .values(vlad_version=version)
+                )
+        except IntegrityError:
+            return False
+        return True
+
+
+def _descriptors(session: Session, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+    rows = session.scalars(
+        select(FeatureArray).where(
+            FeatureArray.image_id.in_(image_ids), FeatureArray.kind == "descriptors"
+        )
+    )
+    return {row.image_id: from_row(row).astype(np.float32) for row in rows}
+
+
+def _write(session: Session, vectors: dict[str, NDArray[np.float32]], kind: str) -> None:
+    """Add ``vectors`` as arrays of ``kind`` for the references still stored."""
+    existing = set(
+        session.scalars(select(ReferenceImage.id).where(ReferenceImage.id.in_(list(vectors))))
+    )
+    for image_id, vector in vectors.items():
+        if image_id in existing:
+            session.add(to_row(image_id, kind, vector))

@@ -17,7 +17,7 @@ from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
-from db.vocabulary import STAGED_PREFIX, VladIndexer
+from db.vocabulary import STAGED_PREFIX, SqlVocabularyStore
 from services.geometry.rigid import rotation_error_deg
 from services.pipeline import Localizer
 from services.retrieval.cache import RetrievalIndexCache
@@ -25,6 +25,7 @@ from services.retrieval.policy import MIN_IMAGES, NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode
+from services.retrieval.vlad_index import VladIndexer
 from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, image_metadata, make_client, upload_view
 
@@ -97,7 +98,7 @@ def test_vocabulary_lifecycle(
     np.testing.assert_array_equal(index.descriptors, fresh.descriptors[order])
 
     # forced re-training: a new version, every reference re-encoded, the cache reloads
-    report = VladIndexer(sessions, map_id, localizer.extractor.name).train()
+    report = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name)).train()
     assert (report.version, report.encoded_images, report.trained_images) == (2, len(ids), len(ids))
     index = store(cache).retrieval_index()
     assert index.vocabulary_version == 2 and sorted(index.image_ids) == sorted(ids)

@@ -1,0 +1,184 @@
+"""A map's VLAD index kept current: when to train, training a vocabulary version from the map's
+stored descriptors, encoding every reference with it, and publishing it, over a small storage
+protocol (the database implements it).
+
+Nothing here reads images. Training samples the stored descriptors of up to
+``TRAINING_IMAGES`` references; a new version is staged beside the published one and published
+at once when every reference has its vector, so retrieval keeps the previous index (or the
+global descriptors) until then. References added after a publication are encoded with the
+published vocabulary the next time the index is read; deleting references never needs training.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.retrieval.index import VocabularyState
+from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
+from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
+
+logger = logging.getLogger(__name__)
+
+ENCODE_BATCH = 200  # references encoded per storage transaction
+
+Encoder = Callable[[NDArray[np.float32]], NDArray[np.float32]]
+
+
+class VocabularyError(ValueError):
+    """A vocabulary cannot be trained (too few references or descriptors, or the map went)."""
+
+
+@dataclass(frozen=True)
+class ReindexReport:
+    version: int
+    num_centers: int
+    trained_images: int
+    encoded_images: int
+    seconds: float
+
+
+class VocabularyStore(Protocol):
+    """Where one map's vocabulary and VLAD vectors (of one feature model) are kept."""
+
+    map_id: str
+    feature_model: str
+
+    def count(self) -> int:
+        """How many references the map has."""
+        ...
+
+    def published(self) -> VocabularyState | None: ...
+
+    def reference_ids(self) -> list[str]:
+        """Every reference id, in insertion order."""
+        ...
+
+    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+        """(N, D) local descriptors of the references among ``image_ids`` still stored."""
+        ...
+
+    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
+        """Keep ``vectors`` of an unpublished version under ``tag`` (references deleted
+        meanwhile are skipped)."""
+        ...
+
+    def publish(
+        self,
+        vocabulary: Vocabulary,
+        tag: str,
+        trained_images: int,
+        previous: VocabularyState | None,
+        encoder: Encoder,
+    ) -> VocabularyState:
+        """Atomically: encode with ``encoder`` the references that have no staged vector, make
+        the staged vectors current, store ``vocabulary`` as the next version. When another
+        trainer published since ``previous`` was read, drop the staged vectors and return its
+        version instead.
+
+        Raises:
+            VocabularyError: the map was deleted.
+        """
+        ...
+
+    def stale_ids(self, version: int, limit: int) -> list[str]:
+        """Up to ``limit`` references without a vector of ``version``."""
+        ...
+
+    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
+        """Store current vectors of ``version``; False when a reference was deleted meanwhile
+        (nothing written)."""
+        ...
+
+
+class VladIndexer:
+    """Keeps one map's VLAD vectors up to date in ``store``."""
+
+    def __init__(self, store: VocabularyStore) -> None:
+        self.store = store
+
+    def due(self) -> bool:
+        """Whether the training policy asks for a new vocabulary now."""
+        state = self.store.published()
+        return training_due(self.store.count(), None if state is None else state.trained_images)
+
+    def current(self) -> VocabularyState | None:
+        """The published vocabulary (None while the map has none), with references added since
+        it was published encoded first, so the index covers them."""
+        state = self.store.published()
+        if state is not None:
+            self.encode_stale(state)
+        return state
+
+    def train_if_due(self) -> ReindexReport | None:
+        return self.train() if self.due() else None
+
+    def train(self) -> ReindexReport:
+        """Train a new vocabulary version now, encode every reference with it, publish it.
+
+        Raises:
+            VocabularyError: the map has too few references or descriptors, or was deleted.
+        """
+        start = time.perf_counter()
+        previous = self.store.published()
+        ids = self.store.reference_ids()
+        rng = np.random.default_rng(0)
+        picked = [ids[i] for i in np.sort(rng.permutation(len(ids))[:TRAINING_IMAGES])]
+        stored = self.store.descriptors(picked) if picked else {}
+        descriptors = [stored[i] for i in picked if i in stored]  # in insertion order
+        if sum(d.shape[0] for d in descriptors) < NUM_CENTERS:
+            raise VocabularyError(
+                f"map {self.store.map_id} has too few {self.store.feature_model} descriptors to "
+                f"train a vocabulary ({len(ids)} reference images)"
+            )
+        vocabulary = train_vocabulary(descriptors, num_centers=NUM_CENTERS)
+
+        def encoder(d: NDArray[np.float32]) -> NDArray[np.float32]:
+            return encode(d, vocabulary)
+
+        tag = uuid.uuid4().hex[:8]
+        for first in range(0, len(ids), ENCODE_BATCH):
+            batch = ids[first : first + ENCODE_BATCH]
+            stored = self.store.descriptors(batch)
+            self.store.stage({i: encoder(d) for i, d in stored.items()}, tag)
+        state = self.store.publish(vocabulary, tag, len(ids), previous, encoder)
+        seconds = time.perf_counter() - start
+        logger.info(
+            "map %s: VLAD vocabulary v%d (%s, K=%d) trained on %d of %d references in %.1f s",
+            self.store.map_id,
+            state.version,
+            self.store.feature_model,
+            NUM_CENTERS,
+            len(descriptors),
+            len(ids),
+            seconds,
+        )
+        return ReindexReport(
+            state.version, int(vocabulary.centers.shape[0]), state.trained_images, len(ids), seconds
+        )
+
+    def encode_stale(self, state: VocabularyState) -> int:
+        """Encode, in batches, the references whose vector is missing or of another version;
+        returns how many were written."""
+        written = 0
+        while ids := self.store.stale_ids(state.version, ENCODE_BATCH):
+            stored = self.store.descriptors(ids)
+            dim = int(state.vocabulary.centers.shape[1])
+            vectors = {
+                i: encode(stored.get(i, np.zeros((0, dim), np.float32)), state.vocabulary)
+                for i in ids
+            }
+            if not self.store.replace_vectors(vectors, state.version):
+                logger.info(
+                    "map %s: VLAD encoding raced with a delete; retrying later", self.store.map_id
+                )
+                return written
+            written += len(ids)
+        return written
