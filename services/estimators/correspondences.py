@@ -7,7 +7,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import (
     EstimateResult,
@@ -19,10 +18,7 @@ from services.estimators.base import (
 from services.geometry.camera import Camera
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.int64]
+from services.types import BoolArray, FloatArray, IntArray
 
 
 class Deadline:
@@ -56,16 +52,16 @@ class StackedMatches:
 
     ref_index: IntArray
     offsets: IntArray
-    query_norm: Array
-    ref_norm: Array
-    query_depth: Array
-    ref_depth: Array
-    ref_bearing_world: Array
-    R_ref: Array
-    C_ref: Array
-    focal: Array
-    ref_focal: Array
-    query_xy: Array
+    query_norm: FloatArray
+    ref_norm: FloatArray
+    query_depth: FloatArray
+    ref_depth: FloatArray
+    ref_bearing_world: FloatArray
+    R_ref: FloatArray
+    C_ref: FloatArray
+    focal: FloatArray
+    ref_focal: FloatArray
+    query_xy: FloatArray
 
     @property
     def size(self) -> int:
@@ -86,7 +82,7 @@ class StackedMatches:
         )
 
 
-def _depth_or_zeros(depth: Array | None, count: int) -> Array:
+def _depth_or_zeros(depth: FloatArray | None, count: int) -> FloatArray:
     if depth is None:
         return np.zeros(count)
     d = np.asarray(depth, dtype=np.float64).reshape(-1)
@@ -109,7 +105,7 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
     )
     f_query = mean_focal(query_camera)
 
-    def cat(parts: list[Array], width: int) -> Array:
+    def cat(parts: list[FloatArray], width: int) -> FloatArray:
         return np.concatenate(parts, axis=0) if parts else np.zeros((0, width))
 
     query_norm = cat([normalized_from_pixels(query_camera, ref.query_xy) for ref in references], 2)
@@ -138,8 +134,8 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
 
 
 def pose_sampson_errors_px(
-    stacked: StackedMatches, R_q: Array, C_q: Array, subset: IntArray | None = None
-) -> Array:
+    stacked: StackedMatches, R_q: FloatArray, C_q: FloatArray, subset: IntArray | None = None
+) -> FloatArray:
     """Sampson error (≈ pixels) of every match under query-pose hypotheses.
 
     The relative pose of the query to reference i follows from both absolute poses:

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.correspondences import Deadline
 from services.estimators.poselib_bridge import refine_relative_pose
@@ -26,9 +25,7 @@ from services.geometry.depth_pose import (
     similarity_from_points,
 )
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray, FloatArray
 
 BATCH = 200
 SCORING_SUBSET = 256
@@ -39,8 +36,8 @@ class DepthRelativePose:
     """``dst_from_src`` rotation, unit translation direction, scale of the similarity (metric
     translation = ``t * scale_t``), inlier mask over all matches, and iterations run."""
 
-    R: Array
-    t: Array
+    R: FloatArray
+    t: FloatArray
     translation_norm: float
     inliers: BoolArray
     iterations: int
@@ -56,15 +53,15 @@ def required_iterations(inlier_ratio: float, sample_size: int, success_prob: flo
     return int(np.ceil(np.log(1.0 - success_prob) / np.log(1.0 - p_good)))
 
 
-def _msac(errors: Array, threshold: float) -> Array:
+def _msac(errors: FloatArray, threshold: float) -> FloatArray:
     return np.asarray((np.minimum(errors, threshold) ** 2).sum(axis=-1), dtype=np.float64)
 
 
 def ransac_relative_pose_depth(
-    x_src: Array,
-    d_src: Array,
-    x_dst: Array,
-    d_dst: Array,
+    x_src: FloatArray,
+    d_src: FloatArray,
+    x_dst: FloatArray,
+    d_dst: FloatArray,
     threshold: float,
     rng: np.random.Generator,
     min_iterations: int,
@@ -89,7 +86,7 @@ def ransac_relative_pose_depth(
     P_src = back_project(x_src, d_src)
     P_dst = back_project(x_dst, d_dst)
     best_score = np.inf
-    best: tuple[Array, Array, Array] | None = None
+    best: tuple[FloatArray, FloatArray, FloatArray] | None = None
     iterations = 0
     needed = min_iterations
     while iterations < min(max(needed, min_iterations), max_iterations):
@@ -132,17 +129,17 @@ def ransac_relative_pose_depth(
 
 
 def _local_optimisation(
-    R: Array,
-    t: Array,
-    P_src: Array,
-    P_dst: Array,
-    x_src: Array,
-    x_dst: Array,
-    d_src: Array,
-    d_dst: Array,
+    R: FloatArray,
+    t: FloatArray,
+    P_src: FloatArray,
+    P_dst: FloatArray,
+    x_src: FloatArray,
+    x_dst: FloatArray,
+    d_src: FloatArray,
+    d_dst: FloatArray,
     threshold: float,
     with_scale: bool,
-) -> tuple[float, tuple[Array, Array, Array]]:
+) -> tuple[float, tuple[FloatArray, FloatArray, FloatArray]]:
     """Re-fit the similarity on all inliers with depth while the MSAC score improves."""
     score = float(_msac(sampson_errors(R[None], t[None], x_src, x_dst), threshold)[0])
     model = (R, t, np.ones(1))
@@ -161,10 +158,10 @@ def _local_optimisation(
 
 def polish_relative_pose(
     model: DepthRelativePose,
-    ref_xy: Array,
-    query_xy: Array,
-    x_ref: Array,
-    x_query: Array,
+    ref_xy: FloatArray,
+    query_xy: FloatArray,
+    x_ref: FloatArray,
+    x_query: FloatArray,
     ref_camera: Camera,
     query_camera: Camera,
     threshold: float,

@@ -20,7 +20,6 @@ score improves. Inlier masks: matches within ``max_error_px`` Sampson error.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import (
     EstimateResult,
@@ -41,9 +40,7 @@ from services.estimators.pose_triangulation import local_optimisation
 from services.geometry.camera import Camera
 from services.geometry.depth_pose import back_project, similarity_from_points
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-IntArray = NDArray[np.int64]
+from services.types import FloatArray, IntArray
 
 BATCH = 128
 SCORING_SUBSET = 1000
@@ -51,7 +48,7 @@ SCORING_SUBSET = 1000
 
 def _hypotheses_metric(
     stacked: StackedMatches, with_depth: IntArray, rng: np.random.Generator
-) -> tuple[Array, Array]:
+) -> tuple[FloatArray, FloatArray]:
     """(B, 3, 3) rotations and (B, 3) centres from rigid 3-point alignments."""
     sample = with_depth[rng.integers(0, with_depth.size, size=(BATCH, 3))]
     X_world = (
@@ -66,9 +63,9 @@ def _hypotheses_metric(
 def _hypotheses_up_to_scale(
     stacked: StackedMatches,
     with_depth: IntArray,
-    depth_weights: Array,
+    depth_weights: FloatArray,
     rng: np.random.Generator,
-) -> tuple[Array, Array]:
+) -> tuple[FloatArray, FloatArray]:
     """(B, 3, 3) rotations and (B, 3) centres from 3 depth matches in one reference A plus one
     match in another reference B."""
     num_refs = stacked.offsets.shape[0] - 1

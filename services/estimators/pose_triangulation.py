@@ -16,7 +16,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import (
     EstimateResult,
@@ -52,9 +51,7 @@ from services.geometry.camera import Camera
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray
 
 ROTATION_INLIER_DEG = 5.0  # implied query rotations farther than this from the median
 DIRECTION_INLIER_DEG = 10.0  # rays farther than this from the query centre

@@ -12,15 +12,12 @@ from typing import Any
 
 import numpy as np
 import poselib
-from numpy.typing import NDArray
 
 from services.estimators.base import EstimatorOptions, ReferenceObservation
 from services.estimators.correspondences import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray, FloatArray
 
 # Rough PoseLib LO-RANSAC throughput on one core, in (iterations × correspondences) per second
 # (measured ≈ 1–3e7 here for the relative and generalized relative pose estimators), used to
@@ -39,7 +36,7 @@ def from_poselib(pose: poselib.CameraPose) -> Rigid3d:
     return Rigid3d.from_quaternion(np.asarray(pose.q, dtype=np.float64), np.asarray(pose.t))
 
 
-def _points(xy: Array) -> Array:
+def _points(xy: FloatArray) -> FloatArray:
     xy = np.asarray(xy, dtype=np.float64)
     return np.ascontiguousarray(xy.reshape(-1, 2)) if xy.size else np.zeros((0, 2))
 
@@ -100,8 +97,8 @@ def estimate_relative_pose(
 
 
 def refine_relative_pose(
-    ref_xy: Array,
-    query_xy: Array,
+    ref_xy: FloatArray,
+    query_xy: FloatArray,
     initial: Rigid3d,
     ref_camera: Camera,
     query_camera: Camera,
@@ -165,8 +162,8 @@ def refine_query_pose(
 
 
 def estimate_absolute_pose(
-    points2d: Array,
-    points3d: Array,
+    points2d: FloatArray,
+    points3d: FloatArray,
     camera: Camera,
     ransac: dict[str, Any],
     loss_scale_px: float,
@@ -189,7 +186,11 @@ def estimate_absolute_pose(
 
 
 def refine_absolute_pose(
-    points2d: Array, points3d: Array, camera: Camera, initial: Rigid3d, loss_scale_px: float
+    points2d: FloatArray,
+    points3d: FloatArray,
+    camera: Camera,
+    initial: Rigid3d,
+    loss_scale_px: float,
 ) -> Rigid3d:
     if points2d.shape[0] < 4:
         return initial

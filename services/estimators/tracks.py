@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import EstimatorOptions
 from services.estimators.correspondences import Deadline, StackedMatches
@@ -26,10 +25,7 @@ from services.geometry.camera import Camera
 from services.geometry.projection import pixels_from_camera_points
 from services.geometry.rigid import Rigid3d
 from services.geometry.triangulation import TriangulatedTracks, ransac_triangulate
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.int64]
+from services.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -155,8 +151,8 @@ def pose_from_tracks(
 
 def refine_on_points(
     pose: Rigid3d,
-    points3d: Array,
-    query_xy: Array,
+    points3d: FloatArray,
+    query_xy: FloatArray,
     query_camera: Camera,
     options: EstimatorOptions,
     deadline: Deadline,

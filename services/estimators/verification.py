@@ -43,8 +43,7 @@ from services.estimators.base import (
 )
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 # Two rays closer to parallel than this (sine of their angle, ~0.006°) do not triangulate.
 _MIN_SINE = 1e-4
@@ -65,7 +64,7 @@ class StructureCheck:
 
     correspondence_verified: NDArray[np.bool_]
     point_of_correspondence: NDArray[np.int64]
-    points: Array
+    points: FloatArray
     point_verified: NDArray[np.bool_]
     num_tracks: int
 
@@ -74,34 +73,36 @@ class StructureCheck:
         return int(self.point_verified.sum())
 
 
-def _unit_rays(normalized: Array) -> Array:
+def _unit_rays(normalized: FloatArray) -> FloatArray:
     """(K, 2) normalised image coordinates → (K, 3) unit bearing vectors in the camera frame."""
     rays = np.concatenate([normalized, np.ones((normalized.shape[0], 1))], axis=1)
-    out: Array = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    out: FloatArray = rays / np.linalg.norm(rays, axis=1, keepdims=True)
     return out
 
 
-def _group_sum(ids: NDArray[np.int64], values: Array, count: int) -> Array:
+def _group_sum(ids: NDArray[np.int64], values: FloatArray, count: int) -> FloatArray:
     """Sum rows of (K, ...) ``values`` by group id: (count, ...)."""
     flat = values.reshape(values.shape[0], -1)
     sums = np.stack(
         [np.bincount(ids, weights=flat[:, j], minlength=count) for j in range(flat.shape[1])],
         axis=1,
     )
-    out: Array = sums.reshape((count, *values.shape[1:]))
+    out: FloatArray = sums.reshape((count, *values.shape[1:]))
     return out
 
 
-def _cosine_to(points: Array, centers: Array, rays: Array) -> Array:
+def _cosine_to(points: FloatArray, centers: FloatArray, rays: FloatArray) -> FloatArray:
     """Cosine of the angle between unit ``rays`` and ``points − centers`` (broadcast, (..., 3)
     → (...)); NaN where a point is NaN. Positive exactly when the point is in front."""
     to_point = points - centers
     with np.errstate(invalid="ignore", divide="ignore"):
-        out: Array = np.einsum("...i,...i->...", to_point, rays) / np.linalg.norm(to_point, axis=-1)
+        out: FloatArray = np.einsum("...i,...i->...", to_point, rays) / np.linalg.norm(
+            to_point, axis=-1
+        )
     return out
 
 
-def two_ray_midpoints(c1: Array, d1: Array, c2: Array, d2: Array) -> Array:
+def two_ray_midpoints(c1: FloatArray, d1: FloatArray, c2: FloatArray, d2: FloatArray) -> FloatArray:
     """Midpoints of the shortest segments between rays ``c + s·d``.
 
     Args:
@@ -119,15 +120,15 @@ def two_ray_midpoints(c1: Array, d1: Array, c2: Array, d2: Array) -> Array:
     s1 = (b * e2 - e1) / safe
     s2 = (e2 - b * e1) / safe
     mid = 0.5 * (c1 + s1[..., None] * d1 + c2 + s2[..., None] * d2)
-    out: Array = np.where(ok[..., None], mid, np.nan)
+    out: FloatArray = np.where(ok[..., None], mid, np.nan)
     return out
 
 
 def _robust_agreement(
     tid: NDArray[np.int64],
-    center: Array,
-    ray: Array,
-    cos_limit: Array,
+    center: FloatArray,
+    ray: FloatArray,
+    cos_limit: FloatArray,
     min_views: int,
     max_pair_views: int,
 ) -> NDArray[np.bool_]:
@@ -165,16 +166,16 @@ def _robust_agreement(
 
 
 def verify_by_reference_triangulation(
-    query_rotation: Array,
-    query_translation: Array,
-    query_normalized: Array,
+    query_rotation: FloatArray,
+    query_translation: FloatArray,
+    query_normalized: FloatArray,
     reference_index: NDArray[np.int64],
-    reference_rotations: Array,
-    reference_translations: Array,
-    reference_normalized: Array,
+    reference_rotations: FloatArray,
+    reference_translations: FloatArray,
+    reference_normalized: FloatArray,
     track_ids: NDArray[np.int64],
     query_max_angle: float,
-    reference_max_angles: Array,
+    reference_max_angles: FloatArray,
     min_views: int = 2,
     max_pair_views: int = 6,
 ) -> StructureCheck:

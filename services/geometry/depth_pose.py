@@ -10,14 +10,13 @@ metric depths in both images, s = 1 and ``t`` is metric.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 
 def similarity_from_points(
-    src: Array, dst: Array, with_scale: bool = True
-) -> tuple[Array, Array, Array]:
+    src: FloatArray, dst: FloatArray, with_scale: bool = True
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Least-squares similarity ``dst ≈ s·R·src + t`` of point sets (Umeyama 1991), batched.
 
     Args:
@@ -45,7 +44,7 @@ def similarity_from_points(
     return R, t, s
 
 
-def back_project(normalized: Array, depth: Array) -> Array:
+def back_project(normalized: FloatArray, depth: FloatArray) -> FloatArray:
     """(…, 2) normalised points and (…,) z-depths → (…, 3) camera-frame points."""
     return (
         np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1)
@@ -54,8 +53,12 @@ def back_project(normalized: Array, depth: Array) -> Array:
 
 
 def relative_pose_3pt_depth(
-    x_src: Array, d_src: Array, x_dst: Array, d_dst: Array, with_scale: bool = True
-) -> tuple[Array, Array, Array]:
+    x_src: FloatArray,
+    d_src: FloatArray,
+    x_dst: FloatArray,
+    d_dst: FloatArray,
+    with_scale: bool = True,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Minimal 3-point relative pose with depth, batched over B samples.
 
     Args:
@@ -71,7 +74,7 @@ def relative_pose_3pt_depth(
     )
 
 
-def skew(v: Array) -> Array:
+def skew(v: FloatArray) -> FloatArray:
     """(..., 3) → (..., 3, 3) cross-product matrices."""
     out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -80,7 +83,9 @@ def skew(v: Array) -> Array:
     return out
 
 
-def sampson_errors(R: Array, t: Array, x_src: Array, x_dst: Array) -> Array:
+def sampson_errors(
+    R: FloatArray, t: FloatArray, x_src: FloatArray, x_dst: FloatArray
+) -> FloatArray:
     """Sampson epipolar error (normalised units, ≈ pixel error / focal) of relative poses.
 
     Args:
