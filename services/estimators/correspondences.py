@@ -1,37 +1,18 @@
-"""All query–reference matches of a request stacked into flat arrays, and the checks, scores
-and result assembly that every estimator shares."""
+"""All query–reference matches of a request stacked into flat arrays, their Sampson errors under
+a query pose, and random subsets of them."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
     ReferenceObservation,
-    confidence_from_inliers,
 )
 from services.geometry.camera import Camera
 from services.geometry.projection import mean_focal, normalized_from_pixels
-from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray, IntArray
-
-
-class Deadline:
-    """Wall-clock budget of one request (``EstimatorOptions.time_budget_s``; None = none)."""
-
-    def __init__(self, budget_s: float | None) -> None:
-        self._end = None if budget_s is None else time.perf_counter() + budget_s
-
-    def expired(self) -> bool:
-        return self._end is not None and time.perf_counter() > self._end
-
-    def remaining_s(self) -> float:
-        return float("inf") if self._end is None else self._end - time.perf_counter()
 
 
 @dataclass(frozen=True)
@@ -73,13 +54,6 @@ class StackedMatches:
             flat[self.offsets[i] : self.offsets[i + 1]].copy()
             for i in range(self.offsets.shape[0] - 1)
         ]
-
-    def flatten(self, masks: list[BoolArray]) -> BoolArray:
-        return (
-            np.concatenate([np.asarray(m, dtype=bool) for m in masks])
-            if masks
-            else np.zeros(0, bool)
-        )
 
 
 def _depth_or_zeros(depth: FloatArray | None, count: int) -> FloatArray:
@@ -172,56 +146,3 @@ def random_subset(num: int, cap: int, rng: np.random.Generator) -> IntArray:
     if num <= cap:
         return np.arange(num, dtype=np.int64)
     return np.sort(rng.choice(num, size=cap, replace=False)).astype(np.int64)
-
-
-def precheck(
-    references: list[ReferenceObservation], min_matches: int, min_pairs: int = 2
-) -> FailureReason | None:
-    """Common input checks: at least ``min_pairs`` references with ``min_matches`` matches
-    (else too_few_matches), and their centres not all coincident (else degenerate_geometry)."""
-    if not references:
-        return FailureReason.NO_REFERENCES
-    usable = [ref for ref in references if ref.num_matches >= min_matches]
-    if len(usable) < min_pairs:
-        return FailureReason.TOO_FEW_MATCHES
-    if min_pairs >= 2:
-        centers = np.stack([ref.cam_from_world.center for ref in usable])
-        scale = max(float(np.abs(centers).max()), 1.0)
-        if float(np.ptp(centers, axis=0).max()) < 1e-6 * scale:
-            return FailureReason.DEGENERATE_GEOMETRY
-    return None
-
-
-def finish(
-    cam_from_world: Rigid3d | None,
-    masks: list[BoolArray],
-    references: list[ReferenceObservation],
-    options: EstimatorOptions,
-    stats: dict[str, float],
-    reason_if_weak: FailureReason = FailureReason.NO_CONSENSUS,
-) -> EstimateResult:
-    """Assemble the result: stats, confidence, and a failure when the pose is missing, not
-    finite, or supported by too few inliers / references."""
-    num_inliers = int(sum(int(m.sum()) for m in masks))
-    refs_with_inliers = sum(int(m.sum() >= 3) for m in masks)
-    total = sum(ref.num_matches for ref in references)
-    stats = {
-        **stats,
-        "num_matches": float(total),
-        "num_inliers": float(num_inliers),
-        "inlier_ratio": num_inliers / max(total, 1),
-        "references_with_inliers": float(refs_with_inliers),
-    }
-    if cam_from_world is None:
-        return EstimateResult(None, masks, 0.0, stats, reason_if_weak)
-    finite = np.all(np.isfinite(cam_from_world.rotation)) and np.all(
-        np.isfinite(cam_from_world.translation)
-    )
-    if (
-        not finite
-        or num_inliers < options.min_inliers
-        or refs_with_inliers < options.min_references
-    ):
-        return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
-    confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
-    return EstimateResult(cam_from_world, masks, confidence, stats, None)

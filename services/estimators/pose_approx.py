@@ -12,21 +12,16 @@ from __future__ import annotations
 import numpy as np
 
 from services.errors import InvalidInputError
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
+from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
+from services.estimators.options import EstimatorOptions, PoseApproxMode
 from services.geometry.averaging import project_to_rotation
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
-MODES = ("weighted", "top1")
-
 
 class PoseApproxEstimator:
     name = "pose_approx"
+    needs_depth = False
 
     def estimate(
         self,
@@ -37,14 +32,17 @@ class PoseApproxEstimator:
         masks = [np.zeros(ref.num_matches, dtype=bool) for ref in references]
         if not references:
             return EstimateResult.failure(FailureReason.NO_REFERENCES, references)
-        if options.pose_approx_mode not in MODES:
+        try:
+            mode = PoseApproxMode(options.pose_approx.mode)
+        except ValueError:
+            known = ", ".join(PoseApproxMode)
             raise InvalidInputError(
-                f"unknown pose_approx_mode {options.pose_approx_mode!r}; known: {', '.join(MODES)}"
-            )
+                f"unknown pose_approx mode {options.pose_approx.mode!r}; known: {known}"
+            ) from None
         scores = np.array([ref.retrieval_score for ref in references], dtype=np.float64)
         rotations = np.stack([ref.cam_from_world.rotation for ref in references])
         centers = np.stack([ref.cam_from_world.center for ref in references])
-        if options.pose_approx_mode == "top1":
+        if mode is PoseApproxMode.TOP1:
             best = int(np.argmax(scores))
             weights = np.zeros(len(references))
             weights[best] = 1.0

@@ -13,8 +13,9 @@ from typing import Any
 import numpy as np
 import poselib
 
-from services.estimators.base import EstimatorOptions, ReferenceObservation
-from services.estimators.correspondences import Deadline
+from services.estimators.base import ReferenceObservation
+from services.estimators.options import RansacOptions
+from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
@@ -42,16 +43,17 @@ def _points(xy: FloatArray) -> FloatArray:
 
 
 def ransac_options(
-    options: EstimatorOptions,
+    options: RansacOptions,
     deadline: Deadline,
     calls_left: int = 1,
     epipolar_px: float | None = None,
     reprojection_px: float | None = None,
     num_matches: int = 1000,
 ) -> dict[str, Any]:
-    """PoseLib RANSAC options from ours; with a time budget the iteration cap shrinks to what
-    the remaining budget, shared by ``calls_left`` calls, allows for ``num_matches``
-    correspondences (a rough throughput model; the bound is soft)."""
+    """PoseLib RANSAC options from ours, with the threshold of the problem's error, pixels;
+    with a time budget the iteration cap shrinks to what the remaining budget, shared by
+    ``calls_left`` calls, allows for ``num_matches`` correspondences (a rough throughput
+    model; the bound is soft)."""
     max_iterations = options.max_iterations
     remaining = deadline.remaining_s()
     if np.isfinite(remaining):
@@ -61,6 +63,7 @@ def ransac_options(
     out: dict[str, Any] = {
         "min_iterations": min(options.min_iterations, max_iterations),
         "max_iterations": max_iterations,
+        "success_prob": options.success_prob,
         "seed": options.seed,
     }
     if epipolar_px is not None:

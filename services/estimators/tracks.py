@@ -13,13 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.estimators.base import EstimatorOptions
-from services.estimators.correspondences import Deadline, StackedMatches
+from services.estimators.correspondences import StackedMatches
+from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
     estimate_absolute_pose,
     ransac_options,
     refine_absolute_pose,
 )
+from services.estimators.ransac import Deadline
 from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.camera import Camera
 from services.geometry.projection import pixels_from_camera_points
@@ -129,10 +130,10 @@ def pose_from_tracks(
     if valid.size < 4:
         return None
     ransac = ransac_options(
-        options,
+        options.ransac,
         deadline,
         calls_left,
-        reprojection_px=options.max_error_px,
+        reprojection_px=options.ransac.max_error_px,
         num_matches=int(valid.size),
     )
     out = estimate_absolute_pose(
@@ -140,7 +141,7 @@ def pose_from_tracks(
         triangulated.points[valid],
         query_camera,
         ransac,
-        options.max_error_px / 4.0,
+        options.ransac.max_error_px / 4.0,
     )
     if out is None:
         return None
@@ -172,7 +173,11 @@ def refine_on_points(
         projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
         err = np.linalg.norm(projected - query_xy, axis=1)
         err = np.where(np.isfinite(err), err, np.inf)
-        cap = initial_px if round_index == 0 and initial_px is not None else options.max_error_px
+        cap = (
+            initial_px
+            if round_index == 0 and initial_px is not None
+            else options.ransac.max_error_px
+        )
         thr = adaptive_threshold_px(err, cap)
         inl = err < thr
         if inl.sum() < min_points:

@@ -1,10 +1,8 @@
-"""Relative pose from three correspondences with depth, and epipolar (Sampson) errors.
+"""Points from depth, their similarity alignment, and epipolar (Sampson) errors.
 
 With a depth d at a normalised point x̃ = (x, y, 1), the 3D point in the camera frame is d·x̃
-(z-depth). Three such points seen in two images fix the similarity ``P_dst = s·R·P_src + t``
-(Umeyama / Horn); the unknown per-image depth scale only changes ``s`` and the length of
-``t``, so R and the direction of t are exact even when depths are known only up to scale. With
-metric depths in both images, s = 1 and ``t`` is metric.
+(z-depth); ``similarity_from_points`` aligns such point sets (``services.estimators.solvers``
+builds the minimal solvers with depth on it).
 """
 
 from __future__ import annotations
@@ -49,28 +47,6 @@ def back_project(normalized: FloatArray, depth: FloatArray) -> FloatArray:
     return (
         np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1)
         * depth[..., None]
-    )
-
-
-def relative_pose_3pt_depth(
-    x_src: FloatArray,
-    d_src: FloatArray,
-    x_dst: FloatArray,
-    d_dst: FloatArray,
-    with_scale: bool = True,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Minimal 3-point relative pose with depth, batched over B samples.
-
-    Args:
-        x_src, x_dst: (B, 3, 2) normalised points in the source / destination image.
-        d_src, d_dst: (B, 3) depths (> 0) at those points.
-        with_scale: depths are known only up to one scale per image (True) or both metric.
-    Returns:
-        ``dst_from_src`` as R (B, 3, 3) and t (B, 3) (metric when ``with_scale`` is False,
-        otherwise in the source depth units), and the scale s (B,).
-    """
-    return similarity_from_points(
-        back_project(x_src, d_src), back_project(x_dst, d_dst), with_scale
     )
 
 

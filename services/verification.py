@@ -33,17 +33,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import poselib
-from numpy.typing import NDArray
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
+from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
+from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.types import FloatArray
+from services.types import BoolArray, FloatArray, IntArray
 
 # Two rays closer to parallel than this (sine of their angle, ~0.006°) do not triangulate.
 _MIN_SINE = 1e-4
@@ -62,10 +57,10 @@ class StructureCheck:
         num_tracks: tracks with at least ``min_views`` reference observations before checking.
     """
 
-    correspondence_verified: NDArray[np.bool_]
-    point_of_correspondence: NDArray[np.int64]
+    correspondence_verified: BoolArray
+    point_of_correspondence: IntArray
     points: FloatArray
-    point_verified: NDArray[np.bool_]
+    point_verified: BoolArray
     num_tracks: int
 
     @property
@@ -80,7 +75,7 @@ def _unit_rays(normalized: FloatArray) -> FloatArray:
     return out
 
 
-def _group_sum(ids: NDArray[np.int64], values: FloatArray, count: int) -> FloatArray:
+def _group_sum(ids: IntArray, values: FloatArray, count: int) -> FloatArray:
     """Sum rows of (K, ...) ``values`` by group id: (count, ...)."""
     flat = values.reshape(values.shape[0], -1)
     sums = np.stack(
@@ -125,13 +120,13 @@ def two_ray_midpoints(c1: FloatArray, d1: FloatArray, c2: FloatArray, d2: FloatA
 
 
 def _robust_agreement(
-    tid: NDArray[np.int64],
+    tid: IntArray,
     center: FloatArray,
     ray: FloatArray,
     cos_limit: FloatArray,
     min_views: int,
     max_pair_views: int,
-) -> NDArray[np.bool_]:
+) -> BoolArray:
     """Per observation: agrees with its track's best two-view hypothesis.
 
     Args:
@@ -169,11 +164,11 @@ def verify_by_reference_triangulation(
     query_rotation: FloatArray,
     query_translation: FloatArray,
     query_normalized: FloatArray,
-    reference_index: NDArray[np.int64],
+    reference_index: IntArray,
     reference_rotations: FloatArray,
     reference_translations: FloatArray,
     reference_normalized: FloatArray,
-    track_ids: NDArray[np.int64],
+    track_ids: IntArray,
     query_max_angle: float,
     reference_max_angles: FloatArray,
     min_views: int = 2,
@@ -249,7 +244,7 @@ def verify_by_reference_triangulation(
     )
 
 
-def _normalized(camera: Camera, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+def _normalized(camera: Camera, xy: FloatArray) -> FloatArray:
     """(M, 2) pixels → (M, 2) undistorted normalised coordinates (PoseLib's camera models)."""
     if xy.shape[0] == 0:
         return np.zeros((0, 2))
@@ -261,7 +256,7 @@ def count_verified_points(
     query_camera: Camera,
     cam_from_world: Rigid3d,
     references: list[ReferenceObservation],
-    inliers: list[NDArray[np.bool_]],
+    inliers: list[BoolArray],
     max_error_px: float,
 ) -> tuple[int, int]:
     """(verified points, candidate tracks) of a pose; see ``verify_by_reference_triangulation``.
@@ -301,22 +296,26 @@ def verify_pose(
     options: EstimatorOptions,
 ) -> EstimateResult:
     """Turn an estimator's pose into a ``no_consensus`` failure unless at least
-    ``options.min_verified_points`` of its inlier tracks verify in 3D.
+    ``options.verification.min_verified_points`` of its inlier tracks verify in 3D.
 
     Applied by the pipeline to every estimator's answer. Results without a pose, without
     inliers (``pose_approx`` uses no correspondences) or with the check disabled
     (``min_verified_points = 0``) pass through unchanged.
     """
-    if result.cam_from_world is None or options.min_verified_points <= 0 or result.num_inliers == 0:
+    if (
+        result.cam_from_world is None
+        or options.verification.min_verified_points <= 0
+        or result.num_inliers == 0
+    ):
         return result
     verified, tracks = count_verified_points(
-        query_camera, result.cam_from_world, references, result.inliers, options.max_error_px
+        query_camera, result.cam_from_world, references, result.inliers, options.ransac.max_error_px
     )
     stats = {
         **result.stats,
         "verified_points": float(verified),
         "multi_reference_tracks": float(tracks),
     }
-    if verified < options.min_verified_points:
+    if verified < options.verification.min_verified_points:
         return EstimateResult(None, result.inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
     return replace(result, stats=stats)
