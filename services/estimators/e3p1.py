@@ -7,11 +7,11 @@ within ``max_error_px`` Sampson error."""
 from __future__ import annotations
 
 from services.estimators.base import FailureReason
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.generalized_depth_pose import ransac_query_pose_depth
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
 
 
-class E3p1Estimator(StackedEstimator):
+class E3p1Estimator(Estimator):
     name = "e3p1"
     needs_depth = True
 

@@ -23,6 +23,7 @@ import poselib
 
 from services.estimators.base import FailureReason, ReferenceObservation
 from services.estimators.correspondences import random_subset
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.pose_triangulation import local_optimisation
 from services.estimators.poselib_bridge import (
     from_poselib,
@@ -30,13 +31,12 @@ from services.estimators.poselib_bridge import (
     ransac_options,
     to_poselib,
 )
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
 from services.geometry.rigid import Rigid3d
 
 RANSAC_SAMPLE_PER_PAIR = 100  # matches per reference that RANSAC hypotheses are scored on
 
 
-class E5p1Estimator(StackedEstimator):
+class E5p1Estimator(Estimator):
     name = "e5p1"
 
     def check(self, references: list[ReferenceObservation]) -> FailureReason | None:

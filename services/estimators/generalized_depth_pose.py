@@ -22,13 +22,13 @@ import numpy as np
 
 from services.estimators.base import FailureReason
 from services.estimators.correspondences import pose_sampson_errors_px
+from services.estimators.estimator import Request
 from services.estimators.pose_triangulation import local_optimisation
 from services.estimators.ransac import RansacResult, lo_ransac
 from services.estimators.solvers import (
     absolute_pose_3pt_depth,
     absolute_pose_3pt_depth_plus_one,
 )
-from services.estimators.stacked_estimator import Request
 from services.geometry.depth_pose import back_project
 from services.geometry.rigid import Rigid3d
 from services.types import FloatArray, IntArray

@@ -11,11 +11,11 @@ inliers, and its ``score`` is their count.
 from __future__ import annotations
 
 from services.estimators.base import FailureReason
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.tracks import build_tracks, pose_from_tracks, triangulate_tracks
 
 
-class LocalTriAllEstimator(StackedEstimator):
+class LocalTriAllEstimator(Estimator):
     name = "local_tri_all"
     min_matches = 1
 

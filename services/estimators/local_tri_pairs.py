@@ -17,7 +17,7 @@ import itertools
 import numpy as np
 
 from services.estimators.base import FailureReason
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.tracks import (
     TrackPose,
     build_tracks,
@@ -30,7 +30,7 @@ from services.types import FloatArray
 MIN_SHARED_TRACKS = 6  # a pair sharing fewer query keypoints is not tried
 
 
-class LocalTriPairsEstimator(StackedEstimator):
+class LocalTriPairsEstimator(Estimator):
     name = "local_tri_pairs"
     min_matches = 1
 

@@ -22,8 +22,8 @@ from dataclasses import replace
 import numpy as np
 
 from services.estimators.correspondences import random_subset
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.pose_triangulation import sampled_solver, solve_5pt, triangulated_pose
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
 from services.estimators.tracks import build_tracks, refine_on_points, triangulate_tracks
 
 REFINEMENT_ROUNDS = 4
@@ -34,7 +34,7 @@ PAIR_MIN_ITERATIONS = 100  # least pairwise RANSAC iterations (then adaptive sto
 MAX_REFINEMENT_TRACKS = 300  # tracks triangulated for the refinement
 
 
-class MotionAveragingEstimator(StackedEstimator):
+class MotionAveragingEstimator(Estimator):
     name = "motion_averaging"
 
     def solve(self, request: Request) -> Solution:

@@ -13,25 +13,20 @@ import numpy as np
 
 from services.errors import InvalidInputError
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
-from services.estimators.options import EstimatorOptions, PoseApproxMode
+from services.estimators.estimator import Estimator, Request, Solution, precheck
+from services.estimators.options import PoseApproxMode
 from services.geometry.averaging import project_to_rotation
-from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
 
-class PoseApproxEstimator:
+class PoseApproxEstimator(Estimator):
     name = "pose_approx"
-    needs_depth = False
 
-    def estimate(
-        self,
-        query_camera: Camera,
-        references: list[ReferenceObservation],
-        options: EstimatorOptions,
-    ) -> EstimateResult:
-        masks = [np.zeros(ref.num_matches, dtype=bool) for ref in references]
-        if not references:
-            return EstimateResult.failure(FailureReason.NO_REFERENCES, references)
+    def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
+        return precheck(references, min_matches=0, min_pairs=1)
+
+    def solve(self, request: Request) -> Solution:
+        references, options = request.references, request.options
         try:
             mode = PoseApproxMode(options.pose_approx.mode)
         except ValueError:
@@ -53,12 +48,18 @@ class PoseApproxEstimator:
         weights = weights / weights.sum()
         R = project_to_rotation(np.einsum("n,nij->ij", weights, rotations))
         C = weights @ centers
-        pose = Rigid3d(R, -R @ C)
+        return Solution(Rigid3d(R, -R @ C))
+
+    def result(self, request: Request, solution: Solution) -> EstimateResult:
+        """No correspondences used: empty inlier masks, a confidence of at most 0.1."""
+        references = request.references
+        best_score = max(ref.retrieval_score for ref in references)
+        masks = [np.zeros(ref.num_matches, dtype=bool) for ref in references]
         stats = {
             "iterations": 0.0,
             "num_references": float(len(references)),
             "inlier_ratio": 0.0,
-            "score": float(np.max(scores)),
+            "score": float(best_score),
         }
-        confidence = float(0.1 * np.clip(np.max(scores), 0.0, 1.0))
-        return EstimateResult(pose, masks, confidence, stats, None)
+        confidence = float(0.1 * np.clip(best_score, 0.0, 1.0))
+        return EstimateResult(solution.pose, masks, confidence, stats, None)

@@ -28,6 +28,7 @@ from services.estimators.depth_relative_pose import (
     polish_relative_pose,
     ransac_relative_pose_depth,
 )
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
     estimate_relative_pose,
@@ -36,7 +37,6 @@ from services.estimators.poselib_bridge import (
 )
 from services.estimators.ransac import Deadline
 from services.estimators.robust_scale import adaptive_threshold_px
-from services.estimators.stacked_estimator import Request, Solution, StackedEstimator
 from services.geometry.averaging import (
     average_rotations,
     irls_ray_intersection,
@@ -319,7 +319,7 @@ def triangulated_pose(
     return tri.pose
 
 
-class PoseTriangulationEstimator(StackedEstimator):
+class PoseTriangulationEstimator(Estimator):
     """Steps 1–4 with the estimator's relative-pose solver; the result's inliers are the
     matches within ``max_error_px`` Sampson error of the final pose."""
 

@@ -1,7 +1,6 @@
-"""What every correspondence-based estimator does around its own method: input checks, the time
-budget, the stacked matches, failures, and the finishing (inliers within ``max_error_px``
-Sampson error of the pose, acceptance, confidence). A method subclasses ``StackedEstimator``
-and writes ``solve``."""
+"""What every estimator does around its own method: input checks, the time budget, the stacked
+matches, failures, and the finishing (inliers within ``max_error_px`` Sampson error of the
+pose, acceptance, confidence). A method subclasses ``Estimator`` and writes ``solve``."""
 
 from __future__ import annotations
 
@@ -31,7 +30,7 @@ from services.types import BoolArray
 
 
 class EstimationError(Exception):
-    """Ends ``StackedEstimator.solve`` with a failure (raised by ``Request.fail``)."""
+    """Ends ``Estimator.solve`` with a failure (raised by ``Request.fail``)."""
 
     def __init__(self, reason: FailureReason) -> None:
         super().__init__(reason.value)
@@ -122,8 +121,8 @@ def finish(
     return EstimateResult(cam_from_world, masks, confidence, stats, None)
 
 
-class StackedEstimator(ABC):
-    """An estimator over the stacked query–reference matches.
+class Estimator(ABC):
+    """A pose estimator (``base.PoseEstimator``): ``check``, then ``solve``, then ``result``.
 
     Attributes:
         name: the API name.
@@ -157,6 +156,13 @@ class StackedEstimator(ABC):
             solution = self.solve(request)
         except EstimationError as failed:
             return EstimateResult.failure(failed.reason, references, request.stats)
+        return self.result(request, solution)
+
+    def result(self, request: Request, solution: Solution) -> EstimateResult:
+        """The answer: inliers within ``max_error_px`` Sampson error of the pose over the
+        stacked matches, ``stats["score"]`` their count unless the method set it, and
+        ``finish``."""
+        options, references = request.options, request.references
         inliers = solution.inliers
         if inliers is None:
             pose = solution.pose
