@@ -1,11 +1,11 @@
 """LazyLoc-style motion averaging: 5-point relative poses per pair (PoseLib), robust rotation
-averaging (geodesic L1 median, then chordal mean of the inliers within 5°) and translation
-averaging (IRLS with Cauchy weights on the ray angles, rays beyond 10° rejected), then the
-averaged pose is refined on 2D–3D matches: query keypoints ↔ points triangulated between the
-retrieved references through the shared query keypoints (RANSAC triangulation, threshold
-``triangulation_error_px``), by PoseLib absolute-pose refinement on the points that reproject
-within an adaptive threshold ≤ ``max_error_px`` (three rounds, ``tracks.refine_on_points``).
-Without enough triangulated points the averaged pose is returned as is
+averaging (geodesic L1 median, then chordal mean of the inliers within 5°) and translation averaging
+(IRLS with Cauchy weights on the ray angles, rays beyond 10° rejected), then the averaged pose is
+refined on 2D–3D matches: query keypoints ↔ points triangulated between the retrieved references
+through the shared query keypoints (RANSAC triangulation, threshold
+``TriangulationOptions.max_error_px``), by PoseLib absolute-pose refinement on the points that
+reproject within an adaptive threshold ≤ ``max_error_px`` (three rounds,
+``tracks.refine_on_points``). Without enough triangulated points the averaged pose is returned as is
 (``stats["refined"] = 0``).
 
 Speed (the guide's LazyLoc takes 101 ms a query): the pairwise relative poses are only

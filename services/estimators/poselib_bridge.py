@@ -1,7 +1,7 @@
 """Guarded PoseLib calls and pose conversions.
 
 PoseLib 2.0.5 ``estimate_generalized_relative_pose`` loops forever when fewer than two pairs
-have matches or no pair has ≥ 5 (DESIGN.md "Known pitfalls"). Every call here checks its input
+have matches or no pair has ≥ 5 (a known pitfall of that version). Every call here checks its input
 sizes first, passes empty arrays as ``np.zeros((0, 2))``, and bounds its iterations. Pixel
 thresholds are in pixels (PoseLib scales them by the focal lengths internally).
 """
