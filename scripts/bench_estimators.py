@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from services.estimators.base import EstimatorOptions
+from services.estimators.options import EstimatorOptions, RansacOptions
 from services.estimators.registry import estimator_names, get_estimator
 from services.geometry.rigid import pose_error
 from services.synthetic_correspondences import make_correspondences
@@ -39,7 +39,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3, help="scenes (seeds) per estimator")
     parser.add_argument("--matches", type=int, default=1000, help="matches per reference")
     parser.add_argument("--references", type=int, default=10)
-    parser.add_argument("--min-iterations", type=int, default=EstimatorOptions().min_iterations)
+    parser.add_argument("--min-iterations", type=int, default=RansacOptions().min_iterations)
     args = parser.parse_args()
     scenes = [
         make_correspondences(
@@ -50,7 +50,7 @@ def main() -> None:
         )
         for seed in range(args.runs)
     ]
-    options = EstimatorOptions(min_iterations=args.min_iterations)
+    options = EstimatorOptions(ransac=RansacOptions(min_iterations=args.min_iterations))
     print(
         f"{'estimator':<22}{'median ms':>10}{'guide ms':>10}{'speed-up':>10}"
         f"{'pos err %':>11}{'rot err °':>11}  failures"

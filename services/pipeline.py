@@ -14,13 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.errors import InvalidInputError
-from services.estimators.base import (
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
+from services.estimators.base import FailureReason, ReferenceObservation
+from services.estimators.options import EstimatorOptions
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
-from services.estimators.verification import verify_pose
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
@@ -30,6 +26,7 @@ from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
 from services.retrieval.vlad import encode
+from services.verification import verify_pose
 
 logger = logging.getLogger(__name__)
 

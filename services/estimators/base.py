@@ -7,10 +7,11 @@ from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
+from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from services.types import BoolArray, FloatArray
 
 
 class FailureReason(StrEnum):
@@ -41,56 +42,15 @@ class ReferenceObservation:
     image_id: str
     camera: Camera
     cam_from_world: Rigid3d
-    query_xy: NDArray[np.float64]
-    reference_xy: NDArray[np.float64]
+    query_xy: FloatArray
+    reference_xy: FloatArray
     retrieval_score: float = 0.0
-    reference_depth: NDArray[np.float64] | None = None
-    query_depth: NDArray[np.float64] | None = None
+    reference_depth: FloatArray | None = None
+    query_depth: FloatArray | None = None
 
     @property
     def num_matches(self) -> int:
         return int(self.query_xy.shape[0])
-
-
-@dataclass(frozen=True)
-class EstimatorOptions:
-    """Robust-estimation settings; the defaults follow the structureless-localization guide.
-
-    Attributes:
-        max_error_px: inlier threshold on reprojection / epipolar (Sampson) error, pixels.
-        min_iterations, max_iterations: LO-RANSAC iteration bounds.
-        min_inliers: fewer inliers than this (over all references) is a failure.
-        min_references: inliers must come from at least this many references.
-        min_verified_points: fewer verified 3D points than this is a failure (0 disables the
-            check): query keypoints that are inliers in >= 2 references whose reference
-            observations triangulate to a point that reprojects into the query within
-            ``max_error_px`` (see ``services.estimators.verification``). Epipolar inliers alone
-            do not prove a pose: unrelated images reach 40-75 of them.
-        seed: seed of every random choice, for reproducible answers.
-        time_budget_s: wall-clock budget of one ``estimate`` call in seconds (None = unbounded).
-            Estimators check it between solver calls and cap their own iteration counts; a
-            single PoseLib call is not interruptible, so the bound is soft by one call.
-        triangulation_error_px: reprojection threshold of point triangulation (local
-            triangulation, LazyLoc refinement): 2 px for sparse features, 8 px for dense ones.
-        track_merge_px: query keypoints closer than this form one track (0 = exact equality,
-            right for sparse detectors; the guide uses 5 px for dense matchers).
-        metric_depth: depths in ``ReferenceObservation`` are metric (True) or known only up to
-            one scale per image (False, e.g. monocular depth); used by ``e3p1``.
-        pose_approx_mode: ``"weighted"`` (retrieval-score-weighted interpolation) or ``"top1"``.
-    """
-
-    max_error_px: float = 12.0
-    min_iterations: int = 1000
-    max_iterations: int = 100_000
-    min_inliers: int = 30
-    min_references: int = 2
-    min_verified_points: int = 10
-    seed: int = 0
-    time_budget_s: float | None = None
-    triangulation_error_px: float = 2.0
-    track_merge_px: float = 0.0
-    metric_depth: bool = True
-    pose_approx_mode: str = "weighted"
 
 
 @dataclass(frozen=True)
@@ -106,7 +66,7 @@ class EstimateResult:
     """
 
     cam_from_world: Rigid3d | None
-    inliers: list[NDArray[np.bool_]]
+    inliers: list[BoolArray]
     confidence: float = 0.0
     stats: dict[str, float] = field(default_factory=dict)
     failure_reason: FailureReason | None = None
@@ -138,6 +98,7 @@ class PoseEstimator(Protocol):
     """Estimates the query's ``cam_from_world`` from its correspondences with posed references."""
 
     name: str
+    needs_depth: bool  # needs depth for the query and the references
 
     def estimate(
         self,

@@ -1,41 +1,18 @@
-"""All query–reference matches of a request stacked into flat arrays, and the checks, scores
-and result assembly that every estimator shares."""
+"""All query–reference matches of a request stacked into flat arrays, their Sampson errors under
+a query pose, and random subsets of them."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
     ReferenceObservation,
-    confidence_from_inliers,
 )
 from services.geometry.camera import Camera
 from services.geometry.projection import mean_focal, normalized_from_pixels
-from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.int64]
-
-
-class Deadline:
-    """Wall-clock budget of one request (``EstimatorOptions.time_budget_s``; None = none)."""
-
-    def __init__(self, budget_s: float | None) -> None:
-        self._end = None if budget_s is None else time.perf_counter() + budget_s
-
-    def expired(self) -> bool:
-        return self._end is not None and time.perf_counter() > self._end
-
-    def remaining_s(self) -> float:
-        return float("inf") if self._end is None else self._end - time.perf_counter()
+from services.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -56,16 +33,16 @@ class StackedMatches:
 
     ref_index: IntArray
     offsets: IntArray
-    query_norm: Array
-    ref_norm: Array
-    query_depth: Array
-    ref_depth: Array
-    ref_bearing_world: Array
-    R_ref: Array
-    C_ref: Array
-    focal: Array
-    ref_focal: Array
-    query_xy: Array
+    query_norm: FloatArray
+    ref_norm: FloatArray
+    query_depth: FloatArray
+    ref_depth: FloatArray
+    ref_bearing_world: FloatArray
+    R_ref: FloatArray
+    C_ref: FloatArray
+    focal: FloatArray
+    ref_focal: FloatArray
+    query_xy: FloatArray
 
     @property
     def size(self) -> int:
@@ -78,15 +55,8 @@ class StackedMatches:
             for i in range(self.offsets.shape[0] - 1)
         ]
 
-    def flatten(self, masks: list[BoolArray]) -> BoolArray:
-        return (
-            np.concatenate([np.asarray(m, dtype=bool) for m in masks])
-            if masks
-            else np.zeros(0, bool)
-        )
 
-
-def _depth_or_zeros(depth: Array | None, count: int) -> Array:
+def _depth_or_zeros(depth: FloatArray | None, count: int) -> FloatArray:
     if depth is None:
         return np.zeros(count)
     d = np.asarray(depth, dtype=np.float64).reshape(-1)
@@ -109,7 +79,7 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
     )
     f_query = mean_focal(query_camera)
 
-    def cat(parts: list[Array], width: int) -> Array:
+    def cat(parts: list[FloatArray], width: int) -> FloatArray:
         return np.concatenate(parts, axis=0) if parts else np.zeros((0, width))
 
     query_norm = cat([normalized_from_pixels(query_camera, ref.query_xy) for ref in references], 2)
@@ -138,8 +108,8 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
 
 
 def pose_sampson_errors_px(
-    stacked: StackedMatches, R_q: Array, C_q: Array, subset: IntArray | None = None
-) -> Array:
+    stacked: StackedMatches, R_q: FloatArray, C_q: FloatArray, subset: IntArray | None = None
+) -> FloatArray:
     """Sampson error (≈ pixels) of every match under query-pose hypotheses.
 
     The relative pose of the query to reference i follows from both absolute poses:
@@ -176,56 +146,3 @@ def random_subset(num: int, cap: int, rng: np.random.Generator) -> IntArray:
     if num <= cap:
         return np.arange(num, dtype=np.int64)
     return np.sort(rng.choice(num, size=cap, replace=False)).astype(np.int64)
-
-
-def precheck(
-    references: list[ReferenceObservation], min_matches: int, min_pairs: int = 2
-) -> FailureReason | None:
-    """Common input checks: at least ``min_pairs`` references with ``min_matches`` matches
-    (else too_few_matches), and their centres not all coincident (else degenerate_geometry)."""
-    if not references:
-        return FailureReason.NO_REFERENCES
-    usable = [ref for ref in references if ref.num_matches >= min_matches]
-    if len(usable) < min_pairs:
-        return FailureReason.TOO_FEW_MATCHES
-    if min_pairs >= 2:
-        centers = np.stack([ref.cam_from_world.center for ref in usable])
-        scale = max(float(np.abs(centers).max()), 1.0)
-        if float(np.ptp(centers, axis=0).max()) < 1e-6 * scale:
-            return FailureReason.DEGENERATE_GEOMETRY
-    return None
-
-
-def finish(
-    cam_from_world: Rigid3d | None,
-    masks: list[BoolArray],
-    references: list[ReferenceObservation],
-    options: EstimatorOptions,
-    stats: dict[str, float],
-    reason_if_weak: FailureReason = FailureReason.NO_CONSENSUS,
-) -> EstimateResult:
-    """Assemble the result: stats, confidence, and a failure when the pose is missing, not
-    finite, or supported by too few inliers / references."""
-    num_inliers = int(sum(int(m.sum()) for m in masks))
-    refs_with_inliers = sum(int(m.sum() >= 3) for m in masks)
-    total = sum(ref.num_matches for ref in references)
-    stats = {
-        **stats,
-        "num_matches": float(total),
-        "num_inliers": float(num_inliers),
-        "inlier_ratio": num_inliers / max(total, 1),
-        "references_with_inliers": float(refs_with_inliers),
-    }
-    if cam_from_world is None:
-        return EstimateResult(None, masks, 0.0, stats, reason_if_weak)
-    finite = np.all(np.isfinite(cam_from_world.rotation)) and np.all(
-        np.isfinite(cam_from_world.translation)
-    )
-    if (
-        not finite
-        or num_inliers < options.min_inliers
-        or refs_with_inliers < options.min_references
-    ):
-        return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
-    confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
-    return EstimateResult(cam_from_world, masks, confidence, stats, None)

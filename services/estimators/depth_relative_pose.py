@@ -1,11 +1,10 @@
 """Relative pose of one query–reference pair from the 3-point-with-depth solver in LO-RANSAC.
 
-Hypotheses come in batches from ``geometry.depth_pose.relative_pose_3pt_depth`` (Umeyama on
-three back-projected points per image), are scored by truncated (MSAC) Sampson error on a
-random subset of the matches (preemptive scoring bounds the cost), and the best of each batch
-is scored on all matches. Local optimisation re-fits the similarity on all inliers that have
-depth. ``polish_relative_pose`` then runs PoseLib's Sampson refinement on adaptive inlier
-sets.
+Hypotheses come in batches from ``solvers.relative_pose_3pt_depth`` (Umeyama on three
+back-projected points per image) and run through ``ransac.lo_ransac`` (truncated Sampson
+error, preemptive scoring on a subset). Local optimisation re-fits the similarity on all
+inliers that have depth. ``polish_relative_pose`` then runs PoseLib's Sampson refinement on
+adaptive inlier sets.
 """
 
 from __future__ import annotations
@@ -13,25 +12,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-from services.estimators.correspondences import Deadline
+from services.estimators.options import RansacOptions
 from services.estimators.poselib_bridge import refine_relative_pose
+from services.estimators.ransac import Deadline, lo_ransac, msac_score
 from services.estimators.robust_scale import adaptive_threshold_px
+from services.estimators.solvers import relative_pose_3pt_depth
 from services.geometry.camera import Camera
-from services.geometry.depth_pose import (
-    back_project,
-    relative_pose_3pt_depth,
-    sampson_errors,
-    similarity_from_points,
-)
+from services.geometry.depth_pose import back_project, sampson_errors, similarity_from_points
 from services.geometry.rigid import Rigid3d
+from services.types import BoolArray, FloatArray, IntArray
 
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-
-BATCH = 200
-SCORING_SUBSET = 256
+# a relative pose ``dst_from_src``: rotation (3, 3) and translation (3,)
+Pose = tuple[FloatArray, FloatArray]
+# B relative poses: rotations (B, 3, 3) and translations (B, 3)
+Poses = tuple[FloatArray, FloatArray]
 
 
 @dataclass(frozen=True)
@@ -39,36 +34,97 @@ class DepthRelativePose:
     """``dst_from_src`` rotation, unit translation direction, scale of the similarity (metric
     translation = ``t * scale_t``), inlier mask over all matches, and iterations run."""
 
-    R: Array
-    t: Array
+    R: FloatArray
+    t: FloatArray
     translation_norm: float
     inliers: BoolArray
     iterations: int
 
 
-def required_iterations(inlier_ratio: float, sample_size: int, success_prob: float = 0.9999) -> int:
-    """Iterations after which an all-inlier sample was drawn with ``success_prob``."""
-    p_good = inlier_ratio**sample_size
-    if p_good >= 1.0 - 1e-12:
-        return 1
-    if p_good <= 1e-12:
-        return 2**31
-    return int(np.ceil(np.log(1.0 - success_prob) / np.log(1.0 - p_good)))
+class _DepthPairProblem:
+    """LO-RANSAC problem of one pair: M normalised correspondences with depths (0 = none)."""
 
+    sample_size = 3
+    batch_size = 200
+    scoring_subset = 256
 
-def _msac(errors: Array, threshold: float) -> Array:
-    return np.asarray((np.minimum(errors, threshold) ** 2).sum(axis=-1), dtype=np.float64)
+    def __init__(
+        self,
+        x_src: FloatArray,
+        d_src: FloatArray,
+        x_dst: FloatArray,
+        d_dst: FloatArray,
+        threshold: float,
+        with_scale: bool,
+    ) -> None:
+        self.x_src, self.d_src, self.x_dst, self.d_dst = x_src, d_src, x_dst, d_dst
+        self.P_src, self.P_dst = back_project(x_src, d_src), back_project(x_dst, d_dst)
+        self.has_depth = (d_src > 0) & (d_dst > 0)
+        self.with_depth = np.flatnonzero(self.has_depth)
+        self.threshold = threshold
+        self.with_scale = with_scale
+        self.num_data = int(x_src.shape[0])
+
+    def hypotheses(self, rng: np.random.Generator) -> Poses | None:
+        sample = self.with_depth[rng.integers(0, self.with_depth.size, size=(self.batch_size, 3))]
+        distinct = (
+            (sample[:, 0] != sample[:, 1])
+            & (sample[:, 0] != sample[:, 2])
+            & (sample[:, 1] != sample[:, 2])
+        )
+        sample = sample[distinct]
+        tri = self.P_src[sample]
+        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        sample = sample[area > 1e-9]
+        if sample.shape[0] == 0:
+            return None
+        R, t, _ = relative_pose_3pt_depth(
+            self.x_src[sample],
+            self.d_src[sample],
+            self.x_dst[sample],
+            self.d_dst[sample],
+            self.with_scale,
+        )
+        return R, t
+
+    def batch_errors(self, batch: Poses, subset: IntArray) -> FloatArray:
+        return sampson_errors(batch[0], batch[1], self.x_src[subset], self.x_dst[subset])
+
+    def select(self, batch: Poses, k: int) -> Pose:
+        return batch[0][k], batch[1][k]
+
+    def errors(self, model: Pose) -> FloatArray:
+        errors: FloatArray = sampson_errors(model[0][None], model[1][None], self.x_src, self.x_dst)[
+            0
+        ]
+        return errors
+
+    def local_optimisation(self, model: Pose, errors: FloatArray) -> tuple[Pose, FloatArray]:
+        """Re-fit the similarity on all inliers with depth while the MSAC score improves."""
+        score = float(msac_score(errors, self.threshold))
+        for _ in range(3):
+            inl = (errors < self.threshold) & self.has_depth
+            if inl.sum() < 3:
+                break
+            R, t, _ = similarity_from_points(
+                self.P_src[inl][None], self.P_dst[inl][None], self.with_scale
+            )
+            new_errors = sampson_errors(R, t, self.x_src, self.x_dst)[0]
+            new = float(msac_score(new_errors, self.threshold))
+            if new >= score:
+                break
+            score, model, errors = new, (R[0], t[0]), new_errors
+        return model, errors
 
 
 def ransac_relative_pose_depth(
-    x_src: Array,
-    d_src: Array,
-    x_dst: Array,
-    d_dst: Array,
+    x_src: FloatArray,
+    d_src: FloatArray,
+    x_dst: FloatArray,
+    d_dst: FloatArray,
     threshold: float,
+    options: RansacOptions,
     rng: np.random.Generator,
-    min_iterations: int,
-    max_iterations: int,
     deadline: Deadline,
     with_scale: bool = True,
 ) -> DepthRelativePose | None:
@@ -77,94 +133,30 @@ def ransac_relative_pose_depth(
     Args:
         x_src, x_dst: (M, 2) normalised correspondences; d_src, d_dst: (M,) depths (0 = none).
         threshold: Sampson inlier threshold in normalised units (pixels / focal).
+        options: iteration bounds and success probability (its threshold and seed are not
+            used: ``threshold`` and ``rng`` are).
         with_scale: depths known up to one scale per image (similarity) or metric (rigid).
     Returns:
         The best model, or None when fewer than 3 matches have both depths.
     """
-    m = x_src.shape[0]
-    with_depth = np.flatnonzero((d_src > 0) & (d_dst > 0))
-    if with_depth.size < 3 or m < 5:
+    problem = _DepthPairProblem(x_src, d_src, x_dst, d_dst, threshold, with_scale)
+    if problem.with_depth.size < 3 or problem.num_data < 5:
         return None
-    subset = np.arange(m) if m <= SCORING_SUBSET else rng.choice(m, SCORING_SUBSET, replace=False)
-    P_src = back_project(x_src, d_src)
-    P_dst = back_project(x_dst, d_dst)
-    best_score = np.inf
-    best: tuple[Array, Array, Array] | None = None
-    iterations = 0
-    needed = min_iterations
-    while iterations < min(max(needed, min_iterations), max_iterations):
-        if iterations > 0 and deadline.expired():
-            break
-        sample = with_depth[rng.integers(0, with_depth.size, size=(BATCH, 3))]
-        iterations += BATCH
-        distinct = (
-            (sample[:, 0] != sample[:, 1])
-            & (sample[:, 0] != sample[:, 2])
-            & (sample[:, 1] != sample[:, 2])
-        )
-        sample = sample[distinct]
-        tri = P_src[sample]
-        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        sample = sample[area > 1e-9]
-        if sample.shape[0] == 0:
-            continue
-        R, t, _ = relative_pose_3pt_depth(
-            x_src[sample], d_src[sample], x_dst[sample], d_dst[sample], with_scale
-        )
-        scores = _msac(sampson_errors(R, t, x_src[subset], x_dst[subset]), threshold)
-        k = int(np.argmin(scores))
-        full = _msac(sampson_errors(R[k : k + 1], t[k : k + 1], x_src, x_dst), threshold)[0]
-        if full < best_score:
-            best_score, best = _local_optimisation(
-                R[k], t[k], P_src, P_dst, x_src, x_dst, d_src, d_dst, threshold, with_scale
-            )
-            inlier_ratio = float(
-                (sampson_errors(best[0][None], best[1][None], x_src, x_dst)[0] < threshold).mean()
-            )
-            needed = required_iterations(inlier_ratio, 3)
-    if best is None:
+    found = lo_ransac(problem, threshold, options, rng, deadline)
+    if found.model is None:
         return None
-    R_best, t_best, _ = best
-    errors = sampson_errors(R_best[None], t_best[None], x_src, x_dst)[0]
+    R_best, t_best = found.model
     norm = float(np.linalg.norm(t_best))
     direction = t_best / norm if norm > 0 else t_best
-    return DepthRelativePose(R_best, direction, norm, errors < threshold, iterations)
-
-
-def _local_optimisation(
-    R: Array,
-    t: Array,
-    P_src: Array,
-    P_dst: Array,
-    x_src: Array,
-    x_dst: Array,
-    d_src: Array,
-    d_dst: Array,
-    threshold: float,
-    with_scale: bool,
-) -> tuple[float, tuple[Array, Array, Array]]:
-    """Re-fit the similarity on all inliers with depth while the MSAC score improves."""
-    score = float(_msac(sampson_errors(R[None], t[None], x_src, x_dst), threshold)[0])
-    model = (R, t, np.ones(1))
-    for _ in range(3):
-        inl = sampson_errors(model[0][None], model[1][None], x_src, x_dst)[0] < threshold
-        inl &= (d_src > 0) & (d_dst > 0)
-        if inl.sum() < 3:
-            break
-        R2, t2, s2 = similarity_from_points(P_src[inl][None], P_dst[inl][None], with_scale)
-        new = float(_msac(sampson_errors(R2, t2, x_src, x_dst), threshold)[0])
-        if new >= score:
-            break
-        score, model = new, (R2[0], t2[0], s2)
-    return score, model
+    return DepthRelativePose(R_best, direction, norm, found.inliers, found.iterations)
 
 
 def polish_relative_pose(
     model: DepthRelativePose,
-    ref_xy: Array,
-    query_xy: Array,
-    x_ref: Array,
-    x_query: Array,
+    ref_xy: FloatArray,
+    query_xy: FloatArray,
+    x_ref: FloatArray,
+    x_query: FloatArray,
     ref_camera: Camera,
     query_camera: Camera,
     threshold: float,

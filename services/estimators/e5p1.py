@@ -13,7 +13,7 @@ winning pose is then re-scored and refined on every match (generalized Sampson r
 of them. At the guide's setting (10 references × 1000 matches) this is ~4× faster for the same
 accuracy (``scripts/bench_estimators.py``).
 
-The pipeline then verifies the pose in 3D (``services.estimators.verification``).
+The pipeline then verifies the pose in 3D (``services.verification``).
 """
 
 from __future__ import annotations
@@ -21,40 +21,38 @@ from __future__ import annotations
 import numpy as np
 import poselib
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
-from services.estimators.correspondences import Deadline, finish, random_subset, stack_matches
+from services.estimators.base import FailureReason, ReferenceObservation
+from services.estimators.correspondences import random_subset
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.pose_triangulation import local_optimisation
-from services.estimators.poselib_bridge import from_poselib, ransac_options, to_poselib
-from services.geometry.camera import Camera
+from services.estimators.poselib_bridge import (
+    from_poselib,
+    generalized_refinement_possible,
+    ransac_options,
+    to_poselib,
+)
 from services.geometry.rigid import Rigid3d
 
 RANSAC_SAMPLE_PER_PAIR = 100  # matches per reference that RANSAC hypotheses are scored on
 
 
-class E5p1Estimator:
+class E5p1Estimator(Estimator):
     name = "e5p1"
 
-    def estimate(
-        self,
-        query_camera: Camera,
-        references: list[ReferenceObservation],
-        options: EstimatorOptions,
-    ) -> EstimateResult:
-        used = [i for i, ref in enumerate(references) if ref.num_matches > 0]
+    def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
         # PoseLib 2.0.5 loops forever with fewer than two non-empty pairs or no pair of >= 5
-        # matches (DESIGN.md "Known pitfalls"): never call it then.
-        if len(used) < 2 or max(references[i].num_matches for i in used) < 5:
-            return EstimateResult.failure(FailureReason.TOO_FEW_MATCHES, references)
-        centers = np.stack([references[i].cam_from_world.center for i in used])
+        # matches (see ``poselib_bridge``): never call it then.
+        if not generalized_refinement_possible([ref.num_matches for ref in references]):
+            return FailureReason.TOO_FEW_MATCHES
+        centers = np.stack([ref.cam_from_world.center for ref in references if ref.num_matches])
         if np.ptp(centers, axis=0).max() < 1e-9:
-            return EstimateResult.failure(FailureReason.DEGENERATE_GEOMETRY, references)
+            return FailureReason.DEGENERATE_GEOMETRY
+        return None
 
-        rng = np.random.default_rng(options.seed)
+    def solve(self, request: Request) -> Solution:
+        references, options = request.references, request.options
+        used = [i for i, ref in enumerate(references) if ref.num_matches > 0]
+        rng = np.random.default_rng(options.ransac.seed)
         matches = []
         for pair_index, i in enumerate(used):
             ref = references[i]
@@ -65,14 +63,12 @@ class E5p1Estimator:
             m.x1 = np.ascontiguousarray(ref.reference_xy[sample], dtype=np.float64)
             m.x2 = np.ascontiguousarray(ref.query_xy[sample], dtype=np.float64)
             matches.append(m)
-        deadline = Deadline(options.time_budget_s)
-        if deadline.expired():
-            return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references)
+        request.fail_if_expired()
         # iterations capped by the remaining time budget, if any
         ransac = ransac_options(
-            options,
-            deadline,
-            epipolar_px=options.max_error_px,
+            options.ransac,
+            request.deadline,
+            epipolar_px=options.ransac.max_error_px,
             num_matches=sum(len(m.x1) for m in matches),
         )
         pose, info = poselib.estimate_generalized_relative_pose(
@@ -80,24 +76,22 @@ class E5p1Estimator:
             [to_poselib(references[i].cam_from_world) for i in used],
             [references[i].camera.to_poselib() for i in used],
             [to_poselib(Rigid3d.identity())],
-            [query_camera.to_poselib()],
+            [request.query_camera.to_poselib()],
             ransac,
             {},
         )
-        stats = {"iterations": float(info.get("iterations", 0))}
+        request.stats["iterations"] = float(info.get("iterations", 0))
         hypothesis = from_poselib(pose)
         if not np.all(np.isfinite(hypothesis.matrix)):
-            return EstimateResult.failure(FailureReason.NO_CONSENSUS, references, stats)
-        stacked = stack_matches(query_camera, references)
+            request.fail(FailureReason.NO_CONSENSUS)
         cam_from_world, inliers = local_optimisation(
             hypothesis,
-            stacked,
+            request.stacked,
             references,
-            query_camera,
+            request.query_camera,
             options,
-            deadline,
+            request.deadline,
             rounds=2,
             refine_iterations=10,
         )
-        stats["score"] = float(inliers.sum())
-        return finish(cam_from_world, stacked.split(inliers), references, options, stats)
+        return Solution(cam_from_world, inliers)

@@ -6,33 +6,23 @@ arrays are skipped, so without depth the result is ``too_few_matches`` / ``no_co
 
 from __future__ import annotations
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
-from services.estimators.pose_triangulation import (
-    estimate_by_pose_triangulation,
-    solve_3pt_depth,
-)
-from services.geometry.camera import Camera
+from services.estimators.base import FailureReason, ReferenceObservation
+from services.estimators.pose_triangulation import PoseTriangulationEstimator, solve_3pt_depth
 
 
-class Essential3ptDepthEstimator:
+class Essential3ptDepthEstimator(PoseTriangulationEstimator):
     name = "essential_3pt_depth"
+    needs_depth = True
 
-    def estimate(
-        self,
-        query_camera: Camera,
-        references: list[ReferenceObservation],
-        options: EstimatorOptions,
-    ) -> EstimateResult:
+    def __init__(self) -> None:
+        super().__init__(solve_3pt_depth)
+
+    def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
         with_depth = [
             ref
             for ref in references
             if ref.query_depth is not None and ref.reference_depth is not None
         ]
         if references and len(with_depth) < 2:
-            return EstimateResult.failure(FailureReason.TOO_FEW_MATCHES, references)
-        return estimate_by_pose_triangulation(query_camera, references, options, solve_3pt_depth)
+            return FailureReason.TOO_FEW_MATCHES
+        return super().check(references)

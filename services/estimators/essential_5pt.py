@@ -6,18 +6,11 @@ See ``pose_triangulation`` for the steps."""
 
 from __future__ import annotations
 
-from services.estimators.base import EstimateResult, EstimatorOptions, ReferenceObservation
-from services.estimators.pose_triangulation import estimate_by_pose_triangulation, solve_5pt
-from services.geometry.camera import Camera
+from services.estimators.pose_triangulation import PoseTriangulationEstimator, solve_5pt
 
 
-class Essential5ptEstimator:
+class Essential5ptEstimator(PoseTriangulationEstimator):
     name = "essential_5pt"
 
-    def estimate(
-        self,
-        query_camera: Camera,
-        references: list[ReferenceObservation],
-        options: EstimatorOptions,
-    ) -> EstimateResult:
-        return estimate_by_pose_triangulation(query_camera, references, options, solve_5pt)
+    def __init__(self) -> None:
+        super().__init__(solve_5pt)

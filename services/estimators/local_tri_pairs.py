@@ -1,9 +1,9 @@
 """Local triangulation per reference pair ("SfM on the fly", pairs variant): for every pair of
-references, the query keypoints matched in both are triangulated from the two references
-(2-view DLT, ``triangulation_error_px`` check, ≥ 1° parallax), P3P LO-RANSAC (PoseLib) gives a
-query pose from those points, and the pose with most 2D–3D inliers wins; it is then refined
-on the points of all pairs that reproject within an adaptive threshold (the guide stops at
-the best pair; this extra step costs one refinement and steadies the accuracy).
+references, the query keypoints matched in both are triangulated from the two references (2-view
+DLT, ``TriangulationOptions.max_error_px`` check, ≥ 1° parallax), P3P LO-RANSAC (PoseLib) gives a
+query pose from those points, and the pose with most 2D–3D inliers wins; it is then refined on the
+points of all pairs that reproject within an adaptive threshold (the guide stops at the best pair;
+this extra step costs one refinement and steadies the accuracy).
 
 Pairs are tried in decreasing order of shared tracks; when the time budget runs out the best
 pose so far is kept (``stats["budget_exhausted"] = 1``), or ``time_budget_exceeded`` without
@@ -15,21 +15,9 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from numpy.typing import NDArray
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
-from services.estimators.correspondences import (
-    Deadline,
-    finish,
-    pose_sampson_errors_px,
-    precheck,
-    stack_matches,
-)
+from services.estimators.base import FailureReason
+from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.tracks import (
     TrackPose,
     build_tracks,
@@ -37,75 +25,65 @@ from services.estimators.tracks import (
     refine_on_points,
     triangulate_tracks,
 )
-from services.geometry.camera import Camera
+from services.types import FloatArray
 
 MIN_SHARED_TRACKS = 6  # a pair sharing fewer query keypoints is not tried
 
 
-class LocalTriPairsEstimator:
+class LocalTriPairsEstimator(Estimator):
     name = "local_tri_pairs"
+    min_matches = 1
 
-    def estimate(
-        self,
-        query_camera: Camera,
-        references: list[ReferenceObservation],
-        options: EstimatorOptions,
-    ) -> EstimateResult:
-        deadline = Deadline(options.time_budget_s)
-        reason = precheck(references, min_matches=1)
-        if reason is not None:
-            return EstimateResult.failure(reason, references)
-        stacked = stack_matches(query_camera, references)
-        tracks = build_tracks(stacked, options.track_merge_px)
+    def solve(self, request: Request) -> Solution:
+        stacked, options, stats = request.stacked, request.options, request.stats
+        tracks = build_tracks(stacked, options.triangulation.track_merge_px)
         observed = tracks.observed.astype(np.int64)
         shared = observed.T @ observed  # (V, V) tracks seen by both references
         pairs = [
             (a, b)
-            for a, b in itertools.combinations(range(len(references)), 2)
+            for a, b in itertools.combinations(range(len(request.references)), 2)
             if shared[a, b] >= MIN_SHARED_TRACKS
         ]
         pairs.sort(key=lambda ab: -int(shared[ab[0], ab[1]]))
-        stats: dict[str, float] = {"tracks": float(tracks.size), "pairs": float(len(pairs))}
+        stats["tracks"] = float(tracks.size)
+        stats["pairs"] = float(len(pairs))
         if not pairs:
-            return EstimateResult.failure(FailureReason.TOO_FEW_MATCHES, references, stats)
+            request.fail(FailureReason.TOO_FEW_MATCHES)
         best: TrackPose | None = None
         best_pair = (-1, -1)
         iterations = 0
         tried = 0
         exhausted = False
-        all_points: list[NDArray[np.float64]] = []
-        all_query_xy: list[NDArray[np.float64]] = []
+        all_points: list[FloatArray] = []
+        all_query_xy: list[FloatArray] = []
         for k, (a, b) in enumerate(pairs):
-            if deadline.expired():
+            if request.deadline.expired():
                 exhausted = True
                 break
             in_pair = tracks.observed[:, a] & tracks.observed[:, b]
             sub = tracks.subset(in_pair)
             views = np.array([a, b], dtype=np.int64)
-            tri = triangulate_tracks(stacked, sub, options.triangulation_error_px, views)
+            tri = triangulate_tracks(stacked, sub, options.triangulation.max_error_px, views)
             tried += 1
             if tri.valid.sum() < MIN_SHARED_TRACKS:
                 continue
             all_points.append(tri.points[tri.valid])
             all_query_xy.append(stacked.query_xy[sub.query_match[tri.valid]])
             found = pose_from_tracks(
-                stacked, sub, tri, query_camera, options, deadline, len(pairs) - k
+                stacked, sub, tri, request.query_camera, options, request.deadline, len(pairs) - k
             )
             if found is None:
                 continue
             iterations += found.iterations
             if best is None or found.inliers.sum() > best.inliers.sum():
                 best, best_pair = found, (a, b)
-        stats.update(
-            {
-                "pairs_tried": float(tried),
-                "iterations": float(iterations),
-                "budget_exhausted": float(exhausted),
-            }
-        )
+        stats["pairs_tried"] = float(tried)
+        stats["iterations"] = float(iterations)
+        stats["budget_exhausted"] = float(exhausted)
         if best is None:
-            reason = FailureReason.TIME_BUDGET_EXCEEDED if exhausted else FailureReason.NO_CONSENSUS
-            return EstimateResult.failure(reason, references, stats)
+            request.fail(
+                FailureReason.TIME_BUDGET_EXCEEDED if exhausted else FailureReason.NO_CONSENSUS
+            )
         stats["best_pair_a"], stats["best_pair_b"] = float(best_pair[0]), float(best_pair[1])
         stats["points_inliers"] = float(best.inliers.sum())
         stats["score"] = float(best.inliers.sum())
@@ -114,12 +92,9 @@ class LocalTriPairsEstimator:
             best.pose,
             np.concatenate(all_points),
             np.concatenate(all_query_xy),
-            query_camera,
+            request.query_camera,
             options,
-            deadline,
+            request.deadline,
         )
         stats["points_refined"] = float(used)
-        errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
-        return finish(
-            pose, stacked.split(errors < options.max_error_px), references, options, stats
-        )
+        return Solution(pose)

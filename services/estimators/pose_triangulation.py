@@ -1,5 +1,6 @@
 """Pose triangulation (the guide's "Ess. mat." family), shared by ``essential_5pt``,
-``essential_3pt_depth`` and the first stage of ``motion_averaging``.
+``essential_3pt_depth`` (``PoseTriangulationEstimator``) and the first stages of
+``motion_averaging`` (``triangulated_pose``).
 
 1. Relative pose ``query_from_reference`` per pair (rotation + unit translation direction).
 2. Each pair implies a query rotation ``R_q = R_qr·R_r``: robust single-rotation averaging.
@@ -16,32 +17,25 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numpy.typing import NDArray
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
+from services.estimators.base import FailureReason, ReferenceObservation
 from services.estimators.correspondences import (
-    Deadline,
     StackedMatches,
-    finish,
     pose_sampson_errors_px,
-    precheck,
     random_subset,
-    stack_matches,
 )
 from services.estimators.depth_relative_pose import (
     polish_relative_pose,
     ransac_relative_pose_depth,
 )
+from services.estimators.estimator import Estimator, Request, Solution
+from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
     estimate_relative_pose,
     ransac_options,
     refine_query_pose,
 )
+from services.estimators.ransac import Deadline
 from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.averaging import (
     average_rotations,
@@ -52,9 +46,7 @@ from services.geometry.camera import Camera
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray
 
 ROTATION_INLIER_DEG = 5.0  # implied query rotations farther than this from the median
 DIRECTION_INLIER_DEG = 10.0  # rays farther than this from the query centre
@@ -88,9 +80,13 @@ def solve_5pt(
 ) -> PairPose | None:
     """PoseLib 5-point LO-RANSAC with Sampson refinement (``index`` filled by the caller)."""
     ransac = ransac_options(
-        options, deadline, calls_left, epipolar_px=options.max_error_px, num_matches=ref.num_matches
+        options.ransac,
+        deadline,
+        calls_left,
+        epipolar_px=options.ransac.max_error_px,
+        num_matches=ref.num_matches,
     )
-    out = estimate_relative_pose(ref, query_camera, ransac, options.max_error_px / 4.0)
+    out = estimate_relative_pose(ref, query_camera, ransac, options.ransac.max_error_px / 4.0)
     if out is None:
         return None
     return PairPose(-1, out[0], out[1], out[2])
@@ -118,10 +114,9 @@ def solve_3pt_depth(
         d_ref,
         x_q,
         d_q,
-        options.max_error_px / focal,
+        options.ransac.max_error_px / focal,
+        options.ransac,
         rng,
-        options.min_iterations,
-        options.max_iterations,
         deadline,
         with_scale=True,
     )
@@ -135,7 +130,7 @@ def solve_3pt_depth(
         x_q,
         ref.camera,
         query_camera,
-        options.max_error_px / focal,
+        options.ransac.max_error_px / focal,
         focal,
     )
     return PairPose(-1, refined, inliers, model.iterations)
@@ -177,7 +172,9 @@ def sampled_solver(solver: RelativePoseSolver, cap: int) -> RelativePoseSolver:
             normalized_from_pixels(query_camera, ref.query_xy),
         )[0]
         focal = 0.5 * (mean_focal(ref.camera) + mean_focal(query_camera))
-        return PairPose(pair.index, pose, errors * focal < options.max_error_px, pair.iterations)
+        return PairPose(
+            pair.index, pose, errors * focal < options.ransac.max_error_px, pair.iterations
+        )
 
     return solve
 
@@ -190,7 +187,7 @@ def pairwise_poses(
     solver: RelativePoseSolver,
 ) -> tuple[list[PairPose], bool]:
     """Relative pose of every pair with enough matches; also whether the budget ran out."""
-    rng = np.random.default_rng(options.seed)
+    rng = np.random.default_rng(options.ransac.seed)
     order = [i for i, ref in enumerate(references) if ref.num_matches >= 5]
     out: list[PairPose] = []
     for k, i in enumerate(order):
@@ -268,7 +265,7 @@ def local_optimisation(
     steps. A round that loses more than 5 % of the inliers at
     ``max_error_px`` is rejected. Returns the pose and its (N,) inlier mask at ``max_error_px``
     over the stacked matches."""
-    thr = options.max_error_px
+    thr = options.ransac.max_error_px
     errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
     count = int((errors < thr).sum())
     for _ in range(rounds):
@@ -293,35 +290,49 @@ def local_optimisation(
     return pose, errors < thr
 
 
-def estimate_by_pose_triangulation(
-    query_camera: Camera,
-    references: list[ReferenceObservation],
-    options: EstimatorOptions,
+def triangulated_pose(
+    request: Request,
     solver: RelativePoseSolver,
-) -> EstimateResult:
-    """Steps 1–4 with the given relative-pose solver; the result's inliers are the matches
-    within ``max_error_px`` Sampson error of the final pose."""
-    deadline = Deadline(options.time_budget_s)
-    reason = precheck(references, min_matches=5)
-    if reason is not None:
-        return EstimateResult.failure(reason, references)
-    pairs, timed_out = pairwise_poses(query_camera, references, options, deadline, solver)
-    stats: dict[str, float] = {
-        "iterations": float(sum(p.iterations for p in pairs)),
-        "pairs_with_relative_pose": float(len(pairs)),
-    }
-    if timed_out:
-        return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references, stats)
-    if len(pairs) < 2:
-        return EstimateResult.failure(FailureReason.NO_CONSENSUS, references, stats)
-    tri = triangulate_pose(pairs, references, robust="ransac")
-    stats["pairs_consistent"] = float(tri.pair_inliers.sum())
-    stats["ray_conditioning"] = tri.conditioning
-    if tri.pose is None:
-        return EstimateResult.failure(tri.failure or FailureReason.NO_CONSENSUS, references, stats)
-    stacked = stack_matches(query_camera, references)
-    pose, inliers = local_optimisation(
-        tri.pose, stacked, references, query_camera, options, deadline
+    robust: str = "ransac",
+    pair_options: EstimatorOptions | None = None,
+) -> Rigid3d:
+    """Steps 1–3 with the given relative-pose solver (run with ``pair_options``, by default the
+    request's); fails the request without a pose."""
+    pairs, timed_out = pairwise_poses(
+        request.query_camera,
+        request.references,
+        pair_options or request.options,
+        request.deadline,
+        solver,
     )
-    stats["score"] = float(inliers.sum())
-    return finish(pose, stacked.split(inliers), references, options, stats)
+    request.stats["iterations"] = float(sum(p.iterations for p in pairs))
+    request.stats["pairs_with_relative_pose"] = float(len(pairs))
+    if timed_out:
+        request.fail(FailureReason.TIME_BUDGET_EXCEEDED)
+    if len(pairs) < 2:
+        request.fail(FailureReason.NO_CONSENSUS)
+    tri = triangulate_pose(pairs, request.references, robust)
+    request.stats["pairs_consistent"] = float(tri.pair_inliers.sum())
+    request.stats["ray_conditioning"] = tri.conditioning
+    if tri.pose is None:
+        request.fail(tri.failure or FailureReason.NO_CONSENSUS)
+    return tri.pose
+
+
+class PoseTriangulationEstimator(Estimator):
+    """Steps 1–4 with the estimator's relative-pose solver; the result's inliers are the
+    matches within ``max_error_px`` Sampson error of the final pose."""
+
+    def __init__(self, solver: RelativePoseSolver) -> None:
+        self.solver = solver
+
+    def solve(self, request: Request) -> Solution:
+        pose, inliers = local_optimisation(
+            triangulated_pose(request, self.solver),
+            request.stacked,
+            request.references,
+            request.query_camera,
+            request.options,
+            request.deadline,
+        )
+        return Solution(pose, inliers)

@@ -1,7 +1,7 @@
 """Guarded PoseLib calls and pose conversions.
 
 PoseLib 2.0.5 ``estimate_generalized_relative_pose`` loops forever when fewer than two pairs
-have matches or no pair has ≥ 5 (DESIGN.md "Known pitfalls"). Every call here checks its input
+have matches or no pair has ≥ 5 (a known pitfall of that version). Every call here checks its input
 sizes first, passes empty arrays as ``np.zeros((0, 2))``, and bounds its iterations. Pixel
 thresholds are in pixels (PoseLib scales them by the focal lengths internally).
 """
@@ -12,15 +12,13 @@ from typing import Any
 
 import numpy as np
 import poselib
-from numpy.typing import NDArray
 
-from services.estimators.base import EstimatorOptions, ReferenceObservation
-from services.estimators.correspondences import Deadline
+from services.estimators.base import ReferenceObservation
+from services.estimators.options import RansacOptions
+from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray, FloatArray
 
 # Rough PoseLib LO-RANSAC throughput on one core, in (iterations × correspondences) per second
 # (measured ≈ 1–3e7 here for the relative and generalized relative pose estimators), used to
@@ -39,22 +37,23 @@ def from_poselib(pose: poselib.CameraPose) -> Rigid3d:
     return Rigid3d.from_quaternion(np.asarray(pose.q, dtype=np.float64), np.asarray(pose.t))
 
 
-def _points(xy: Array) -> Array:
+def _points(xy: FloatArray) -> FloatArray:
     xy = np.asarray(xy, dtype=np.float64)
     return np.ascontiguousarray(xy.reshape(-1, 2)) if xy.size else np.zeros((0, 2))
 
 
 def ransac_options(
-    options: EstimatorOptions,
+    options: RansacOptions,
     deadline: Deadline,
     calls_left: int = 1,
     epipolar_px: float | None = None,
     reprojection_px: float | None = None,
     num_matches: int = 1000,
 ) -> dict[str, Any]:
-    """PoseLib RANSAC options from ours; with a time budget the iteration cap shrinks to what
-    the remaining budget, shared by ``calls_left`` calls, allows for ``num_matches``
-    correspondences (a rough throughput model; the bound is soft)."""
+    """PoseLib RANSAC options from ours, with the threshold of the problem's error, pixels;
+    with a time budget the iteration cap shrinks to what the remaining budget, shared by
+    ``calls_left`` calls, allows for ``num_matches`` correspondences (a rough throughput
+    model; the bound is soft)."""
     max_iterations = options.max_iterations
     remaining = deadline.remaining_s()
     if np.isfinite(remaining):
@@ -64,6 +63,7 @@ def ransac_options(
     out: dict[str, Any] = {
         "min_iterations": min(options.min_iterations, max_iterations),
         "max_iterations": max_iterations,
+        "success_prob": options.success_prob,
         "seed": options.seed,
     }
     if epipolar_px is not None:
@@ -100,8 +100,8 @@ def estimate_relative_pose(
 
 
 def refine_relative_pose(
-    ref_xy: Array,
-    query_xy: Array,
+    ref_xy: FloatArray,
+    query_xy: FloatArray,
     initial: Rigid3d,
     ref_camera: Camera,
     query_camera: Camera,
@@ -165,8 +165,8 @@ def refine_query_pose(
 
 
 def estimate_absolute_pose(
-    points2d: Array,
-    points3d: Array,
+    points2d: FloatArray,
+    points3d: FloatArray,
     camera: Camera,
     ransac: dict[str, Any],
     loss_scale_px: float,
@@ -189,7 +189,11 @@ def estimate_absolute_pose(
 
 
 def refine_absolute_pose(
-    points2d: Array, points3d: Array, camera: Camera, initial: Rigid3d, loss_scale_px: float
+    points2d: FloatArray,
+    points3d: FloatArray,
+    camera: Camera,
+    initial: Rigid3d,
+    loss_scale_px: float,
 ) -> Rigid3d:
     if points2d.shape[0] < 4:
         return initial

@@ -27,8 +27,8 @@ _ESTIMATORS: dict[str, PoseEstimator] = {
     )
 }
 
-# estimators that need depth for the query and the references
-DEPTH_ESTIMATORS = frozenset({"essential_3pt_depth", "e3p1"})
+# the estimators that need depth for the query and the references, as each declares
+DEPTH_ESTIMATORS = frozenset(name for name, e in _ESTIMATORS.items() if e.needs_depth)
 
 DEFAULT_ESTIMATOR = "e5p1"
 

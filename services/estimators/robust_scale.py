@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 
-def adaptive_threshold_px(errors: Array, max_error_px: float, floor_px: float = 1.0) -> float:
+def adaptive_threshold_px(errors: FloatArray, max_error_px: float, floor_px: float = 1.0) -> float:
     """3σ of the errors below ``max_error_px`` (σ from the median, as for a Gaussian), clamped to
     [``floor_px``, ``max_error_px``]: the refinement set keeps the true inliers but drops the
     wrong matches that happen to pass the loose 12 px test."""

@@ -12,24 +12,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-from services.estimators.base import EstimatorOptions
-from services.estimators.correspondences import Deadline, StackedMatches
+from services.estimators.correspondences import StackedMatches
+from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
     estimate_absolute_pose,
     ransac_options,
     refine_absolute_pose,
 )
+from services.estimators.ransac import Deadline
 from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.camera import Camera
 from services.geometry.projection import pixels_from_camera_points
 from services.geometry.rigid import Rigid3d
 from services.geometry.triangulation import TriangulatedTracks, ransac_triangulate
-
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
-IntArray = NDArray[np.int64]
+from services.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -133,10 +130,10 @@ def pose_from_tracks(
     if valid.size < 4:
         return None
     ransac = ransac_options(
-        options,
+        options.ransac,
         deadline,
         calls_left,
-        reprojection_px=options.max_error_px,
+        reprojection_px=options.ransac.max_error_px,
         num_matches=int(valid.size),
     )
     out = estimate_absolute_pose(
@@ -144,7 +141,7 @@ def pose_from_tracks(
         triangulated.points[valid],
         query_camera,
         ransac,
-        options.max_error_px / 4.0,
+        options.ransac.max_error_px / 4.0,
     )
     if out is None:
         return None
@@ -155,8 +152,8 @@ def pose_from_tracks(
 
 def refine_on_points(
     pose: Rigid3d,
-    points3d: Array,
-    query_xy: Array,
+    points3d: FloatArray,
+    query_xy: FloatArray,
     query_camera: Camera,
     options: EstimatorOptions,
     deadline: Deadline,
@@ -176,7 +173,11 @@ def refine_on_points(
         projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
         err = np.linalg.norm(projected - query_xy, axis=1)
         err = np.where(np.isfinite(err), err, np.inf)
-        cap = initial_px if round_index == 0 and initial_px is not None else options.max_error_px
+        cap = (
+            initial_px
+            if round_index == 0 and initial_px is not None
+            else options.ransac.max_error_px
+        )
         thr = adaptive_threshold_px(err, cap)
         inl = err < thr
         if inl.sum() < min_points:

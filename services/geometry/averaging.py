@@ -10,13 +10,11 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray, FloatArray
 
 
-def project_to_rotation(M: Array) -> Array:
+def project_to_rotation(M: FloatArray) -> FloatArray:
     """Nearest rotation (Frobenius) to each (..., 3, 3) matrix."""
     U, _, Vt = np.linalg.svd(M)
     d = np.sign(np.linalg.det(U @ Vt))
@@ -25,7 +23,7 @@ def project_to_rotation(M: Array) -> Array:
     return np.asarray((U * D[..., None, :]) @ Vt, dtype=np.float64)
 
 
-def rotation_log(R: Array) -> Array:
+def rotation_log(R: FloatArray) -> FloatArray:
     """Axis-angle vectors (..., 3) of rotations (..., 3, 3)."""
     cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     angle = np.arccos(cos)
@@ -47,7 +45,7 @@ def rotation_log(R: Array) -> Array:
     return np.asarray(out, dtype=np.float64)
 
 
-def rotation_exp(w: Array) -> Array:
+def rotation_exp(w: FloatArray) -> FloatArray:
     """Rotations (..., 3, 3) of axis-angle vectors (..., 3) (Rodrigues)."""
     angle = np.linalg.norm(w, axis=-1)
     axis = w / np.maximum(angle, 1e-12)[..., None]
@@ -59,15 +57,15 @@ def rotation_exp(w: Array) -> Array:
     return np.asarray(np.eye(3) + s * K + (1.0 - c) * (K @ K), dtype=np.float64)
 
 
-def angles_between_deg(R: Array, Rs: Array) -> Array:
+def angles_between_deg(R: FloatArray, Rs: FloatArray) -> FloatArray:
     """(N,) angles in degrees between R (3, 3) and each of Rs (N, 3, 3)."""
     cos = (np.einsum("ij,nij->n", R, Rs) - 1.0) / 2.0
     return np.asarray(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), dtype=np.float64)
 
 
 def average_rotations(
-    rotations: Array, weights: Array, inlier_deg: float, iterations: int = 20
-) -> tuple[Array, BoolArray]:
+    rotations: FloatArray, weights: FloatArray, inlier_deg: float, iterations: int = 20
+) -> tuple[FloatArray, BoolArray]:
     """Robust single-rotation averaging: geodesic L1 median (Weiszfeld in the tangent space,
     started at the weighted medoid), then a chordal L2 mean over the estimates within
     ``inlier_deg`` of the median.
@@ -96,7 +94,9 @@ def average_rotations(
     return np.asarray(R, dtype=np.float64), inliers
 
 
-def intersect_rays(origins: Array, directions: Array, weights: Array) -> tuple[Array, float]:
+def intersect_rays(
+    origins: FloatArray, directions: FloatArray, weights: FloatArray
+) -> tuple[FloatArray, float]:
     """Least-squares point closest to weighted lines ``origin + s·direction``.
 
     Args:
@@ -116,7 +116,7 @@ def intersect_rays(origins: Array, directions: Array, weights: Array) -> tuple[A
     return np.asarray(np.linalg.solve(A, b), dtype=np.float64), cond
 
 
-def ray_angles_deg(point: Array, origins: Array, directions: Array) -> Array:
+def ray_angles_deg(point: FloatArray, origins: FloatArray, directions: FloatArray) -> FloatArray:
     """(N,) angle in degrees between each ray direction and the vector origin → point; a point
     behind a ray (s < 0) gives an angle above 90°."""
     to_point = point[None, :] - origins
@@ -128,12 +128,12 @@ def ray_angles_deg(point: Array, origins: Array, directions: Array) -> Array:
 
 
 def ransac_ray_intersection(
-    origins: Array,
-    directions: Array,
-    weights: Array,
+    origins: FloatArray,
+    directions: FloatArray,
+    weights: FloatArray,
     inlier_deg: float,
     min_conditioning: float = 1e-6,
-) -> tuple[Array, BoolArray, float]:
+) -> tuple[FloatArray, BoolArray, float]:
     """Robust intersection of rays ``origin + s·direction, s > 0``: every pair of rays (all
     pairs; N is the number of retrieved references, ≤ a few tens) proposes a point, the one
     with the largest inlier weight (angle to the ray ≤ ``inlier_deg``, in front) wins, and a
@@ -144,7 +144,7 @@ def ransac_ray_intersection(
         of the final least-squares problem.
     """
     n = origins.shape[0]
-    best: tuple[float, Array] | None = None
+    best: tuple[float, FloatArray] | None = None
     for i, j in itertools.combinations(range(n), 2):
         point, cond = intersect_rays(origins[[i, j]], directions[[i, j]], np.ones(2))
         if cond < min_conditioning:
@@ -172,12 +172,12 @@ def ransac_ray_intersection(
 
 
 def irls_ray_intersection(
-    origins: Array,
-    directions: Array,
-    weights: Array,
+    origins: FloatArray,
+    directions: FloatArray,
+    weights: FloatArray,
     inlier_deg: float,
     iterations: int = 10,
-) -> tuple[Array, BoolArray, float]:
+) -> tuple[FloatArray, BoolArray, float]:
     """Robust intersection by iteratively reweighted least squares (Cauchy weights on the ray
     angle, scale ``inlier_deg``), started from the plain weighted least-squares point; rays
     beyond ``inlier_deg`` at the end are outliers and are left out of a final solve."""

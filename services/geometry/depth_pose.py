@@ -1,23 +1,20 @@
-"""Relative pose from three correspondences with depth, and epipolar (Sampson) errors.
+"""Points from depth, their similarity alignment, and epipolar (Sampson) errors.
 
 With a depth d at a normalised point x̃ = (x, y, 1), the 3D point in the camera frame is d·x̃
-(z-depth). Three such points seen in two images fix the similarity ``P_dst = s·R·P_src + t``
-(Umeyama / Horn); the unknown per-image depth scale only changes ``s`` and the length of
-``t``, so R and the direction of t are exact even when depths are known only up to scale. With
-metric depths in both images, s = 1 and ``t`` is metric.
+(z-depth); ``similarity_from_points`` aligns such point sets (``services.estimators.solvers``
+builds the minimal solvers with depth on it).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 
 def similarity_from_points(
-    src: Array, dst: Array, with_scale: bool = True
-) -> tuple[Array, Array, Array]:
+    src: FloatArray, dst: FloatArray, with_scale: bool = True
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Least-squares similarity ``dst ≈ s·R·src + t`` of point sets (Umeyama 1991), batched.
 
     Args:
@@ -45,7 +42,7 @@ def similarity_from_points(
     return R, t, s
 
 
-def back_project(normalized: Array, depth: Array) -> Array:
+def back_project(normalized: FloatArray, depth: FloatArray) -> FloatArray:
     """(…, 2) normalised points and (…,) z-depths → (…, 3) camera-frame points."""
     return (
         np.concatenate([normalized, np.ones((*normalized.shape[:-1], 1))], axis=-1)
@@ -53,25 +50,7 @@ def back_project(normalized: Array, depth: Array) -> Array:
     )
 
 
-def relative_pose_3pt_depth(
-    x_src: Array, d_src: Array, x_dst: Array, d_dst: Array, with_scale: bool = True
-) -> tuple[Array, Array, Array]:
-    """Minimal 3-point relative pose with depth, batched over B samples.
-
-    Args:
-        x_src, x_dst: (B, 3, 2) normalised points in the source / destination image.
-        d_src, d_dst: (B, 3) depths (> 0) at those points.
-        with_scale: depths are known only up to one scale per image (True) or both metric.
-    Returns:
-        ``dst_from_src`` as R (B, 3, 3) and t (B, 3) (metric when ``with_scale`` is False,
-        otherwise in the source depth units), and the scale s (B,).
-    """
-    return similarity_from_points(
-        back_project(x_src, d_src), back_project(x_dst, d_dst), with_scale
-    )
-
-
-def skew(v: Array) -> Array:
+def skew(v: FloatArray) -> FloatArray:
     """(..., 3) → (..., 3, 3) cross-product matrices."""
     out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -80,7 +59,9 @@ def skew(v: Array) -> Array:
     return out
 
 
-def sampson_errors(R: Array, t: Array, x_src: Array, x_dst: Array) -> Array:
+def sampson_errors(
+    R: FloatArray, t: FloatArray, x_src: FloatArray, x_dst: FloatArray
+) -> FloatArray:
     """Sampson epipolar error (normalised units, ≈ pixel error / focal) of relative poses.
 
     Args:

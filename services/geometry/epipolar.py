@@ -3,23 +3,21 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.geometry.camera import Camera
 from services.geometry.depth_pose import skew
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 
 def epipolar_errors(
     camera_a: Camera,
     a_from_world: Rigid3d,
-    xy_a: Array,
+    xy_a: FloatArray,
     camera_b: Camera,
     b_from_world: Rigid3d,
-    xy_b: Array,
-) -> Array:
+    xy_b: FloatArray,
+) -> FloatArray:
     """(N,) symmetric point-to-epipolar-line distances in pixels of matches ``xy_a`` ↔ ``xy_b``
     ((N, 2) COLMAP pixels), the mean of the distance in image a and in image b. Pinhole
     intrinsics (distortion ignored)."""
@@ -32,5 +30,5 @@ def epipolar_errors(
     residual = np.abs(np.sum(pb * lines_b, axis=1))
     distance_b = residual / np.maximum(np.hypot(lines_b[:, 0], lines_b[:, 1]), 1e-12)
     distance_a = residual / np.maximum(np.hypot(lines_a[:, 0], lines_a[:, 1]), 1e-12)
-    errors: Array = 0.5 * (distance_a + distance_b)
+    errors: FloatArray = 0.5 * (distance_a + distance_b)
     return errors

@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pycolmap
-from numpy.typing import NDArray
 
 from services.geometry.camera import Camera
-
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 _PINHOLE_MODELS = frozenset({"SIMPLE_PINHOLE", "PINHOLE"})
 
@@ -26,7 +24,7 @@ def _pycolmap_camera(camera: Camera) -> pycolmap.Camera:
     )
 
 
-def normalized_from_pixels(camera: Camera, xy: Array) -> Array:
+def normalized_from_pixels(camera: Camera, xy: FloatArray) -> FloatArray:
     """Undistorted normalised coordinates (x/z, y/z) of pixels.
 
     Args:
@@ -42,12 +40,12 @@ def normalized_from_pixels(camera: Camera, xy: Array) -> Array:
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
-def homogeneous(xy: Array) -> Array:
+def homogeneous(xy: FloatArray) -> FloatArray:
     """(N, 2) → (N, 3) by appending ones."""
     return np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
 
 
-def pixels_from_camera_points(camera: Camera, points_cam: Array) -> Array:
+def pixels_from_camera_points(camera: Camera, points_cam: FloatArray) -> FloatArray:
     """Project (N, 3) camera-frame points to (N, 2) pixels (NaN where z <= 0)."""
     points_cam = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     z = points_cam[:, 2:3]

@@ -9,12 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+from services.types import FloatArray
 
 
-def quaternion_to_matrix(q: Array) -> Array:
+def quaternion_to_matrix(q: FloatArray) -> FloatArray:
     """Rotation matrix of a unit quaternion.
 
     Args:
@@ -32,7 +31,7 @@ def quaternion_to_matrix(q: Array) -> Array:
     )
 
 
-def matrix_to_quaternion(R: Array) -> Array:
+def matrix_to_quaternion(R: FloatArray) -> FloatArray:
     """Unit quaternion ``[w, x, y, z]`` (w >= 0) of a (3, 3) rotation matrix (Shepperd's method)."""
     R = np.asarray(R, dtype=np.float64)
     trace = np.trace(R)
@@ -64,11 +63,11 @@ class Rigid3d:
         translation: (3,) float64 translation.
     """
 
-    rotation: Array
-    translation: Array
+    rotation: FloatArray
+    translation: FloatArray
 
     @classmethod
-    def from_quaternion(cls, q: Array, t: Array) -> Rigid3d:
+    def from_quaternion(cls, q: FloatArray, t: FloatArray) -> Rigid3d:
         return cls(quaternion_to_matrix(np.asarray(q)), np.asarray(t, dtype=np.float64).reshape(3))
 
     @classmethod
@@ -76,7 +75,7 @@ class Rigid3d:
         return cls(np.eye(3), np.zeros(3))
 
     @property
-    def quaternion(self) -> Array:
+    def quaternion(self) -> FloatArray:
         """(4,) ``[w, x, y, z]``."""
         return matrix_to_quaternion(self.rotation)
 
@@ -91,23 +90,23 @@ class Rigid3d:
             self.rotation @ other.translation + self.translation,
         )
 
-    def apply(self, points: Array) -> Array:
+    def apply(self, points: FloatArray) -> FloatArray:
         """Transform (N, 3) points."""
         return np.asarray(points, dtype=np.float64) @ self.rotation.T + self.translation
 
     @property
-    def center(self) -> Array:
+    def center(self) -> FloatArray:
         """(3,) origin of the destination frame in source coordinates, ``-R.T @ t``; for
         ``cam_from_world`` this is the camera centre in world coordinates."""
         return -self.rotation.T @ self.translation
 
     @property
-    def matrix(self) -> Array:
+    def matrix(self) -> FloatArray:
         """(3, 4) ``[R | t]``."""
         return np.hstack([self.rotation, self.translation[:, None]])
 
 
-def rotation_error_deg(R_a: Array, R_b: Array) -> float:
+def rotation_error_deg(R_a: FloatArray, R_b: FloatArray) -> float:
     """Angle in degrees of ``R_a @ R_b.T``."""
     cos = (np.trace(np.asarray(R_a) @ np.asarray(R_b).T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

@@ -11,13 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
-BoolArray = NDArray[np.bool_]
+from services.types import BoolArray, FloatArray
 
 
-def triangulate_dlt(normalized: Array, projections: Array, weights: Array) -> Array:
+def triangulate_dlt(
+    normalized: FloatArray, projections: FloatArray, weights: FloatArray
+) -> FloatArray:
     """Linear (DLT) triangulation of many tracks at once.
 
     Args:
@@ -44,8 +44,8 @@ def triangulate_dlt(normalized: Array, projections: Array, weights: Array) -> Ar
 
 
 def reprojection_errors(
-    points: Array, normalized: Array, projections: Array, focals: Array
-) -> tuple[Array, BoolArray]:
+    points: FloatArray, normalized: FloatArray, projections: FloatArray, focals: FloatArray
+) -> tuple[FloatArray, BoolArray]:
     """Reprojection error of points in views, in approximate pixels.
 
     Args:
@@ -65,7 +65,7 @@ def reprojection_errors(
     return np.where(in_front, err, np.inf), in_front
 
 
-def max_ray_angle_deg(points: Array, centers: Array, mask: BoolArray) -> Array:
+def max_ray_angle_deg(points: FloatArray, centers: FloatArray, mask: BoolArray) -> FloatArray:
     """Largest angle between the rays from the masked views' centres to each point.
 
     Args:
@@ -91,20 +91,20 @@ class TriangulatedTracks:
         valid: (T,) tracks with at least two inlier views, enough parallax, positive depth.
     """
 
-    points: Array
+    points: FloatArray
     inliers: BoolArray
     valid: BoolArray
 
 
 def ransac_triangulate(
-    normalized: Array,
+    normalized: FloatArray,
     observed: BoolArray,
-    projections: Array,
-    focals: Array,
-    centers: Array,
+    projections: FloatArray,
+    focals: FloatArray,
+    centers: FloatArray,
     threshold_px: float,
     min_angle_deg: float = 1.0,
-    view_pairs: Array | None = None,
+    view_pairs: FloatArray | None = None,
 ) -> TriangulatedTracks:
     """Robust triangulation of every track: each pair of observing views proposes a point (two-
     view DLT), the point with most views within ``threshold_px`` wins, and a DLT over its inlier

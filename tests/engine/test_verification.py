@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from services.estimators.base import EstimatorOptions, FailureReason
-from services.estimators.verification import StructureCheck, verify_by_reference_triangulation
+from services.estimators.base import FailureReason
+from services.estimators.options import EstimatorOptions, VerificationOptions
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import Rigid3d, pose_error
 from services.matching.nearest_neighbor import NearestNeighborMatcher
@@ -21,6 +21,7 @@ from services.references import ReferenceView
 from services.retrieval.index import RetrievalIndex
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.synthetic_scene import SyntheticScene, encode_png, unrelated_image
+from services.verification import StructureCheck, verify_by_reference_triangulation
 
 # ---------------------------------------------------------------- unit: exact geometry
 
@@ -197,13 +198,16 @@ def test_unrelated_image_is_rejected(
     image = encode_png(unrelated_image(seed))
     # Without any inlier-count floor, the epipolar consensus is there (what used to be
     # accepted) and only the 3D verification stands between it and a pose.
-    no_floor = LocalizeParams(camera=scene.camera, options=EstimatorOptions(min_inliers=0))
+    no_floor = LocalizeParams(
+        camera=scene.camera,
+        options=EstimatorOptions(verification=VerificationOptions(min_inliers=0)),
+    )
     result = localizer.localize(image, no_floor, store)
     assert not result.localized
     assert result.reason == FailureReason.NO_CONSENSUS.value
     assert result.cam_from_world is None
     assert sum(r.num_inliers for r in result.retrieved) >= 15  # a consensus did form
-    assert result.stats["verified_points"] <= EstimatorOptions().min_verified_points // 3
+    assert result.stats["verified_points"] <= VerificationOptions().min_verified_points // 3
     defaults = localizer.localize(image, LocalizeParams(camera=scene.camera), store)
     assert not defaults.localized
     assert defaults.reason == FailureReason.NO_CONSENSUS.value
@@ -223,4 +227,4 @@ def test_true_queries_are_accepted(
         assert position_error < 0.01 * scene.extent, view.name
         assert rotation_error < 1.0, view.name
         # a wide margin over the acceptance threshold
-        assert result.stats["verified_points"] >= 10 * EstimatorOptions().min_verified_points
+        assert result.stats["verified_points"] >= 10 * VerificationOptions().min_verified_points

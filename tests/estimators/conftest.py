@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from services.estimators.base import EstimatorOptions
+from services.estimators.options import EstimatorOptions, RansacOptions
 from services.synthetic_correspondences import SyntheticCorrespondences, make_correspondences
 
 # moderate sizes and capped iterations keep the module fast on two shared cores
 MATCHES_PER_REFERENCE = 300
-TEST_OPTIONS = EstimatorOptions(min_iterations=100, max_iterations=2000)
+TEST_OPTIONS = EstimatorOptions(ransac=RansacOptions(min_iterations=100, max_iterations=2000))
 
 
 @pytest.fixture(scope="session")

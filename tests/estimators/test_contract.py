@@ -13,6 +13,7 @@ from services.estimators.base import (
     FailureReason,
     ReferenceObservation,
 )
+from services.estimators.options import E3p1Options, PoseApproxMode, PoseApproxOptions
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
 from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
@@ -174,7 +175,7 @@ def test_e3p1_up_to_scale_depth(scene: SyntheticCorrespondences) -> None:
         )
         for ref in scene.references
     ]
-    options = dataclasses.replace(TEST_OPTIONS, metric_depth=False)
+    options = dataclasses.replace(TEST_OPTIONS, e3p1=E3p1Options(metric_depth=False))
     result = get_estimator("e3p1").estimate(scene.query_camera, scaled, options)
     assert result.cam_from_world is not None, result.failure_reason
     position, rotation = pose_error(result.cam_from_world, scene.query_pose)
@@ -182,7 +183,9 @@ def test_e3p1_up_to_scale_depth(scene: SyntheticCorrespondences) -> None:
 
 
 def test_pose_approx_top1(scene: SyntheticCorrespondences) -> None:
-    options = dataclasses.replace(TEST_OPTIONS, pose_approx_mode="top1")
+    options = dataclasses.replace(
+        TEST_OPTIONS, pose_approx=PoseApproxOptions(mode=PoseApproxMode.TOP1)
+    )
     result = get_estimator("pose_approx").estimate(scene.query_camera, scene.references, options)
     best = max(scene.references, key=lambda ref: ref.retrieval_score)
     assert result.cam_from_world is not None

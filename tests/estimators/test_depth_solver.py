@@ -8,13 +8,15 @@ import numpy as np
 import poselib
 import pytest
 
-from services.estimators.correspondences import Deadline
 from services.estimators.depth_relative_pose import (
     polish_relative_pose,
     ransac_relative_pose_depth,
 )
+from services.estimators.options import RansacOptions
 from services.estimators.poselib_bridge import from_poselib
-from services.geometry.depth_pose import relative_pose_3pt_depth, sampson_errors
+from services.estimators.ransac import Deadline
+from services.estimators.solvers import relative_pose_3pt_depth
+from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import normalized_from_pixels
 from services.geometry.rigid import rotation_error_deg
 from services.synthetic_correspondences import make_correspondences
@@ -92,9 +94,8 @@ def test_3pt_depth_on_par_with_poselib_5pt(seed: int) -> None:
         normalized_from_pixels(cam, ref.query_xy),
         ref.query_depth,
         2.0 / 500.0,
+        RansacOptions(min_iterations=200, max_iterations=2000),
         np.random.default_rng(0),
-        200,
-        2000,
         Deadline(None),
     )
     assert model is not None

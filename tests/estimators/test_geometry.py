@@ -6,14 +6,15 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.estimators.base import EstimatorOptions, ReferenceObservation
+from services.estimators.base import ReferenceObservation
 from services.estimators.correspondences import (
-    Deadline,
     pose_sampson_errors_px,
     random_subset,
     stack_matches,
 )
+from services.estimators.options import EstimatorOptions
 from services.estimators.pose_triangulation import sampled_solver, solve_5pt
+from services.estimators.ransac import Deadline
 from services.estimators.tracks import build_tracks
 from services.geometry.averaging import (
     average_rotations,

@@ -29,7 +29,7 @@ from app.schemas.localize import (
 )
 from db.repositories.maps import MapRepository
 from db.store import SqlReferenceStore
-from services.estimators.base import EstimatorOptions
+from services.estimators.options import EstimatorOptions
 from services.pipeline import LocalizationResult, LocalizeParams
 from services.retrieval.search import PositionPrior
 
@@ -46,7 +46,7 @@ def _to_params(body: LocalizeParamsIn, default_estimator: str, max_top_k: int) -
         raise invalid(f"top_k may be at most {max_top_k}")
     options = EstimatorOptions()
     if body.max_error_px is not None:
-        options = replace(options, max_error_px=body.max_error_px)
+        options = replace(options, ransac=replace(options.ransac, max_error_px=body.max_error_px))
     return LocalizeParams(
         camera=body.camera.to_camera() if body.camera else None,
         estimator=body.estimator or default_estimator,

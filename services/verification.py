@@ -33,18 +33,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import poselib
-from numpy.typing import NDArray
 
-from services.estimators.base import (
-    EstimateResult,
-    EstimatorOptions,
-    FailureReason,
-    ReferenceObservation,
-)
+from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
+from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
+from services.types import BoolArray, FloatArray, IntArray
 
 # Two rays closer to parallel than this (sine of their angle, ~0.006°) do not triangulate.
 _MIN_SINE = 1e-4
@@ -63,10 +57,10 @@ class StructureCheck:
         num_tracks: tracks with at least ``min_views`` reference observations before checking.
     """
 
-    correspondence_verified: NDArray[np.bool_]
-    point_of_correspondence: NDArray[np.int64]
-    points: Array
-    point_verified: NDArray[np.bool_]
+    correspondence_verified: BoolArray
+    point_of_correspondence: IntArray
+    points: FloatArray
+    point_verified: BoolArray
     num_tracks: int
 
     @property
@@ -74,34 +68,36 @@ class StructureCheck:
         return int(self.point_verified.sum())
 
 
-def _unit_rays(normalized: Array) -> Array:
+def _unit_rays(normalized: FloatArray) -> FloatArray:
     """(K, 2) normalised image coordinates → (K, 3) unit bearing vectors in the camera frame."""
     rays = np.concatenate([normalized, np.ones((normalized.shape[0], 1))], axis=1)
-    out: Array = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    out: FloatArray = rays / np.linalg.norm(rays, axis=1, keepdims=True)
     return out
 
 
-def _group_sum(ids: NDArray[np.int64], values: Array, count: int) -> Array:
+def _group_sum(ids: IntArray, values: FloatArray, count: int) -> FloatArray:
     """Sum rows of (K, ...) ``values`` by group id: (count, ...)."""
     flat = values.reshape(values.shape[0], -1)
     sums = np.stack(
         [np.bincount(ids, weights=flat[:, j], minlength=count) for j in range(flat.shape[1])],
         axis=1,
     )
-    out: Array = sums.reshape((count, *values.shape[1:]))
+    out: FloatArray = sums.reshape((count, *values.shape[1:]))
     return out
 
 
-def _cosine_to(points: Array, centers: Array, rays: Array) -> Array:
+def _cosine_to(points: FloatArray, centers: FloatArray, rays: FloatArray) -> FloatArray:
     """Cosine of the angle between unit ``rays`` and ``points − centers`` (broadcast, (..., 3)
     → (...)); NaN where a point is NaN. Positive exactly when the point is in front."""
     to_point = points - centers
     with np.errstate(invalid="ignore", divide="ignore"):
-        out: Array = np.einsum("...i,...i->...", to_point, rays) / np.linalg.norm(to_point, axis=-1)
+        out: FloatArray = np.einsum("...i,...i->...", to_point, rays) / np.linalg.norm(
+            to_point, axis=-1
+        )
     return out
 
 
-def two_ray_midpoints(c1: Array, d1: Array, c2: Array, d2: Array) -> Array:
+def two_ray_midpoints(c1: FloatArray, d1: FloatArray, c2: FloatArray, d2: FloatArray) -> FloatArray:
     """Midpoints of the shortest segments between rays ``c + s·d``.
 
     Args:
@@ -119,18 +115,18 @@ def two_ray_midpoints(c1: Array, d1: Array, c2: Array, d2: Array) -> Array:
     s1 = (b * e2 - e1) / safe
     s2 = (e2 - b * e1) / safe
     mid = 0.5 * (c1 + s1[..., None] * d1 + c2 + s2[..., None] * d2)
-    out: Array = np.where(ok[..., None], mid, np.nan)
+    out: FloatArray = np.where(ok[..., None], mid, np.nan)
     return out
 
 
 def _robust_agreement(
-    tid: NDArray[np.int64],
-    center: Array,
-    ray: Array,
-    cos_limit: Array,
+    tid: IntArray,
+    center: FloatArray,
+    ray: FloatArray,
+    cos_limit: FloatArray,
     min_views: int,
     max_pair_views: int,
-) -> NDArray[np.bool_]:
+) -> BoolArray:
     """Per observation: agrees with its track's best two-view hypothesis.
 
     Args:
@@ -165,16 +161,16 @@ def _robust_agreement(
 
 
 def verify_by_reference_triangulation(
-    query_rotation: Array,
-    query_translation: Array,
-    query_normalized: Array,
-    reference_index: NDArray[np.int64],
-    reference_rotations: Array,
-    reference_translations: Array,
-    reference_normalized: Array,
-    track_ids: NDArray[np.int64],
+    query_rotation: FloatArray,
+    query_translation: FloatArray,
+    query_normalized: FloatArray,
+    reference_index: IntArray,
+    reference_rotations: FloatArray,
+    reference_translations: FloatArray,
+    reference_normalized: FloatArray,
+    track_ids: IntArray,
     query_max_angle: float,
-    reference_max_angles: Array,
+    reference_max_angles: FloatArray,
     min_views: int = 2,
     max_pair_views: int = 6,
 ) -> StructureCheck:
@@ -248,7 +244,7 @@ def verify_by_reference_triangulation(
     )
 
 
-def _normalized(camera: Camera, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+def _normalized(camera: Camera, xy: FloatArray) -> FloatArray:
     """(M, 2) pixels → (M, 2) undistorted normalised coordinates (PoseLib's camera models)."""
     if xy.shape[0] == 0:
         return np.zeros((0, 2))
@@ -260,7 +256,7 @@ def count_verified_points(
     query_camera: Camera,
     cam_from_world: Rigid3d,
     references: list[ReferenceObservation],
-    inliers: list[NDArray[np.bool_]],
+    inliers: list[BoolArray],
     max_error_px: float,
 ) -> tuple[int, int]:
     """(verified points, candidate tracks) of a pose; see ``verify_by_reference_triangulation``.
@@ -300,22 +296,26 @@ def verify_pose(
     options: EstimatorOptions,
 ) -> EstimateResult:
     """Turn an estimator's pose into a ``no_consensus`` failure unless at least
-    ``options.min_verified_points`` of its inlier tracks verify in 3D.
+    ``options.verification.min_verified_points`` of its inlier tracks verify in 3D.
 
     Applied by the pipeline to every estimator's answer. Results without a pose, without
     inliers (``pose_approx`` uses no correspondences) or with the check disabled
     (``min_verified_points = 0``) pass through unchanged.
     """
-    if result.cam_from_world is None or options.min_verified_points <= 0 or result.num_inliers == 0:
+    if (
+        result.cam_from_world is None
+        or options.verification.min_verified_points <= 0
+        or result.num_inliers == 0
+    ):
         return result
     verified, tracks = count_verified_points(
-        query_camera, result.cam_from_world, references, result.inliers, options.max_error_px
+        query_camera, result.cam_from_world, references, result.inliers, options.ransac.max_error_px
     )
     stats = {
         **result.stats,
         "verified_points": float(verified),
         "multi_reference_tracks": float(tracks),
     }
-    if verified < options.min_verified_points:
+    if verified < options.verification.min_verified_points:
         return EstimateResult(None, result.inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
     return replace(result, stats=stats)

@@ -1,0 +1,176 @@
+"""What every estimator does around its own method: input checks, the time budget, the stacked
+matches, failures, and the finishing (inliers within ``max_error_px`` Sampson error of the
+pose, acceptance, confidence). A method subclasses ``Estimator`` and writes ``solve``."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import NoReturn
+
+import numpy as np
+
+from services.estimators.base import (
+    EstimateResult,
+    FailureReason,
+    ReferenceObservation,
+    confidence_from_inliers,
+)
+from services.estimators.correspondences import (
+    StackedMatches,
+    pose_sampson_errors_px,
+    stack_matches,
+)
+from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.types import BoolArray
+
+
+class EstimationError(Exception):
+    """Ends ``Estimator.solve`` with a failure (raised by ``Request.fail``)."""
+
+    def __init__(self, reason: FailureReason) -> None:
+        super().__init__(reason.value)
+        self.reason = reason
+
+
+@dataclass
+class Request:
+    """One ``estimate`` call: its inputs, its deadline, and the stats gathered so far (they go
+    into the result, a failure's too)."""
+
+    query_camera: Camera
+    references: list[ReferenceObservation]
+    options: EstimatorOptions
+    deadline: Deadline
+    stats: dict[str, float] = field(default_factory=dict)
+
+    @cached_property
+    def stacked(self) -> StackedMatches:
+        """The matches of all references, stacked on first use."""
+        return stack_matches(self.query_camera, self.references)
+
+    def fail(self, reason: FailureReason) -> NoReturn:
+        raise EstimationError(reason)
+
+    def fail_if_expired(self) -> None:
+        if self.deadline.expired():
+            self.fail(FailureReason.TIME_BUDGET_EXCEEDED)
+
+
+@dataclass(frozen=True)
+class Solution:
+    """A method's pose, and its (N,) inliers over the stacked matches (Sampson error within
+    ``max_error_px``) when the method has them already."""
+
+    pose: Rigid3d
+    inliers: BoolArray | None = None
+
+
+def precheck(
+    references: list[ReferenceObservation], min_matches: int, min_pairs: int = 2
+) -> FailureReason | None:
+    """Common input checks: at least ``min_pairs`` references with ``min_matches`` matches
+    (else too_few_matches), and their centres not all coincident (else degenerate_geometry)."""
+    if not references:
+        return FailureReason.NO_REFERENCES
+    usable = [ref for ref in references if ref.num_matches >= min_matches]
+    if len(usable) < min_pairs:
+        return FailureReason.TOO_FEW_MATCHES
+    if min_pairs >= 2:
+        centers = np.stack([ref.cam_from_world.center for ref in usable])
+        scale = max(float(np.abs(centers).max()), 1.0)
+        if float(np.ptp(centers, axis=0).max()) < 1e-6 * scale:
+            return FailureReason.DEGENERATE_GEOMETRY
+    return None
+
+
+def finish(
+    cam_from_world: Rigid3d,
+    masks: list[BoolArray],
+    references: list[ReferenceObservation],
+    options: EstimatorOptions,
+    stats: dict[str, float],
+) -> EstimateResult:
+    """Assemble the result: stats, confidence, and a ``no_consensus`` failure when the pose is
+    not finite or supported by too few inliers / references."""
+    num_inliers = int(sum(int(m.sum()) for m in masks))
+    refs_with_inliers = sum(int(m.sum() >= 3) for m in masks)
+    total = sum(ref.num_matches for ref in references)
+    stats = {
+        **stats,
+        "num_matches": float(total),
+        "num_inliers": float(num_inliers),
+        "inlier_ratio": num_inliers / max(total, 1),
+        "references_with_inliers": float(refs_with_inliers),
+    }
+    finite = np.all(np.isfinite(cam_from_world.rotation)) and np.all(
+        np.isfinite(cam_from_world.translation)
+    )
+    acceptance = options.verification
+    if (
+        not finite
+        or num_inliers < acceptance.min_inliers
+        or refs_with_inliers < acceptance.min_references
+    ):
+        return EstimateResult(None, masks, 0.0, stats, FailureReason.NO_CONSENSUS)
+    confidence = confidence_from_inliers(num_inliers, refs_with_inliers)
+    return EstimateResult(cam_from_world, masks, confidence, stats, None)
+
+
+class Estimator(ABC):
+    """A pose estimator (``base.PoseEstimator``): ``check``, then ``solve``, then ``result``.
+
+    Attributes:
+        name: the API name.
+        needs_depth: the method needs depth for the query and the references.
+        min_matches: ``precheck`` asks for two references with at least this many matches.
+    """
+
+    name: str
+    needs_depth: bool = False
+    min_matches: int = 5
+
+    def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
+        """Why the input cannot be solved, before any work; None when it can."""
+        return precheck(references, self.min_matches)
+
+    @abstractmethod
+    def solve(self, request: Request) -> Solution:
+        """The method: the query pose, or ``request.fail(reason)``."""
+
+    def estimate(
+        self,
+        query_camera: Camera,
+        references: list[ReferenceObservation],
+        options: EstimatorOptions,
+    ) -> EstimateResult:
+        request = Request(query_camera, references, options, Deadline(options.time_budget_s))
+        reason = self.check(references)
+        if reason is not None:
+            return EstimateResult.failure(reason, references)
+        try:
+            solution = self.solve(request)
+        except EstimationError as failed:
+            return EstimateResult.failure(failed.reason, references, request.stats)
+        return self.result(request, solution)
+
+    def result(self, request: Request, solution: Solution) -> EstimateResult:
+        """The answer: inliers within ``max_error_px`` Sampson error of the pose over the
+        stacked matches, ``stats["score"]`` their count unless the method set it, and
+        ``finish``."""
+        options, references = request.options, request.references
+        inliers = solution.inliers
+        if inliers is None:
+            pose = solution.pose
+            errors = pose_sampson_errors_px(
+                request.stacked, pose.rotation[None], pose.center[None]
+            )[0]
+            inliers = errors < options.ransac.max_error_px
+        request.stats.setdefault("score", float(inliers.sum()))
+        return finish(
+            solution.pose, request.stacked.split(inliers), references, options, request.stats
+        )

@@ -1,0 +1,103 @@
+"""Estimator settings in typed groups, with the defaults of the structureless-localization
+guide. Every threshold states its unit."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+
+@dataclass(frozen=True)
+class RansacOptions:
+    """The robust loop (ours in ``services.estimators.ransac`` and PoseLib's alike).
+
+    Attributes:
+        max_error_px: inlier threshold on reprojection / epipolar (Sampson) error, pixels.
+        min_iterations, max_iterations: LO-RANSAC iteration bounds.
+        success_prob: adaptive stopping: once an all-inlier sample was drawn with this
+            probability.
+        seed: seed of every random choice, for reproducible answers.
+    """
+
+    max_error_px: float = 12.0
+    min_iterations: int = 1000
+    max_iterations: int = 100_000
+    success_prob: float = 0.9999
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class TriangulationOptions:
+    """Points triangulated from the references through shared query keypoints (local
+    triangulation, the refinement of ``motion_averaging``).
+
+    Attributes:
+        max_error_px: reprojection threshold of point triangulation, pixels: 2 for sparse
+            features, 8 for dense ones.
+        track_merge_px: query keypoints closer than this, in pixels, form one track (0 = exact
+            equality, right for sparse detectors; the guide uses 5 px for dense matchers).
+    """
+
+    max_error_px: float = 2.0
+    track_merge_px: float = 0.0
+
+
+@dataclass(frozen=True)
+class VerificationOptions:
+    """When an estimator's pose counts as an answer: its support in matches, then in 3D
+    (the pipeline's verification stage).
+
+    Attributes:
+        min_inliers: fewer inliers than this (over all references) is a failure.
+        min_references: inliers must come from at least this many references.
+        min_verified_points: fewer verified 3D points than this is a failure (0 disables the
+            check): query keypoints that are inliers in >= 2 references whose reference
+            observations triangulate to a point that reprojects into the query within
+            ``RansacOptions.max_error_px`` (see ``services.verification``). Epipolar inliers
+            alone do not prove a pose: unrelated images reach 40-75 of them.
+    """
+
+    min_inliers: int = 30
+    min_references: int = 2
+    min_verified_points: int = 10
+
+
+class PoseApproxMode(StrEnum):
+    """How ``pose_approx`` combines the retrieved poses."""
+
+    WEIGHTED = "weighted"  # retrieval-score-weighted interpolation
+    TOP1 = "top1"  # the best-scoring reference's pose
+
+
+@dataclass(frozen=True)
+class PoseApproxOptions:
+    mode: PoseApproxMode = PoseApproxMode.WEIGHTED
+
+
+@dataclass(frozen=True)
+class E3p1Options:
+    """Attributes:
+    metric_depth: depths in ``ReferenceObservation`` are metric (True) or known only up
+        to one scale per image (False, e.g. monocular depth).
+    """
+
+    metric_depth: bool = True
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    """Everything an estimator is told, by group; per-estimator groups are named after it.
+
+    Attributes:
+        time_budget_s: wall-clock budget of one ``estimate`` call in seconds (None =
+            unbounded). The robust loops check it before every batch of hypotheses and cap
+            PoseLib's iteration counts by it; a single PoseLib call is not interruptible, so the
+            bound is soft by one call.
+    """
+
+    ransac: RansacOptions = field(default_factory=RansacOptions)
+    triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
+    verification: VerificationOptions = field(default_factory=VerificationOptions)
+    time_budget_s: float | None = None
+    pose_approx: PoseApproxOptions = field(default_factory=PoseApproxOptions)
+    e3p1: E3p1Options = field(default_factory=E3p1Options)

@@ -1,0 +1,10 @@
+"""Array type aliases of the engine; each use states its shape, e.g. ``(N, 2) FloatArray``."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
