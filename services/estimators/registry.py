@@ -30,7 +30,7 @@ _ESTIMATORS: dict[str, PoseEstimator] = {
 # estimators that need depth for the query and the references
 DEPTH_ESTIMATORS = frozenset({"essential_3pt_depth", "e3p1"})
 
-DEFAULT_ESTIMATOR = "e5p1"
+DEFAULT_ESTIMATOR = E5p1Estimator.name
 
 
 def estimator_names() -> list[str]:
