@@ -152,9 +152,9 @@ def install_error_handlers(app: FastAPI) -> None:
         for cls, status, slug, title in _DOMAIN_ERRORS:
             if isinstance(exc, cls):
                 return problem_response(request, status, slug, title, str(exc))
-        raise exc  # pragma: no cover - handlers are installed for the table's classes only
+        raise exc  # pragma: no cover - installed for the table's classes only
 
-    for domain_error in (NotFoundError, ConflictError, InvalidInputError):
+    for domain_error, *_ in _DOMAIN_ERRORS:
         app.add_exception_handler(domain_error, _domain)
 
     @app.exception_handler(RequestValidationError)
