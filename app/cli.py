@@ -172,8 +172,9 @@ def _openapi(out: Path) -> int:
 
 
 def _reindex(map_name: str) -> int:
-    from app.errors import ProblemError
-    from app.operations import reindex_map
+    from app.localizer_factory import build_localizer
+    from app.usecases.errors import ConflictError, NotFoundError
+    from app.usecases.reindex import reindex_map
     from db.migrate import upgrade
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
@@ -188,11 +189,11 @@ def _reindex(map_name: str) -> int:
             print(f"no map named {map_name!r}", file=sys.stderr)
             return 2
         map_id = row.id
-    localizer = settings.build_localizer()
+    localizer = build_localizer(settings)
     try:
         out = reindex_map(sessions, localizer, map_id, settings.global_model is None)
-    except ProblemError as exc:
-        print(f"reindex failed: {exc.detail}", file=sys.stderr)
+    except (NotFoundError, ConflictError) as exc:
+        print(f"reindex failed: {exc}", file=sys.stderr)
         return 1
     print(
         f"map {map_name!r}: vocabulary v{out.vocabulary_version} (K={out.num_centers}, "
@@ -202,9 +203,10 @@ def _reindex(map_name: str) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from app.errors import ProblemError
     from app.importers import ImportItem, iter_pending, read_colmap, read_csv
-    from app.operations import add_reference_image
+    from app.localizer_factory import build_localizer
+    from app.usecases.errors import ConflictError, NotFoundError
+    from app.usecases.images import add_reference_image
     from db.migrate import upgrade
     from db.repositories.images import ImageRepository
     from db.repositories.maps import MapRepository
@@ -238,7 +240,7 @@ def _import(args: argparse.Namespace) -> int:
         f"{len(pending)} to add",
         flush=True,
     )
-    localizer = settings.build_localizer()
+    localizer = build_localizer(settings)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = 0
     start = time.perf_counter()
@@ -246,10 +248,15 @@ def _import(args: argparse.Namespace) -> int:
         try:
             depth = item.depth_path.read_bytes() if item.depth_path else None
             out = add_reference_image(
-                sessions, localizer, map_id, item.metadata, item.image_path.read_bytes(), depth
+                sessions,
+                localizer,
+                map_id,
+                item.metadata.to_new_image(),
+                item.image_path.read_bytes(),
+                depth,
             )
             status = f"added ({out.num_keypoints} keypoints)"
-        except (OSError, InvalidInputError, ProblemError) as exc:
+        except (OSError, InvalidInputError, NotFoundError, ConflictError) as exc:
             failed += 1
             status = f"FAILED: {exc}"
         elapsed = time.perf_counter() - start

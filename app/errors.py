@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from app.usecases.errors import ConflictError, NotFoundError
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -49,14 +50,6 @@ class ProblemError(Exception):
         self.errors = errors
 
 
-def not_found(what: str, ident: str) -> ProblemError:
-    return ProblemError(404, "not-found", "Not found", f"{what} {ident!r} does not exist")
-
-
-def conflict(detail: str) -> ProblemError:
-    return ProblemError(409, "conflict", "Conflict", detail)
-
-
 def invalid(detail: str, errors: list[dict[str, Any]] | None = None) -> ProblemError:
     return ProblemError(422, "invalid-input", "Invalid input", detail, errors)
 
@@ -65,8 +58,10 @@ def too_large(detail: str) -> ProblemError:
     return ProblemError(413, "payload-too-large", "Payload too large", detail)
 
 
-# (status, slug, title) per engine error, most specific first
+# (status, slug, title) per domain error, most specific first; the detail is the message
 _DOMAIN_ERRORS: list[tuple[type[Exception], int, str, str]] = [
+    (NotFoundError, 404, "not-found", "Not found"),
+    (ConflictError, 409, "conflict", "Conflict"),
     (ImageTooLargeError, 413, "image-too-large", "Image too large"),
     (ImageDecodeError, 422, "invalid-image", "Invalid image"),
     (InvalidInputError, 422, "invalid-input", "Invalid input"),
@@ -153,12 +148,14 @@ def install_error_handlers(app: FastAPI) -> None:
             headers,
         )
 
-    @app.exception_handler(InvalidInputError)
-    async def _domain(request: Request, exc: InvalidInputError) -> JSONResponse:
+    async def _domain(request: Request, exc: Exception) -> JSONResponse:
         for cls, status, slug, title in _DOMAIN_ERRORS:
             if isinstance(exc, cls):
                 return problem_response(request, status, slug, title, str(exc))
-        raise exc  # pragma: no cover - the table ends with the base class
+        raise exc  # pragma: no cover - installed for the table's classes only
+
+    for domain_error, *_ in _DOMAIN_ERRORS:
+        app.add_exception_handler(domain_error, _domain)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:

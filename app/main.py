@@ -12,8 +12,10 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
 from app.api.routes import health, images, localize, maps
-from app.errors import document_problems, install_error_handlers
+from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
+from app.localizer_factory import build_localizer
+from app.openapi import install_openapi
 from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
@@ -36,7 +38,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.settings = settings
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
-        app.state.localizer = localizer or settings.build_localizer()
+        app.state.localizer = localizer or build_localizer(settings)
         app.state.retrieval_cache = RetrievalIndexCache()
         app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
@@ -59,20 +61,5 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     install_error_handlers(app)
     for module in (maps, images, localize, health):
         app.include_router(module.router)
-    _register_problem_schema(app)
+    install_openapi(app)
     return app
-
-
-def _register_problem_schema(app: FastAPI) -> None:
-    """Describe every error answer as problem+json in the OpenAPI document."""
-    original = app.openapi
-
-    def openapi() -> dict:  # type: ignore[type-arg]
-        if app.openapi_schema:
-            return app.openapi_schema
-        schema = original()
-        document_problems(schema)
-        app.openapi_schema = schema
-        return schema
-
-    app.openapi = openapi  # type: ignore[method-assign]

@@ -4,15 +4,10 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from pydantic import BaseModel, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
-
-from services.runtime.onnx import OnnxOptions
-
-if TYPE_CHECKING:
-    from services.pipeline import Localizer
 
 Role = Literal["admin", "client"]
 
@@ -67,26 +62,6 @@ class Settings(BaseSettings):
     def _check_keys(cls, value: str) -> str:
         parse_api_keys(value)
         return value
-
-    def onnx_options(self) -> OnnxOptions:
-        providers = (
-            ("CUDAExecutionProvider", "CPUExecutionProvider")
-            if self.onnx_providers.strip() == "auto"
-            else tuple(p.strip() for p in self.onnx_providers.split(",") if p.strip())
-        )
-        return OnnxOptions(providers=providers, intra_op_threads=self.onnx_threads)
-
-    def build_localizer(self) -> Localizer:
-        """The localizer these settings describe (models, features, ONNX options, retrieval)."""
-        from services.components import build_localizer
-
-        return build_localizer(
-            self.models_dir,
-            self.max_image_pixels,
-            self.features,
-            self.onnx_options(),
-            self.global_model,
-        )
 
     def parsed_api_keys(self) -> list[ApiKey]:
         return parse_api_keys(self.api_keys)

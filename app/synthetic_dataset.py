@@ -17,6 +17,7 @@ import json
 from pathlib import Path
 
 from app.importers import CSV_COLUMNS
+from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png
 
 
@@ -68,7 +69,7 @@ def write_synthetic_dataset(out: Path, references: int, queries: int, seed: int 
             stem = view.name.removesuffix(".png")
             (out / "queries" / view.name).write_bytes(encode_png(view.image))
             (out / "queries" / f"{stem}.params.json").write_text(
-                json.dumps({"camera": _camera(view), "estimator": "e5p1", "top_k": 10})
+                json.dumps({"camera": _camera(view), "estimator": DEFAULT_ESTIMATOR, "top_k": 10})
             )
             pose = _pose(view)
             writer.writerow([view.name, *pose["rotation"], *pose["translation"]])

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.operations import add_reference_image
 from app.schemas.images import ImageMetadata
+from app.usecases.images import add_reference_image
 from db.migrate import upgrade
 from db.models import Map
 from db.repositories.images import ImageRepository
@@ -29,8 +29,8 @@ def test_cache_follows_adds_and_deletes(
         map_id = MapRepository(session).create("cached", None).id
 
     def add(view: SyntheticView) -> str:
-        metadata = ImageMetadata.model_validate(image_metadata(view))
-        return add_reference_image(sessions, localizer, map_id, metadata, encode_png(view.image)).id
+        image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
+        return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache) -> SqlReferenceStore:
         return SqlReferenceStore(

@@ -9,8 +9,8 @@ import threading
 import numpy as np
 from sqlalchemy import select
 
-from app.operations import add_reference_image
 from app.schemas.images import ImageMetadata
+from app.usecases.images import add_reference_image
 from db.migrate import upgrade
 from db.models import FeatureArray, MapVocabulary, ReferenceImage
 from db.repositories.images import ImageRepository
@@ -43,8 +43,8 @@ def test_vocabulary_lifecycle(
         map_id = MapRepository(session).create("vlad", None).id
 
     def add(view: SyntheticView) -> str:
-        metadata = ImageMetadata.model_validate(image_metadata(view))
-        return add_reference_image(sessions, localizer, map_id, metadata, encode_png(view.image)).id
+        image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
+        return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache | None = None) -> SqlReferenceStore:
         return SqlReferenceStore(
@@ -176,7 +176,7 @@ def test_training_runs_off_the_request_path(
             sessions,
             localizer,
             map_id,
-            ImageMetadata.model_validate(image_metadata(view)),
+            ImageMetadata.model_validate(image_metadata(view)).to_new_image(),
             encode_png(view.image),
             trainer=trainer,
         ).id

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import hmac
-from typing import Annotated, TypeVar
+import threading
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request, Security, UploadFile
 from fastapi.security import APIKeyHeader
@@ -13,6 +14,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.errors import ProblemError, invalid, too_large
 from app.settings import Role, Settings
 from services.pipeline import Localizer
+from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.training import BackgroundTrainer
 
 _api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False)
 
@@ -32,9 +35,29 @@ def get_localizer(request: Request) -> Localizer:
     return localizer
 
 
+def get_retrieval_cache(request: Request) -> RetrievalIndexCache:
+    cache: RetrievalIndexCache = request.app.state.retrieval_cache
+    return cache
+
+
+def get_vocabulary_trainer(request: Request) -> BackgroundTrainer:
+    """Trains retrieval vocabularies off the request path."""
+    trainer: BackgroundTrainer = request.app.state.vocabulary_trainer
+    return trainer
+
+
+def get_localize_slots(request: Request) -> threading.BoundedSemaphore:
+    """Held while the engine localizes (``SLLOC_LOCALIZE_WORKERS`` at once)."""
+    slots: threading.BoundedSemaphore = request.app.state.localize_slots
+    return slots
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
+RetrievalCacheDep = Annotated[RetrievalIndexCache, Depends(get_retrieval_cache)]
+LocalizeSlotsDep = Annotated[threading.BoundedSemaphore, Depends(get_localize_slots)]
+TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 
 
 def _role_of(settings: Settings, key: str | None) -> Role | None:
@@ -76,6 +99,15 @@ def read_upload(upload: UploadFile, limit: int, field: str) -> bytes:
 
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
+
+
+def json_form_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """OpenAPI keywords of a form field holding ``model`` as a JSON string; ``app.openapi``
+    publishes the model's schema in the components."""
+    return {
+        "contentMediaType": "application/json",
+        "contentSchema": {"$ref": f"#/components/schemas/{model.__name__}"},
+    }
 
 
 def parse_json_form(model: type[ModelT], raw: str, field: str) -> ModelT:

@@ -17,16 +17,15 @@ from typing import Any, Protocol
 
 import httpx
 
-from app.api.routes.localize import _to_params
 from app.evaluation.datasets import PosedImage
-from app.operations import add_reference_image
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from app.schemas.localize import LocalizeParamsIn
+from app.usecases.images import add_reference_image
+from app.usecases.localize import localize
+from app.usecases.maps import create_map
 from db.migrate import upgrade
-from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
-from db.store import SqlReferenceStore
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.retrieval.cache import RetrievalIndexCache
@@ -74,8 +73,8 @@ def metadata_of(image: PosedImage) -> ImageMetadata:
 
 
 class InProcessRunner:
-    """The server's code path without HTTP: ``add_reference_image`` into a temporary SQLite
-    database and ``Localizer.localize`` on its ``SqlReferenceStore``."""
+    """The server's use cases without HTTP: ``add_reference_image`` into a temporary SQLite
+    database and ``localize`` against it."""
 
     def __init__(self, features: str, models_dir: Path, max_pixels: int = 40_000_000) -> None:
         self.localizer = build_localizer(models_dir, max_pixels, features)
@@ -84,32 +83,33 @@ class InProcessRunner:
         self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")
         upgrade(self._engine)
         self._sessions = make_session_factory(self._engine)
-        with self._sessions.begin() as session:
-            self._map_id = MapRepository(session).create("eval", None).id
-        self._store = SqlReferenceStore(
-            self._sessions,
-            self._map_id,
-            self.localizer.extractor.name,
-            self.localizer.global_descriptor.name,
-            RetrievalIndexCache(),
-        )
+        self._map_id = create_map(
+            self._sessions, self.localizer, "eval", None, DEFAULT_ESTIMATOR, None, None
+        ).id
+        self._cache = RetrievalIndexCache()
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
         add_reference_image(
             self._sessions,
             self.localizer,
             self._map_id,
-            metadata_of(image),
+            metadata_of(image).to_new_image(),
             image.image_path.read_bytes(),
             depth,
         )
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
-        engine_params = _to_params(
-            LocalizeParamsIn.model_validate(params), DEFAULT_ESTIMATOR, max_top_k=1_000_000
+        result = localize(
+            self._sessions,
+            self.localizer,
+            self._map_id,
+            LocalizeParamsIn.model_validate(params).to_request(),
+            image,
+            depth,
+            max_top_k=1_000_000,
+            cache=self._cache,
         )
-        result = self.localizer.localize(image, engine_params, self._store, depth)
         timings = dict(result.timings_ms)
         timings["client"] = (time.perf_counter() - start) * 1000.0
         pose = result.cam_from_world

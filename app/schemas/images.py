@@ -5,6 +5,7 @@ from datetime import datetime
 from pydantic import BaseModel, Field
 
 from app.schemas.geometry import CameraSchema, PoseSchema
+from app.usecases.images import NewImage, StoredImage
 
 
 class ImageMetadata(BaseModel):
@@ -13,6 +14,9 @@ class ImageMetadata(BaseModel):
     name: str = Field(min_length=1, max_length=255)
     camera: CameraSchema
     cam_from_world: PoseSchema
+
+    def to_new_image(self) -> NewImage:
+        return NewImage(self.name, self.camera.to_camera(), self.cam_from_world.to_rigid())
 
 
 class ImageOut(BaseModel):
@@ -23,6 +27,18 @@ class ImageOut(BaseModel):
     num_keypoints: int
     has_depth: bool
     created_at: datetime
+
+    @classmethod
+    def from_stored(cls, image: StoredImage) -> ImageOut:
+        return cls(
+            id=image.id,
+            name=image.name,
+            camera=CameraSchema.from_camera(image.camera),
+            cam_from_world=PoseSchema.from_rigid(image.cam_from_world),
+            num_keypoints=image.num_keypoints,
+            has_depth=image.has_depth,
+            created_at=image.created_at,
+        )
 
 
 class ImagePage(BaseModel):

@@ -1,9 +1,14 @@
 from __future__ import annotations
 
+import numpy as np
 from pydantic import BaseModel, Field
 
+from app.schemas.estimators import EstimatorName
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
-from app.schemas.maps import EstimatorName
+from app.usecases.localize import LocalizeRequest
+from services.estimators.base import FailureReason
+from services.pipeline import LocalizationResult
+from services.retrieval.search import PositionPrior
 
 
 class PriorSchema(BaseModel):
@@ -33,6 +38,16 @@ class LocalizeParamsIn(BaseModel):
         description="Inlier threshold in pixels (default 12)",
     )
 
+    def to_request(self) -> LocalizeRequest:
+        prior = self.prior
+        return LocalizeRequest(
+            camera=self.camera.to_camera() if self.camera else None,
+            estimator=self.estimator,
+            top_k=self.top_k,
+            prior=PositionPrior(np.array(prior.position), prior.radius) if prior else None,
+            max_error_px=self.max_error_px,
+        )
+
 
 class RetrievedOut(BaseModel):
     image_id: str
@@ -59,8 +74,8 @@ class Timings(BaseModel):
 
 class LocalizeResult(BaseModel):
     localized: bool
-    reason: str | None
-    estimator: str
+    reason: FailureReason | None
+    estimator: EstimatorName
     cam_from_world: PoseSchema | None
     camera_center: list[float] | None
     num_inliers: int
@@ -68,3 +83,39 @@ class LocalizeResult(BaseModel):
     retrieved: list[RetrievedOut]
     inliers: list[InliersOut] | None = None
     timings_ms: Timings
+
+    @classmethod
+    def from_result(cls, result: LocalizationResult, return_inliers: bool) -> LocalizeResult:
+        """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``."""
+        pose = result.cam_from_world
+        return cls(
+            localized=result.localized,
+            reason=FailureReason(result.reason) if result.reason is not None else None,
+            estimator=result.estimator,
+            cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
+            camera_center=[float(v) for v in pose.center] if pose is not None else None,
+            num_inliers=result.num_inliers,
+            confidence=result.confidence,
+            retrieved=[
+                RetrievedOut(
+                    image_id=r.image_id,
+                    name=r.name,
+                    score=r.score,
+                    num_matches=r.num_matches,
+                    num_inliers=r.num_inliers,
+                )
+                for r in result.retrieved
+            ],
+            inliers=[
+                InliersOut(
+                    image_id=r.image_id,
+                    query_xy=r.query_xy.tolist(),
+                    reference_xy=r.reference_xy.tolist(),
+                )
+                for r in result.retrieved
+                if r.num_inliers > 0
+            ]
+            if return_inliers
+            else None,
+            timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
+        )

@@ -1,23 +1,13 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated
 
-from pydantic import AfterValidator, BaseModel, Field
+from pydantic import BaseModel, Field
 
-from services.errors import UnknownComponentError
-from services.estimators.registry import get_estimator
-
-
-def _known_estimator(name: str) -> str:
-    try:
-        get_estimator(name)
-    except UnknownComponentError as exc:
-        raise ValueError(str(exc)) from None
-    return name
-
-
-EstimatorName = Annotated[str, AfterValidator(_known_estimator)]
+from app.schemas.estimators import EstimatorEnum, EstimatorName
+from app.usecases.maps import MapRecord
+from app.usecases.reindex import Reindexed
+from services.estimators.registry import DEFAULT_ESTIMATOR
 
 
 class FeatureOptions(BaseModel):
@@ -35,7 +25,8 @@ class MapCreate(BaseModel):
     name: str = Field(min_length=1, max_length=255)
     description: str | None = Field(None, max_length=10_000)
     default_estimator: EstimatorName = Field(
-        "e5p1", description="Estimator used when a localize request names none"
+        EstimatorEnum(DEFAULT_ESTIMATOR),
+        description="Estimator used when a localize request names none",
     )
     features: FeatureOptions = Field(
         default_factory=FeatureOptions,
@@ -47,10 +38,22 @@ class MapOut(BaseModel):
     id: str
     name: str
     description: str | None
-    default_estimator: str
+    default_estimator: EstimatorName
     features: FeatureOptions
     image_count: int
     created_at: datetime
+
+    @classmethod
+    def from_record(cls, record: MapRecord) -> MapOut:
+        return cls(
+            id=record.id,
+            name=record.name,
+            description=record.description,
+            default_estimator=record.default_estimator,
+            features=FeatureOptions(max_keypoints=record.max_keypoints, max_side=record.max_side),
+            image_count=record.image_count,
+            created_at=record.created_at,
+        )
 
 
 class MapPage(BaseModel):
@@ -70,3 +73,15 @@ class ReindexOut(BaseModel):
     trained_images: int = Field(description="References in the map when it was trained")
     encoded_images: int = Field(description="References re-encoded with it")
     seconds: float
+
+    @classmethod
+    def from_reindexed(cls, reindexed: Reindexed) -> ReindexOut:
+        return cls(
+            map_id=reindexed.map_id,
+            feature_model=reindexed.feature_model,
+            vocabulary_version=reindexed.vocabulary_version,
+            num_centers=reindexed.num_centers,
+            trained_images=reindexed.trained_images,
+            encoded_images=reindexed.encoded_images,
+            seconds=round(reindexed.seconds, 3),
+        )

@@ -16,10 +16,11 @@ class MapRepository:
         self,
         name: str,
         description: str | None,
-        default_estimator: str = "e5p1",
+        default_estimator: str | None = None,
         max_keypoints: int | None = None,
         max_side: int | None = None,
     ) -> Map:
+        """A new map, flushed; ``default_estimator`` None takes the column's default."""
         row = Map(
             name=name,
             description=description,

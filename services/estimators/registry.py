@@ -30,7 +30,7 @@ _ESTIMATORS: dict[str, PoseEstimator] = {
 # the estimators that need depth for the query and the references, as each declares
 DEPTH_ESTIMATORS = frozenset(name for name, e in _ESTIMATORS.items() if e.needs_depth)
 
-DEFAULT_ESTIMATOR = "e5p1"
+DEFAULT_ESTIMATOR = E5p1Estimator.name
 
 
 def estimator_names() -> list[str]:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Query, Request, Response, UploadFile
-from starlette.concurrency import run_in_threadpool
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 
 from app.api.deps import (
     AdminKey,
@@ -13,21 +12,21 @@ from app.api.deps import (
     LocalizerDep,
     SessionsDep,
     SettingsDep,
+    TrainerDep,
+    json_form_schema,
     parse_json_form,
     read_upload,
 )
-from app.errors import not_found, problem_responses
-from app.operations import add_reference_image, image_out
+from app.errors import problem_responses
 from app.schemas.images import ImageMetadata, ImageOut, ImagePage
-from db.repositories.images import ImageRepository
-from db.repositories.maps import MapRepository
+from app.usecases import images
 
 router = APIRouter(prefix="/v1/maps/{map_id}/images", tags=["images"])
 
 METADATA_HELP = (
-    'JSON string: {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, '
-    '"params": [fx, fy, cx, cy]}, "cam_from_world": {"rotation": [qw, qx, qy, qz], '
-    '"translation": [tx, ty, tz]}}'
+    'JSON string (schema ImageMetadata): {"name": str, "camera": {"model": "PINHOLE", '
+    '"width": int, "height": int, "params": [fx, fy, cx, cy]}, "cam_from_world": '
+    '{"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]}}'
 )
 
 
@@ -38,14 +37,16 @@ METADATA_HELP = (
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 404, 409, 413, 422),
 )
-async def add_image(
-    request: Request,
+def add_image(
     map_id: str,
     sessions: SessionsDep,
     localizer: LocalizerDep,
     settings: SettingsDep,
+    trainer: TrainerDep,
     image: Annotated[UploadFile, File(description="JPEG or PNG")],
-    metadata: Annotated[str, Form(description=METADATA_HELP)],
+    metadata: Annotated[
+        str, Form(description=METADATA_HELP, json_schema_extra=json_form_schema(ImageMetadata))
+    ],
     depth: Annotated[
         UploadFile | None,
         File(description="Optional depth: 16-bit PNG in millimetres or .npy float32 metres"),
@@ -54,10 +55,16 @@ async def add_image(
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    trainer = request.app.state.vocabulary_trainer if settings.global_model is None else None
-    return await run_in_threadpool(
-        add_reference_image, sessions, localizer, map_id, meta, image_bytes, depth_bytes, trainer
+    stored = images.add_reference_image(
+        sessions,
+        localizer,
+        map_id,
+        meta.to_new_image(),
+        image_bytes,
+        depth_bytes,
+        trainer=trainer if settings.global_model is None else None,
     )
+    return ImageOut.from_stored(stored)
 
 
 @router.get(
@@ -72,11 +79,8 @@ def list_images(
     offset: int = Query(0, ge=0),
     limit: int = Query(100, ge=1, le=1000),
 ) -> ImagePage:
-    with sessions() as session:
-        if MapRepository(session).get(map_id) is None:
-            raise not_found("map", map_id)
-        rows, total = ImageRepository(session).page(map_id, offset, limit)
-        items = [image_out(row) for row in rows]
+    stored, total = images.list_images(sessions, map_id, offset, limit)
+    items = [ImageOut.from_stored(image) for image in stored]
     return ImagePage(items=items, total=total, offset=offset, limit=limit)
 
 
@@ -87,13 +91,7 @@ def list_images(
     responses=problem_responses(401, 404),
 )
 def get_image(map_id: str, image_id: str, sessions: SessionsDep) -> ImageOut:
-    with sessions() as session:
-        row = ImageRepository(session).get(map_id, image_id)
-        if row is None:
-            if MapRepository(session).get(map_id) is None:
-                raise not_found("map", map_id)
-            raise not_found("image", image_id)
-        return image_out(row)
+    return ImageOut.from_stored(images.get_image(sessions, map_id, image_id))
 
 
 @router.delete(
@@ -104,9 +102,5 @@ def get_image(map_id: str, image_id: str, sessions: SessionsDep) -> ImageOut:
     responses=problem_responses(401, 403, 404),
 )
 def delete_image(map_id: str, image_id: str, sessions: SessionsDep) -> Response:
-    with sessions.begin() as session:
-        if not ImageRepository(session).delete(map_id, image_id):
-            if MapRepository(session).get(map_id) is None:
-                raise not_found("map", map_id)
-            raise not_found("image", image_id)
+    images.delete_image(sessions, map_id, image_id)
     return Response(status_code=204)

@@ -3,29 +3,14 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Query, Response
-from fastapi.concurrency import run_in_threadpool
-from sqlalchemy.exc import IntegrityError
 
 from app.api.deps import AdminKey, ClientKey, LocalizerDep, SessionsDep, SettingsDep
-from app.errors import conflict, not_found, problem_responses
-from app.operations import reindex_map
-from app.schemas.maps import FeatureOptions, MapCreate, MapOut, MapPage, ReindexOut
-from db.models import Map
-from db.repositories.maps import MapRepository
+from app.errors import problem_responses
+from app.schemas.maps import MapCreate, MapOut, MapPage, ReindexOut
+from app.usecases import maps
+from app.usecases.reindex import reindex_map
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
-
-
-def _out(row: Map, image_count: int) -> MapOut:
-    return MapOut(
-        id=row.id,
-        name=row.name,
-        description=row.description,
-        default_estimator=row.default_estimator,
-        features=FeatureOptions(max_keypoints=row.max_keypoints, max_side=row.max_side),
-        image_count=image_count,
-        created_at=row.created_at,
-    )
 
 
 @router.post(
@@ -37,23 +22,16 @@ def _out(row: Map, image_count: int) -> MapOut:
 )
 def create_map(body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep) -> MapOut:
     """``features`` must be honourable by the service's extractor (else 422)."""
-    options = body.features
-    localizer.for_map(options.max_keypoints, options.max_side)
-    try:
-        with sessions.begin() as session:
-            repo = MapRepository(session)
-            if repo.get_by_name(body.name) is not None:
-                raise conflict(f"a map named {body.name!r} exists")
-            row = repo.create(
-                body.name,
-                body.description,
-                body.default_estimator,
-                options.max_keypoints,
-                options.max_side,
-            )
-            return _out(row, 0)
-    except IntegrityError as exc:
-        raise conflict(f"a map named {body.name!r} exists") from exc
+    record = maps.create_map(
+        sessions,
+        localizer,
+        body.name,
+        body.description,
+        body.default_estimator,
+        body.features.max_keypoints,
+        body.features.max_side,
+    )
+    return MapOut.from_record(record)
 
 
 @router.get(
@@ -67,11 +45,8 @@ def list_maps(
     offset: int = Query(0, ge=0),
     limit: int = Query(100, ge=1, le=1000),
 ) -> MapPage:
-    with sessions() as session:
-        repo = MapRepository(session)
-        rows, total = repo.page(offset, limit)
-        counts = repo.image_counts([row.id for row in rows])
-        items = [_out(row, counts.get(row.id, 0)) for row in rows]
+    records, total = maps.list_maps(sessions, offset, limit)
+    items = [MapOut.from_record(record) for record in records]
     return MapPage(items=items, total=total, offset=offset, limit=limit)
 
 
@@ -82,12 +57,7 @@ def list_maps(
     responses=problem_responses(401, 404),
 )
 def get_map(map_id: str, sessions: SessionsDep) -> MapOut:
-    with sessions() as session:
-        repo = MapRepository(session)
-        row = repo.get(map_id)
-        if row is None:
-            raise not_found("map", map_id)
-        return _out(row, repo.image_counts([map_id]).get(map_id, 0))
+    return MapOut.from_record(maps.get_map(sessions, map_id))
 
 
 @router.delete(
@@ -98,9 +68,7 @@ def get_map(map_id: str, sessions: SessionsDep) -> MapOut:
     responses=problem_responses(401, 403, 404),
 )
 def delete_map(map_id: str, sessions: SessionsDep) -> Response:
-    with sessions.begin() as session:
-        if not MapRepository(session).delete(map_id):
-            raise not_found("map", map_id)
+    maps.delete_map(sessions, map_id)
     return Response(status_code=204)
 
 
@@ -110,12 +78,11 @@ def delete_map(map_id: str, sessions: SessionsDep) -> Response:
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 404, 409),
 )
-async def reindex(
+def reindex(
     map_id: str, sessions: SessionsDep, localizer: LocalizerDep, settings: SettingsDep
 ) -> ReindexOut:
     """Train a new VLAD retrieval vocabulary from the map's stored local descriptors and
     re-encode every reference with it (no image is re-read). Maps train one automatically
     at 16 references and again each time they have grown fourfold; this forces it."""
-    return await run_in_threadpool(
-        reindex_map, sessions, localizer, map_id, settings.global_model is None
-    )
+    reindexed = reindex_map(sessions, localizer, map_id, settings.global_model is None)
+    return ReindexOut.from_reindexed(reindexed)

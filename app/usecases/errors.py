@@ -1,0 +1,16 @@
+"""Domain errors of the use cases (the engine's own are in ``services.errors``)."""
+
+from __future__ import annotations
+
+
+class NotFoundError(Exception):
+    """A map or image that does not exist."""
+
+    def __init__(self, kind: str, ident: str) -> None:
+        super().__init__(f"{kind} {ident!r} does not exist")
+        self.kind = kind
+        self.ident = ident
+
+
+class ConflictError(Exception):
+    """The request contradicts the stored state (a name taken, nothing to reindex)."""

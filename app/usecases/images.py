@@ -1,0 +1,151 @@
+"""Reference images of a map: add, list, get, delete."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.maps import require_map
+from db.models import ReferenceImage
+from db.repositories.images import ImageRepository
+from db.repositories.maps import MapRepository
+from db.store import camera_of, pose_of
+from db.vocabulary import SqlVocabularyStore
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.pipeline import Localizer
+from services.retrieval.training import BackgroundTrainer
+from services.retrieval.vlad_index import VladIndexer
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class NewImage:
+    """What is known of a reference image before it is described: its name in the map, its
+    camera and its pose ``cam_from_world``."""
+
+    name: str
+    camera: Camera
+    cam_from_world: Rigid3d
+
+
+@dataclass(frozen=True)
+class StoredImage:
+    """A stored reference image."""
+
+    id: str
+    name: str
+    camera: Camera
+    cam_from_world: Rigid3d
+    num_keypoints: int
+    has_depth: bool
+    created_at: datetime
+
+
+def add_reference_image(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    map_id: str,
+    image: NewImage,
+    image_bytes: bytes,
+    depth_bytes: bytes | None = None,
+    trainer: BackgroundTrainer | None = None,
+) -> StoredImage:
+    """Describe and store a posed reference image: the row and all its features in one
+    transaction, or nothing. With a ``trainer``, a retrieval vocabulary that the add makes due
+    is trained in the background, so no request waits for it.
+
+    Raises:
+        NotFoundError: unknown map.
+        ConflictError: the map has an image of that name.
+        InvalidInputError: the image, depth or camera is unusable.
+    """
+    taken = f"map already has an image named {image.name!r}"
+    with sessions() as session:
+        map_row = require_map(session, map_id)
+        if ImageRepository(session).name_exists(map_id, image.name):
+            raise ConflictError(taken)
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+    data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
+    try:
+        with sessions.begin() as session:
+            require_map(session, map_id)  # deleted while we extracted
+            row = ImageRepository(session).add(
+                map_id, image.name, image.camera, image.cam_from_world, data
+            )
+            stored = _stored(row)
+    except IntegrityError as exc:
+        with sessions() as session:
+            if MapRepository(session).get(map_id) is None:
+                raise NotFoundError("map", map_id) from exc
+        raise ConflictError(taken) from exc
+    logger.info(
+        "map %s: added image %s (%s, %d keypoints)",
+        map_id,
+        stored.id,
+        stored.name,
+        stored.num_keypoints,
+    )
+    if trainer is not None:
+        indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
+        if indexer.due():
+            trainer.schedule((map_id, localizer.extractor.name), indexer.train_if_due)
+    return stored
+
+
+def list_images(
+    sessions: sessionmaker[Session], map_id: str, offset: int, limit: int
+) -> tuple[list[StoredImage], int]:
+    """A page of the map's images, oldest first, and the number of its images.
+
+    Raises:
+        NotFoundError: unknown map.
+    """
+    with sessions() as session:
+        require_map(session, map_id)
+        rows, total = ImageRepository(session).page(map_id, offset, limit)
+        return [_stored(row) for row in rows], total
+
+
+def get_image(sessions: sessionmaker[Session], map_id: str, image_id: str) -> StoredImage:
+    """One image of the map.
+
+    Raises:
+        NotFoundError: unknown map or image.
+    """
+    with sessions() as session:
+        row = ImageRepository(session).get(map_id, image_id)
+        if row is None:
+            require_map(session, map_id)
+            raise NotFoundError("image", image_id)
+        return _stored(row)
+
+
+def delete_image(sessions: sessionmaker[Session], map_id: str, image_id: str) -> None:
+    """Delete an image and its features.
+
+    Raises:
+        NotFoundError: unknown map or image.
+    """
+    with sessions.begin() as session:
+        if not ImageRepository(session).delete(map_id, image_id):
+            require_map(session, map_id)
+            raise NotFoundError("image", image_id)
+
+
+def _stored(row: ReferenceImage) -> StoredImage:
+    return StoredImage(
+        id=row.id,
+        name=row.name,
+        camera=camera_of(row),
+        cam_from_world=pose_of(row),
+        num_keypoints=row.num_keypoints,
+        has_depth=row.has_depth,
+        created_at=row.created_at,
+    )

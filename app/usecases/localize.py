@@ -1,0 +1,106 @@
+"""Localize a query image against a map."""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, replace
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.maps import require_map
+from db.store import SqlReferenceStore
+from services.errors import InvalidInputError
+from services.estimators.options import EstimatorOptions
+from services.geometry.camera import Camera
+from services.pipeline import LocalizationResult, LocalizeParams, Localizer
+from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.search import PositionPrior
+from services.retrieval.training import BackgroundTrainer
+
+
+@dataclass(frozen=True)
+class LocalizeRequest:
+    """What a localize call asks for; None takes the map's or the engine's default.
+
+    Attributes:
+        camera: query intrinsics (None: the engine's default camera for the image size).
+        estimator: estimator name (None: the map's default estimator).
+        top_k: references to retrieve.
+        prior: keep only references near a known position.
+        max_error_px: inlier threshold in pixels (None: the estimator options' default).
+    """
+
+    camera: Camera | None = None
+    estimator: str | None = None
+    top_k: int = 10
+    prior: PositionPrior | None = None
+    max_error_px: float | None = None
+
+
+def engine_params(
+    request: LocalizeRequest, default_estimator: str, max_top_k: int
+) -> LocalizeParams:
+    """The engine's parameters for ``request`` on a map whose default estimator is
+    ``default_estimator``.
+
+    Raises:
+        InvalidInputError: ``top_k`` exceeds ``max_top_k``.
+    """
+    if request.top_k > max_top_k:
+        raise InvalidInputError(f"top_k may be at most {max_top_k}")
+    options = EstimatorOptions()
+    if request.max_error_px is not None:
+        ransac = replace(options.ransac, max_error_px=request.max_error_px)
+        options = replace(options, ransac=ransac)
+    return LocalizeParams(
+        camera=request.camera,
+        estimator=request.estimator or default_estimator,
+        top_k=request.top_k,
+        prior=request.prior,
+        options=options,
+    )
+
+
+def localize(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    map_id: str,
+    request: LocalizeRequest,
+    image_bytes: bytes,
+    depth_bytes: bytes | None = None,
+    *,
+    max_top_k: int,
+    cache: RetrievalIndexCache | None = None,
+    vlad: bool = True,
+    slots: AbstractContextManager[object] = nullcontext(),
+    trainer: BackgroundTrainer | None = None,
+) -> LocalizationResult:
+    """Localize the query against the map's references. A query that cannot be localized is
+    a result with ``localized`` False and a reason, not an error.
+
+    Args:
+        cache: keeps the map's retrieval index in memory between calls.
+        vlad: retrieve by the map's VLAD vocabulary once it has one (False: the localizer's
+            global descriptor).
+        slots: held while the engine runs (bounds concurrent engine work).
+        trainer: where a retrieval vocabulary found due is trained (None: before the search).
+
+    Raises:
+        NotFoundError: unknown map.
+        InvalidInputError: the image, depth, camera or parameters are unusable.
+    """
+    with sessions() as session:
+        map_row = require_map(session, map_id)
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+        params = engine_params(request, map_row.default_estimator, max_top_k)
+    store = SqlReferenceStore(
+        sessions,
+        map_id,
+        localizer.extractor.name,
+        localizer.global_descriptor.name,
+        cache,
+        vlad=vlad,
+        trainer=trainer,
+    )
+    with slots:
+        return localizer.localize(image_bytes, params, store, depth_bytes)

@@ -1,0 +1,114 @@
+"""Maps: create, list, get, delete."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError, NotFoundError
+from db.models import Map
+from db.repositories.maps import MapRepository
+from services.pipeline import Localizer
+
+
+@dataclass(frozen=True)
+class MapRecord:
+    """A stored map; ``max_keypoints`` / ``max_side`` None keep the service's default."""
+
+    id: str
+    name: str
+    description: str | None
+    default_estimator: str
+    max_keypoints: int | None
+    max_side: int | None
+    image_count: int
+    created_at: datetime
+
+
+def require_map(session: Session, map_id: str) -> Map:
+    """The map's row.
+
+    Raises:
+        NotFoundError: no such map.
+    """
+    row = MapRepository(session).get(map_id)
+    if row is None:
+        raise NotFoundError("map", map_id)
+    return row
+
+
+def create_map(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    name: str,
+    description: str | None,
+    default_estimator: str,
+    max_keypoints: int | None,
+    max_side: int | None,
+) -> MapRecord:
+    """Create an empty map.
+
+    Raises:
+        InvalidInputError: the localizer's extractor cannot honour the feature options.
+        ConflictError: the name is taken.
+    """
+    localizer.for_map(max_keypoints, max_side)
+    taken = f"a map named {name!r} exists"
+    try:
+        with sessions.begin() as session:
+            repo = MapRepository(session)
+            if repo.get_by_name(name) is not None:
+                raise ConflictError(taken)
+            row = repo.create(name, description, default_estimator, max_keypoints, max_side)
+            return _record(row, 0)
+    except IntegrityError as exc:
+        raise ConflictError(taken) from exc
+
+
+def list_maps(
+    sessions: sessionmaker[Session], offset: int, limit: int
+) -> tuple[list[MapRecord], int]:
+    """A page of maps, oldest first, and the number of maps."""
+    with sessions() as session:
+        repo = MapRepository(session)
+        rows, total = repo.page(offset, limit)
+        counts = repo.image_counts([row.id for row in rows])
+        return [_record(row, counts.get(row.id, 0)) for row in rows], total
+
+
+def get_map(sessions: sessionmaker[Session], map_id: str) -> MapRecord:
+    """The map and its number of images.
+
+    Raises:
+        NotFoundError: no such map.
+    """
+    with sessions() as session:
+        row = require_map(session, map_id)
+        return _record(row, MapRepository(session).image_counts([map_id]).get(map_id, 0))
+
+
+def delete_map(sessions: sessionmaker[Session], map_id: str) -> None:
+    """Delete a map with its images and their features.
+
+    Raises:
+        NotFoundError: no such map.
+    """
+    with sessions.begin() as session:
+        if not MapRepository(session).delete(map_id):
+            raise NotFoundError("map", map_id)
+
+
+def _record(row: Map, image_count: int) -> MapRecord:
+    return MapRecord(
+        id=row.id,
+        name=row.name,
+        description=row.description,
+        default_estimator=row.default_estimator,
+        max_keypoints=row.max_keypoints,
+        max_side=row.max_side,
+        image_count=image_count,
+        created_at=row.created_at,
+    )

@@ -1,0 +1,79 @@
+"""Retrain a map's VLAD retrieval vocabulary."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError
+from app.usecases.maps import require_map
+from db.vocabulary import SqlVocabularyStore
+from services.pipeline import Localizer
+from services.retrieval.vlad_index import VladIndexer, VocabularyError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Reindexed:
+    """A new vocabulary of ``map_id`` for the references of ``feature_model``.
+
+    Attributes:
+        vocabulary_version: grows by one with every training.
+        num_centers: k-means centres K.
+        trained_images: references in the map when it was trained.
+        encoded_images: references re-encoded with it.
+        seconds: wall time of training and encoding.
+    """
+
+    map_id: str
+    feature_model: str
+    vocabulary_version: int
+    num_centers: int
+    trained_images: int
+    encoded_images: int
+    seconds: float
+
+
+def reindex_map(
+    sessions: sessionmaker[Session], localizer: Localizer, map_id: str, vlad: bool
+) -> Reindexed:
+    """Train a new VLAD vocabulary version from the map's stored descriptors and re-encode
+    every reference with it (no image is re-read).
+
+    Raises:
+        NotFoundError: unknown map.
+        ConflictError: retrieval uses an ONNX global model (``vlad`` False), or the map has
+            too few descriptors.
+    """
+    with sessions() as session:
+        map_row = require_map(session, map_id)
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+    if not vlad:
+        raise ConflictError(
+            "retrieval uses the ONNX global-descriptor model (SLLOC_GLOBAL_MODEL); "
+            "there is no vocabulary to train"
+        )
+    feature_model = localizer.extractor.name
+    try:
+        report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train()
+    except VocabularyError as exc:
+        raise ConflictError(str(exc)) from exc
+    logger.info(
+        "map %s: reindexed %d references with vocabulary v%d in %.1f s",
+        map_id,
+        report.encoded_images,
+        report.version,
+        report.seconds,
+    )
+    return Reindexed(
+        map_id=map_id,
+        feature_model=feature_model,
+        vocabulary_version=report.version,
+        num_centers=report.num_centers,
+        trained_images=report.trained_images,
+        encoded_images=report.encoded_images,
+        seconds=report.seconds,
+    )
