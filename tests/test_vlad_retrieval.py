@@ -20,8 +20,8 @@ from services.geometry.rigid import rotation_error_deg
 from services.pipeline import Localizer
 from services.retrieval.search import top_k
 from services.retrieval.vlad import encode
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, image_metadata, make_client, upload_view
+from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_vocabulary_lifecycle(

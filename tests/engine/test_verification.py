@@ -23,7 +23,7 @@ from services.pipeline import (
     RetrievalIndex,
 )
 from services.retrieval.thumbnail import ThumbnailDescriptor
-from services.synthetic_scene import SyntheticScene, encode_png, unrelated_image
+from tools.synthetic.scene import SyntheticScene, encode_png, unrelated_image
 
 # ---------------------------------------------------------------- unit: exact geometry
 

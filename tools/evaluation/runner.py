@@ -18,7 +18,6 @@ from typing import Any, Protocol
 import httpx
 
 from app.api.routes.localize import _to_params
-from app.evaluation.datasets import PosedImage
 from app.operations import add_reference_image
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
@@ -29,6 +28,7 @@ from db.session import make_engine, make_session_factory
 from db.store import RetrievalIndexCache, SqlReferenceStore
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
+from tools.evaluation.datasets import PosedImage
 
 
 @dataclass(frozen=True)

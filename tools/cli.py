@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
-    from app.evaluation.arguments import add_bench_arguments, add_eval_arguments
+    from tools.evaluation.arguments import add_bench_arguments, add_eval_arguments
 
     add_eval_arguments(
         sub.add_parser("eval", help="accuracy and timings of configurations on a posed dataset")
@@ -98,14 +98,14 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         if args.command == "eval":
-            from app.evaluation.command import eval_main
+            from tools.evaluation.command import eval_main
 
             return eval_main(args)
-        from app.evaluation.bench import bench_main
+        from tools.evaluation.bench import bench_main
 
         return bench_main(args)
     if args.command == "synth":
-        from app.synthetic_dataset import write_synthetic_dataset
+        from tools.synthetic.dataset import write_synthetic_dataset
 
         write_synthetic_dataset(args.out, args.references, args.queries, args.seed)
         print(f"wrote {args.references} references and {args.queries} queries to {args.out}")
@@ -140,7 +140,7 @@ def _db_upgrade() -> int:
 
 def _models_build(args: argparse.Namespace) -> int:
     try:
-        from services.export.build import DEFAULT_MODELS, build_models
+        from tools.export.build import DEFAULT_MODELS, build_models
     except ImportError as exc:
         print(
             f"the export tools are not installed ({exc}); run scripts/build_models.sh",
@@ -201,13 +201,13 @@ def _reindex(map_name: str) -> int:
 
 def _import(args: argparse.Namespace) -> int:
     from app.errors import ProblemError
-    from app.importers import ImportItem, iter_pending, read_colmap, read_csv
     from app.operations import add_reference_image
     from db.migrate import upgrade
     from db.repositories.images import ImageRepository
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
     from services.errors import InvalidInputError
+    from tools.importers import ImportItem, iter_pending, read_colmap, read_csv
 
     settings = get_settings()
     if args.colmap is not None and args.images is None:
