@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import logging
 from collections import defaultdict
+from collections.abc import Callable
 
 import numpy as np
 from sqlalchemy import ColumnElement, select
@@ -11,17 +11,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
-from db.vocabulary import VLAD_KIND, SqlVocabularyStore
+from db.vocabulary import VLAD_KIND
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.references import ReferenceView
 from services.retrieval.cache import RetrievalIndexCache
-from services.retrieval.index import RetrievalIndex, VocabularyState, empty_index
-from services.retrieval.training import BackgroundTrainer
-from services.retrieval.vlad_index import VladIndexer, VocabularyError
-
-logger = logging.getLogger(__name__)
+from services.retrieval.contracts import RetrievalIndex, VocabularyState, empty_index
 
 
 def camera_of(row: ReferenceImage) -> Camera:
@@ -46,20 +42,16 @@ class SqlReferenceStore:
         feature_model: str,
         descriptor_model: str,
         cache: RetrievalIndexCache | None = None,
-        vlad: bool = True,
-        trainer: BackgroundTrainer | None = None,
+        vocabulary: Callable[[], VocabularyState | None] | None = None,
     ) -> None:
-        """``vlad``: retrieve by VLAD over the map's vocabulary once the map has one
-        (``db.vocabulary``); False keeps the localizer's global descriptor (an ONNX model).
-        ``trainer``: where a due vocabulary training runs, off the request; without one (offline
-        tools) it runs before the read that finds it due."""
+        """``vocabulary``: the map's VLAD vocabulary to search with (None from it, or no
+        callable: the localizer's global descriptors)."""
         self.sessions = sessions
         self.cache = cache
         self.map_id = map_id
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
-        self.vlad = vlad
-        self.trainer = trainer
+        self._vocabulary = vocabulary
 
     def retrieval_index(self) -> RetrievalIndex:
         if self.cache is None:
@@ -67,20 +59,7 @@ class SqlReferenceStore:
         return self.cache.index(self)
 
     def vocabulary(self) -> VocabularyState | None:
-        """The map's published VLAD vocabulary; None when the map retrieves by global
-        descriptor (too small, not trained yet, or ``vlad`` off). A training found due is
-        handed to the trainer, and the read goes on with what is published."""
-        if not self.vlad:
-            return None
-        indexer = VladIndexer(SqlVocabularyStore(self.sessions, self.map_id, self.feature_model))
-        if self.trainer is None:
-            try:
-                indexer.train_if_due()
-            except VocabularyError as exc:
-                logger.warning("map %s: no retrieval vocabulary: %s", self.map_id, exc)
-        elif indexer.due():
-            self.trainer.schedule((self.map_id, self.feature_model), indexer.train_if_due)
-        return indexer.current()
+        return None if self._vocabulary is None else self._vocabulary()
 
     def load_index(
         self, vocabulary: VocabularyState | None, only_ids: list[str] | None = None

@@ -19,9 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row, to_row
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
-from services.retrieval.index import VocabularyState
+from services.retrieval.contracts import Encoder, VocabularyError, VocabularyState
 from services.retrieval.vlad import Vocabulary
-from services.retrieval.vlad_index import Encoder, VocabularyError
 
 logger = logging.getLogger(__name__)
 

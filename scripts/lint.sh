@@ -4,4 +4,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 .venv/bin/ruff format --check .
 .venv/bin/ruff check .
-.venv/bin/mypy app services db
+.venv/bin/mypy app services db tools

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.retrieval.index import RetrievalIndex
+from services.retrieval.contracts import RetrievalIndex
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from app.main import create_app
 from app.settings import Settings
 from services.components import build_localizer
 from services.pipeline import Localizer
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 POSTGRES_ADMIN_URL = os.environ.get(
     "SLLOC_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"

@@ -18,8 +18,6 @@ from fastapi.testclient import TestClient
 from sqlalchemy import inspect, select
 from sqlalchemy.orm import Session
 
-from app import cli
-from app.importers import read_colmap
 from app.main import create_app
 from app.settings import Settings, get_settings
 from db.arrays import from_row
@@ -27,7 +25,9 @@ from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.images import ImageRepository
 from db.session import make_engine
 from services.pipeline import Localizer
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
+from tools import cli
+from tools.importers import read_colmap
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
 
 NUM_VIEWS = 6
 FEATURE_KINDS = {"keypoints", "descriptors", "scores", "global_descriptor"}

@@ -7,6 +7,7 @@ import numpy as np
 
 from app.schemas.images import ImageMetadata
 from app.usecases.images import add_reference_image
+from app.usecases.localize import reference_store
 from db.migrate import upgrade
 from db.models import Map
 from db.repositories.images import ImageRepository
@@ -15,8 +16,8 @@ from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
 from services.pipeline import Localizer
 from services.retrieval.cache import RetrievalIndexCache
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import image_metadata
+from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_cache_follows_adds_and_deletes(
@@ -33,9 +34,7 @@ def test_cache_follows_adds_and_deletes(
         return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache) -> SqlReferenceStore:
-        return SqlReferenceStore(
-            sessions, map_id, localizer.extractor.name, localizer.global_descriptor.name, cache
-        )
+        return reference_store(sessions, map_id, localizer, cache)
 
     ids = [add(v) for v in reference_views[:3]]
     cache = RetrievalIndexCache()

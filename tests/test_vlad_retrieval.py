@@ -11,6 +11,7 @@ from sqlalchemy import select
 
 from app.schemas.images import ImageMetadata
 from app.usecases.images import add_reference_image
+from app.usecases.localize import reference_store
 from db.migrate import upgrade
 from db.models import FeatureArray, MapVocabulary, ReferenceImage
 from db.repositories.images import ImageRepository
@@ -26,8 +27,8 @@ from services.retrieval.search import top_k
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode
 from services.retrieval.vlad_index import VladIndexer
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, image_metadata, make_client, upload_view
+from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_vocabulary_lifecycle(
@@ -47,9 +48,7 @@ def test_vocabulary_lifecycle(
         return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache | None = None) -> SqlReferenceStore:
-        return SqlReferenceStore(
-            sessions, map_id, localizer.extractor.name, localizer.global_descriptor.name, cache
-        )
+        return reference_store(sessions, map_id, localizer, cache)
 
     ids = [add(v) for v in reference_views[: MIN_IMAGES - 1]]
     small = store().retrieval_index()
@@ -183,14 +182,7 @@ def test_training_runs_off_the_request_path(
         for view in reference_views[:MIN_IMAGES]
     ]
     cache = RetrievalIndexCache()
-    store = SqlReferenceStore(
-        sessions,
-        map_id,
-        localizer.extractor.name,
-        localizer.global_descriptor.name,
-        cache,
-        trainer=trainer,
-    )
+    store = reference_store(sessions, map_id, localizer, cache, trainer=trainer)
     before = store.retrieval_index()
     assert before.vocabulary is None and sorted(before.image_ids) == sorted(ids)
     assert trainer.pending() == 2  # the held job and one training, however many asked for it

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
+from functools import partial
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.maps import require_map
 from db.store import SqlReferenceStore
+from db.vocabulary import SqlVocabularyStore
 from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
@@ -16,6 +18,7 @@ from services.pipeline import LocalizationResult, LocalizeParams, Localizer
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer
+from services.retrieval.vlad_index import VladIndexer, searchable_vocabulary
 
 
 @dataclass(frozen=True)
@@ -93,14 +96,30 @@ def localize(
         map_row = require_map(session, map_id)
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
         params = engine_params(request, map_row.default_estimator, max_top_k)
-    store = SqlReferenceStore(
+    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer)
+    with slots:
+        return localizer.localize(image_bytes, params, store, depth_bytes)
+
+
+def reference_store(
+    sessions: sessionmaker[Session],
+    map_id: str,
+    localizer: Localizer,
+    cache: RetrievalIndexCache | None = None,
+    vlad: bool = True,
+    trainer: BackgroundTrainer | None = None,
+) -> SqlReferenceStore:
+    """The map's references as ``localizer`` (already set up for the map) searches them: by
+    the map's VLAD vocabulary once it has one (``vlad``), else by global descriptor."""
+    vocabulary = None
+    if vlad:
+        indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
+        vocabulary = partial(searchable_vocabulary, indexer, trainer)
+    return SqlReferenceStore(
         sessions,
         map_id,
         localizer.extractor.name,
         localizer.global_descriptor.name,
         cache,
-        vlad=vlad,
-        trainer=trainer,
+        vocabulary,
     )
-    with slots:
-        return localizer.localize(image_bytes, params, store, depth_bytes)

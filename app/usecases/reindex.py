@@ -11,7 +11,8 @@ from app.usecases.errors import ConflictError
 from app.usecases.maps import require_map
 from db.vocabulary import SqlVocabularyStore
 from services.pipeline import Localizer
-from services.retrieval.vlad_index import VladIndexer, VocabularyError
+from services.retrieval.contracts import VocabularyError
+from services.retrieval.vlad_index import VladIndexer
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ on a seeded random sample of at most ``RANSAC_SAMPLE_PER_PAIR`` matches per refe
 winning pose is then re-scored and refined on every match (generalized Sampson refinement,
 ``pose_triangulation.local_optimisation``), so the answer's inliers and accuracy come from all
 of them. At the guide's setting (10 references × 1000 matches) this is ~4× faster for the same
-accuracy (``scripts/bench_estimators.py``).
+accuracy (``python -m tools.benchmarks.estimators``).
 
 The pipeline then verifies the pose in 3D (``services.verification``).
 """

@@ -9,7 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
-from services.retrieval.index import EMPTY_INDEX, RetrievalIndex, VocabularyState, empty_index
+from services.retrieval.contracts import EMPTY_INDEX, RetrievalIndex, VocabularyState, empty_index
 
 
 class IndexSource(Protocol):

@@ -14,26 +14,19 @@ from __future__ import annotations
 import logging
 import time
 import uuid
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.retrieval.index import VocabularyState
+from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
 from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
-from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
+from services.retrieval.training import BackgroundTrainer
+from services.retrieval.vlad import encode, train_vocabulary
 
 logger = logging.getLogger(__name__)
 
 ENCODE_BATCH = 200  # references encoded per storage transaction
-
-Encoder = Callable[[NDArray[np.float32]], NDArray[np.float32]]
-
-
-class VocabularyError(ValueError):
-    """A vocabulary cannot be trained (too few references or descriptors, or the map went)."""
 
 
 @dataclass(frozen=True)
@@ -45,57 +38,20 @@ class ReindexReport:
     seconds: float
 
 
-class VocabularyStore(Protocol):
-    """Where one map's vocabulary and VLAD vectors (of one feature model) are kept."""
-
-    map_id: str
-    feature_model: str
-
-    def count(self) -> int:
-        """How many references the map has."""
-        ...
-
-    def published(self) -> VocabularyState | None: ...
-
-    def reference_ids(self) -> list[str]:
-        """Every reference id, in insertion order."""
-        ...
-
-    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
-        """(N, D) local descriptors of the references among ``image_ids`` still stored."""
-        ...
-
-    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
-        """Keep ``vectors`` of an unpublished version under ``tag`` (references deleted
-        meanwhile are skipped)."""
-        ...
-
-    def publish(
-        self,
-        vocabulary: Vocabulary,
-        tag: str,
-        trained_images: int,
-        previous: VocabularyState | None,
-        encoder: Encoder,
-    ) -> VocabularyState:
-        """Atomically: encode with ``encoder`` the references that have no staged vector, make
-        the staged vectors current, store ``vocabulary`` as the next version. When another
-        trainer published since ``previous`` was read, drop the staged vectors and return its
-        version instead.
-
-        Raises:
-            VocabularyError: the map was deleted.
-        """
-        ...
-
-    def stale_ids(self, version: int, limit: int) -> list[str]:
-        """Up to ``limit`` references without a vector of ``version``."""
-        ...
-
-    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
-        """Store current vectors of ``version``; False when a reference was deleted meanwhile
-        (nothing written)."""
-        ...
+def searchable_vocabulary(
+    indexer: VladIndexer, trainer: BackgroundTrainer | None
+) -> VocabularyState | None:
+    """The vocabulary a search uses now: the published one (None: global descriptors). A
+    training found due goes to ``trainer`` and the search goes on with what is published;
+    without a trainer (offline tools) it is trained first."""
+    if trainer is None:
+        try:
+            indexer.train_if_due()
+        except VocabularyError as exc:
+            logger.warning("map %s: no retrieval vocabulary: %s", indexer.store.map_id, exc)
+    elif indexer.due():
+        trainer.schedule((indexer.store.map_id, indexer.store.feature_model), indexer.train_if_due)
+    return indexer.current()
 
 
 class VladIndexer:

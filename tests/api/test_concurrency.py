@@ -11,8 +11,8 @@ from sqlalchemy import create_engine
 from sqlalchemy.orm import Session
 
 from db.repositories.images import ImageRepository
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, upload_view
+from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_concurrent_add_delete_localize(

@@ -9,8 +9,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.geometry.rigid import Rigid3d, pose_error
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 from tests.conftest import create_map, upload_view
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 
 PROBLEM = "application/problem+json"
 

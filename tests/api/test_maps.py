@@ -8,8 +8,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select
 
 from db.models import FeatureArray, ReferenceImage
-from services.synthetic_scene import SyntheticView, encode_png
 from tests.conftest import create_map, image_metadata, upload_view
+from tools.synthetic.scene import SyntheticView, encode_png
 
 PROBLEM = "application/problem+json"
 

@@ -8,9 +8,9 @@ import pytest
 
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names
 from services.geometry.rigid import pose_error
-from services.memory_store import MemoryReferenceStore
 from services.pipeline import LocalizeParams, Localizer
-from services.synthetic_scene import (
+from tools.fixtures.memory_store import MemoryReferenceStore
+from tools.synthetic.scene import (
     SyntheticScene,
     SyntheticView,
     encode_depth_png,

@@ -18,10 +18,10 @@ from services.geometry.rigid import Rigid3d, pose_error
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.pipeline import LocalizeParams, Localizer
 from services.references import ReferenceView
-from services.retrieval.index import RetrievalIndex
+from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.thumbnail import ThumbnailDescriptor
-from services.synthetic_scene import SyntheticScene, encode_png, unrelated_image
 from services.verification import StructureCheck, verify_by_reference_triangulation
+from tools.synthetic.scene import SyntheticScene, encode_png, unrelated_image
 
 # ---------------------------------------------------------------- unit: exact geometry
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services.estimators.options import EstimatorOptions, RansacOptions
-from services.synthetic_correspondences import SyntheticCorrespondences, make_correspondences
+from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 
 # moderate sizes and capped iterations keep the module fast on two shared cores
 MATCHES_PER_REFERENCE = 300

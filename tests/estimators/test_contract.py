@@ -17,8 +17,8 @@ from services.estimators.options import E3p1Options, PoseApproxMode, PoseApproxO
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
 from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
-from services.synthetic_correspondences import SyntheticCorrespondences
 from tests.estimators.conftest import TEST_OPTIONS
+from tools.synthetic.correspondences import SyntheticCorrespondences
 
 ALL = estimator_names()
 GEOMETRIC = [name for name in ALL if name != "pose_approx"]

@@ -19,7 +19,7 @@ from services.estimators.solvers import relative_pose_3pt_depth
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import normalized_from_pixels
 from services.geometry.rigid import rotation_error_deg
-from services.synthetic_correspondences import make_correspondences
+from tools.synthetic.correspondences import make_correspondences
 
 
 def _random_rotations(rng: np.random.Generator, n: int, max_deg: float) -> np.ndarray:

@@ -25,7 +25,7 @@ from services.geometry.camera import Camera
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.rigid import Rigid3d, rotation_error_deg
 from services.geometry.triangulation import ransac_triangulate, triangulate_dlt
-from services.synthetic_correspondences import make_correspondences
+from tools.synthetic.correspondences import make_correspondences
 
 
 def test_rotation_averaging_rejects_outliers() -> None:

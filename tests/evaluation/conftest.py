@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from app.importers import CSV_COLUMNS
 from app.settings import get_settings
-from services.synthetic_scene import SyntheticView, encode_depth_png, encode_png
+from tools.importers import CSV_COLUMNS
+from tools.synthetic.scene import SyntheticView, encode_depth_png, encode_png
 
 NUM_REFERENCES = 24
 NUM_QUERIES = 4

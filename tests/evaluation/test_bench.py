@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from app import cli
+from tools import cli
 
 
 def test_bench_with_one_and_two_clients(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

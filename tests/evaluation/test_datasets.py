@@ -10,15 +10,15 @@ import numpy as np
 import pycolmap
 import pytest
 
-from app.evaluation.datasets import (
+from tests.evaluation.conftest import write_images
+from tools.evaluation.datasets import (
     REDKITCHEN_CAMERA,
     Dataset,
     PosedImage,
     open_dataset,
 )
-from app.evaluation.split import split_dataset
-from services.synthetic_scene import SyntheticView
-from tests.evaluation.conftest import write_images
+from tools.evaluation.split import split_dataset
+from tools.synthetic.scene import SyntheticView
 
 
 def assert_same_poses(images: list[PosedImage], views: list[SyntheticView]) -> None:

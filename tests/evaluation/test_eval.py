@@ -13,11 +13,11 @@ import httpx
 import numpy as np
 import pytest
 
-from app import cli
-from app.evaluation.runner import InProcessRunner
-from app.evaluation.server import LocalServer, free_port
-from services.synthetic_scene import SyntheticScene
 from tests.evaluation.conftest import NUM_QUERIES, SPLIT_ARGS
+from tools import cli
+from tools.evaluation.runner import InProcessRunner
+from tools.evaluation.server import LocalServer, free_port
+from tools.synthetic.scene import SyntheticScene
 
 ESTIMATORS = "e5p1,e3p1,local_tri_all"
 

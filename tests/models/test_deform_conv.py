@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="the export tools are not installed")
-from services.export.torchvision_shim import deform_conv2d  # noqa: E402
+from tools.export.torchvision_shim import deform_conv2d  # noqa: E402
 
 
 def _slow_reference(x, offset, weight, bias, padding, mask):  # type: ignore[no-untyped-def]

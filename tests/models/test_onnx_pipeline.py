@@ -16,10 +16,10 @@ from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
-from services.memory_store import MemoryReferenceStore
 from services.pipeline import LocalizeParams
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 from tests.models.conftest import MODELS_DIR
+from tools.fixtures.memory_store import MemoryReferenceStore
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 
 # extractor model → the fixture whose store has it and its LightGlue
 MODEL_FIXTURES = {"aliked-n16": "models", "disk": "disk_models"}

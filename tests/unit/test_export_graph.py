@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.export.build import is_current
-from services.export.onnx_export import batched_matmul_plan
 from services.runtime.manifest import ModelEntry, file_sha256, write_entry
+from tools.export.build import is_current
+from tools.export.onnx_export import batched_matmul_plan
 
 torch = pytest.importorskip("torch", reason="the export tools are not installed")
 ort = pytest.importorskip("onnxruntime")
@@ -45,7 +45,7 @@ class _Attention(torch.nn.Module):
 
 
 def test_exported_einsums_become_matmuls(tmp_path: Path) -> None:
-    from services.export import onnx_export
+    from tools.export import onnx_export
 
     path = tmp_path / "attention.onnx"
     n = torch.export.Dim("n", min=2, max=64)

@@ -12,7 +12,7 @@ from onnx import TensorProto, helper, numpy_helper
 from services.components import build_localizer
 from services.retrieval.onnx_global import OnnxGlobalDescriptor
 from services.runtime.onnx import create_session
-from services.synthetic_scene import SyntheticScene, unrelated_image
+from tools.synthetic.scene import SyntheticScene, unrelated_image
 
 
 def _pooling_model(path: Path, height: int | str, width: int | str) -> np.ndarray:

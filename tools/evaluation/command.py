@@ -9,14 +9,14 @@ import time
 from collections.abc import Callable
 from functools import partial
 
-from app.evaluation.datasets import open_dataset
-from app.evaluation.evaluate import EvalOptions, run_evaluation, write_outputs
-from app.evaluation.metrics import DEFAULT_THRESHOLDS
-from app.evaluation.runner import HttpRunner, InProcessRunner, Runner
-from app.evaluation.split import split_dataset
 from app.settings import get_settings
 from services.components import AUTO, feature_config_names, resolve_features
 from services.estimators.registry import estimator_names
+from tools.evaluation.datasets import open_dataset
+from tools.evaluation.evaluate import EvalOptions, run_evaluation, write_outputs
+from tools.evaluation.metrics import DEFAULT_THRESHOLDS
+from tools.evaluation.runner import HttpRunner, InProcessRunner, Runner
+from tools.evaluation.split import split_dataset
 
 
 def _names(value: str, known: list[str], what: str) -> list[str]:

@@ -59,7 +59,7 @@ class LocalServer:
             [
                 sys.executable,
                 "-m",
-                "app.cli",
+                "tools.cli",
                 "serve",
                 "--host",
                 "127.0.0.1",

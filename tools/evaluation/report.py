@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from app.evaluation.metrics import STAGES, QueryRecord, recall_key
+from tools.evaluation.metrics import STAGES, QueryRecord, recall_key
 
 PLOT_STAGES = ("decode", "extract", "retrieve", "match", "estimate")
 

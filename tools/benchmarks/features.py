@@ -7,7 +7,8 @@ ground-truth poses is below 2 px (fx = fy = 525, cx = 320, cy = 240). Pairs star
 0, 100, …, 900. DISK rows appear when DISK is built (``slloc models build --models
 disk,lightglue-disk``). Run from the repository root after ``scripts/build_models.sh``::
 
-    .venv/bin/python scripts/bench_features.py [--dataset DIR] [--models-dir models] [--only disk]
+    .venv/bin/python -m tools.benchmarks.features [--dataset DIR] [--models-dir models] \
+        [--only disk]
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from app.evaluation.datasets import PosedImage, redkitchen_dataset
 from services.components import ModelStore
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
@@ -30,6 +31,7 @@ from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.runtime.manifest import read_manifest
+from tools.evaluation.datasets import PosedImage, redkitchen_dataset
 
 GAPS = (10, 20, 40)
 STARTS = range(0, 1000, 100)
@@ -61,20 +63,23 @@ def _combinations(models: ModelStore) -> dict[str, Callable[[], tuple[FeatureExt
         if model not in built:
             continue
         combinations |= {
-            f"{model} 1024 + mnn": lambda m=model: learned(m, 1024, False),
-            f"{model} 1024 + lightglue": lambda m=model: learned(m, 1024, True),
-            f"{model} 2048 + lightglue": lambda m=model: learned(m, 2048, True),
+            f"{model} 1024 + mnn": partial(learned, model, 1024, False),
+            f"{model} 1024 + lightglue": partial(learned, model, 1024, True),
+            f"{model} 2048 + lightglue": partial(learned, model, 2048, True),
         }
     return combinations
 
 
 def _load(image: PosedImage) -> np.ndarray:
-    return np.ascontiguousarray(cv2.imread(str(image.image_path))[:, :, ::-1])
+    bgr = cv2.imread(str(image.image_path))
+    if bgr is None:
+        raise OSError(f"cannot read {image.image_path}")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     parser.add_argument(
         "--dataset", type=Path, default=root / ".." / "shared" / "datasets" / "redkitchen"
     )

@@ -1,7 +1,7 @@
 """Median run time and accuracy of every registered estimator at the guide's setting: top-10
 references, ~1000 matches per pair (1 px noise, 30 % outliers, metric depth), synthetic.
 
-Usage: PYTHONPATH=. python scripts/bench_estimators.py [--runs 3] [--matches 1000]
+Usage: python -m tools.benchmarks.estimators [--runs 3] [--matches 1000]
        [--min-iterations 1000] [NAME ...]
 Guide CPU figures for comparison: E5+1 265 ms, LazyLoc 101 ms, Ess. mat. 1623 ms,
 local triangulation all 2909 ms / pairs 1528 ms.
@@ -17,7 +17,7 @@ import numpy as np
 from services.estimators.options import EstimatorOptions, RansacOptions
 from services.estimators.registry import estimator_names, get_estimator
 from services.geometry.rigid import pose_error
-from services.synthetic_correspondences import make_correspondences
+from tools.synthetic.correspondences import make_correspondences
 
 # the guide's CPU time per query (ms) for the estimator of each family
 GUIDE_MS = {

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from app.importers import ImportItem, read_colmap, read_csv
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from tools.importers import ImportItem, read_colmap, read_csv
 
 # redkitchen: fx = fy = 525, cx = 320, cy = 240 fit the colour frames (dataset README)
 REDKITCHEN_CAMERA = Camera("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))

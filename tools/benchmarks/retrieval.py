@@ -9,7 +9,7 @@
    comparison): a query counts when a top-k reference lies within 0.5 m and 30° of it, over
    the queries that have such a reference at all.
 
-Run from the repository root: ``.venv/bin/python scripts/bench_retrieval.py [--dataset DIR]``
+Run from the repository root: ``.venv/bin/python -m tools.benchmarks.retrieval [--dataset DIR]``
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from app.evaluation.datasets import redkitchen_dataset
 from services.features.base import LocalFeatures
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import rotation_error_deg
@@ -32,6 +31,7 @@ from services.retrieval.policy import NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
+from tools.evaluation.datasets import redkitchen_dataset
 
 NEAR_M, NEAR_DEG = 0.5, 30.0
 
@@ -57,14 +57,18 @@ def search_times(rng: np.random.Generator) -> None:
             )
 
 
+def _load(path: Path) -> NDArray[np.uint8]:
+    bgr = cv2.imread(str(path))
+    if bgr is None:
+        raise OSError(f"cannot read {path}")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
 def recall(dataset: Path) -> None:
     images = redkitchen_dataset(dataset).images
     references = images[0:500:5]
     queries = images[500:1000:10]
-    rgb = {
-        i.name: np.ascontiguousarray(cv2.imread(str(i.image_path))[:, :, ::-1])
-        for i in references + queries
-    }
+    rgb = {i.name: _load(i.image_path) for i in references + queries}
     sift = SiftExtractor()
     features = {name: sift.extract(image) for name, image in rgb.items()}
     thumbnail = ThumbnailDescriptor()
@@ -115,7 +119,7 @@ def _vlad(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     parser.add_argument(
         "--dataset", type=Path, default=root / ".." / "shared" / "datasets" / "redkitchen"
     )

@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from app.evaluation.datasets import PosedImage, open_dataset
-from app.evaluation.evaluate import localize_params
-from app.evaluation.runner import HttpRunner, QueryOutcome
-from app.evaluation.server import LocalServer, is_loopback, peak_rss_mb
-from app.evaluation.split import split_dataset
 from services.estimators.registry import DEPTH_ESTIMATORS
-from services.synthetic_scene import SyntheticScene, encode_depth_png, encode_png
+from tools.evaluation.datasets import PosedImage, open_dataset
+from tools.evaluation.evaluate import localize_params
+from tools.evaluation.runner import HttpRunner, QueryOutcome
+from tools.evaluation.server import LocalServer, is_loopback, peak_rss_mb
+from tools.evaluation.split import split_dataset
+from tools.synthetic.scene import SyntheticScene, encode_depth_png, encode_png
 
 # stages spent in model inference and solvers (``timings_ms`` of the answer)
 COMPUTE_STAGES = ("extract", "match", "estimate")

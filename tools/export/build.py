@@ -13,9 +13,9 @@ DEFAULT_MODELS = ("aliked-n16", "lightglue-aliked")
 
 def _exporter(name: str) -> tuple[Callable[[Path], ModelEntry], int]:
     """The export function for ``name`` and the version of the graph it writes."""
-    from services.export.aliked import ALIKED_MODELS, export_aliked
-    from services.export.disk import DISK_MODELS, export_disk
-    from services.export.lightglue import EXPORT_VERSION, LIGHTGLUE_FEATURES, export_lightglue
+    from tools.export.aliked import ALIKED_MODELS, export_aliked
+    from tools.export.disk import DISK_MODELS, export_disk
+    from tools.export.lightglue import EXPORT_VERSION, LIGHTGLUE_FEATURES, export_lightglue
 
     if name in ALIKED_MODELS:
         return (lambda models_dir: export_aliked(name, models_dir)), 1

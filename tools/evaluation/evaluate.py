@@ -11,21 +11,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.evaluation.datasets import PosedImage
-from app.evaluation.metrics import (
+from app.schemas.geometry import CameraSchema
+from services.estimators.registry import DEPTH_ESTIMATORS
+from services.geometry.camera import Camera
+from tools.evaluation.datasets import PosedImage
+from tools.evaluation.metrics import (
     DEFAULT_THRESHOLDS,
     QueryRecord,
     ReferencePoses,
     make_record,
     summarize,
 )
-from app.evaluation.report import markdown_tables, write_json, write_plots
-from app.evaluation.runner import Runner
-from app.evaluation.split import Split
-from app.schemas.geometry import CameraSchema
-from services.estimators.registry import DEPTH_ESTIMATORS
-from services.geometry.camera import Camera
-from services.synthetic_scene import encode_png, unrelated_image
+from tools.evaluation.report import markdown_tables, write_json, write_plots
+from tools.evaluation.runner import Runner
+from tools.evaluation.split import Split
+from tools.synthetic.scene import encode_png, unrelated_image
 
 
 @dataclass(frozen=True)

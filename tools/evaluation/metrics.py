@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from services.geometry.rigid import Rigid3d, pose_error
 
 if TYPE_CHECKING:  # the runner needs the `eval` extra (httpx); the CLI reads these names without it
-    from app.evaluation.runner import QueryOutcome
+    from tools.evaluation.runner import QueryOutcome
 
 DEFAULT_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0), (0.25, 2.0))
 # a query is "localizable" when a reference lies within 0.3 m and 15° (ground truth); its

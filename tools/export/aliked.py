@@ -13,10 +13,10 @@ from pathlib import Path
 
 import torch
 
-from services.export import check_data, onnx_export
-from services.export.extractor_parity import TorchExtractorOutputs, check_extractor
-from services.export.torchvision_shim import install
 from services.runtime.manifest import ModelEntry
+from tools.export import check_data, onnx_export
+from tools.export.extractor_parity import TorchExtractorOutputs, check_extractor
+from tools.export.torchvision_shim import install
 
 ALIKED_MODELS = ("aliked-n16", "aliked-n16rot", "aliked-n32", "aliked-t16")
 

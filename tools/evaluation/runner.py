@@ -17,7 +17,6 @@ from typing import Any, Protocol
 
 import httpx
 
-from app.evaluation.datasets import PosedImage
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from app.schemas.localize import LocalizeParamsIn
@@ -29,6 +28,7 @@ from db.session import make_engine, make_session_factory
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.retrieval.cache import RetrievalIndexCache
+from tools.evaluation.datasets import PosedImage
 
 
 @dataclass(frozen=True)

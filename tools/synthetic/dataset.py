@@ -16,9 +16,9 @@ import csv
 import json
 from pathlib import Path
 
-from app.importers import CSV_COLUMNS
 from services.estimators.registry import DEFAULT_ESTIMATOR
-from services.synthetic_scene import SyntheticScene, SyntheticView, encode_png
+from tools.importers import CSV_COLUMNS
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 
 def _camera(view: SyntheticView) -> dict[str, object]:

@@ -8,7 +8,7 @@ localized again once the vocabulary is published. Prints wall times per request,
 medians, the ratio first / median before, and the training time.
 
 Run from the repository root (after ``slloc synth --out demo``):
-``.venv/bin/python scripts/bench_vocabulary.py [--demo demo] [--features sift] [--rounds 5]``
+``.venv/bin/python -m tools.benchmarks.vocabulary [--demo demo] [--features sift] [--rounds 5]``
 """
 
 from __future__ import annotations

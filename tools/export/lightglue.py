@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from services.export import check_data, onnx_export
-from services.export.aliked import load_torch_aliked
-from services.export.disk import load_torch_disk
-from services.export.extractor_parity import to_tensor
-from services.export.torchvision_shim import install
 from services.runtime.manifest import ModelEntry
+from tools.export import check_data, onnx_export
+from tools.export.aliked import load_torch_aliked
+from tools.export.disk import load_torch_disk
+from tools.export.extractor_parity import to_tensor
+from tools.export.torchvision_shim import install
 
 # features → the PyTorch extractor (keypoint budget → module) whose outputs the check matches
 CHECK_EXTRACTORS: dict[str, Callable[[int], torch.nn.Module]] = {

@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
-    from app.evaluation.arguments import add_bench_arguments, add_eval_arguments
+    from tools.evaluation.arguments import add_bench_arguments, add_eval_arguments
 
     add_eval_arguments(
         sub.add_parser("eval", help="accuracy and timings of configurations on a posed dataset")
@@ -98,14 +98,14 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         if args.command == "eval":
-            from app.evaluation.command import eval_main
+            from tools.evaluation.command import eval_main
 
             return eval_main(args)
-        from app.evaluation.bench import bench_main
+        from tools.evaluation.bench import bench_main
 
         return bench_main(args)
     if args.command == "synth":
-        from app.synthetic_dataset import write_synthetic_dataset
+        from tools.synthetic.dataset import write_synthetic_dataset
 
         write_synthetic_dataset(args.out, args.references, args.queries, args.seed)
         print(f"wrote {args.references} references and {args.queries} queries to {args.out}")
@@ -147,7 +147,7 @@ def _models_build(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from services.export.build import DEFAULT_MODELS, build_models
+    from tools.export.build import DEFAULT_MODELS, build_models
 
     for noisy in ("onnxscript", "onnx_ir", "torch"):  # per-node INFO lines of the exporter
         logging.getLogger(noisy).setLevel(logging.WARNING)
@@ -203,7 +203,6 @@ def _reindex(map_name: str) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from app.importers import ImportItem, iter_pending, read_colmap, read_csv
     from app.localizer_factory import build_localizer
     from app.usecases.errors import ConflictError, NotFoundError
     from app.usecases.images import add_reference_image
@@ -213,7 +212,9 @@ def _import(args: argparse.Namespace) -> int:
     from db.session import make_engine, make_session_factory
     from db.vocabulary import SqlVocabularyStore
     from services.errors import InvalidInputError
-    from services.retrieval.vlad_index import VladIndexer, VocabularyError
+    from services.retrieval.contracts import VocabularyError
+    from services.retrieval.vlad_index import VladIndexer
+    from tools.importers import ImportItem, iter_pending, read_colmap, read_csv
 
     settings = get_settings()
     if args.colmap is not None and args.images is None:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from services.synthetic_scene import SyntheticScene
+from tools.synthetic.scene import SyntheticScene
 
 Image = NDArray[np.uint8]
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.evaluation.metrics import DEFAULT_THRESHOLDS
 from services.components import AUTO, feature_config_names
 from services.estimators.registry import DEFAULT_ESTIMATOR, estimator_names
+from tools.evaluation.metrics import DEFAULT_THRESHOLDS
 
 
 def add_dataset_arguments(parser: argparse.ArgumentParser, required: bool) -> None:

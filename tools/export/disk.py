@@ -21,10 +21,10 @@ import torch
 from numpy.typing import NDArray
 from torch.nn import functional
 
-from services.export import check_data, onnx_export
-from services.export.extractor_parity import TorchExtractorOutputs, check_extractor
-from services.export.torchvision_shim import install
 from services.runtime.manifest import ModelEntry
+from tools.export import check_data, onnx_export
+from tools.export.extractor_parity import TorchExtractorOutputs, check_extractor
+from tools.export.torchvision_shim import install
 
 DISK_MODELS = ("disk",)
 NMS_WINDOW = 5

@@ -13,7 +13,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.evaluation.datasets import Dataset, PosedImage
+from tools.evaluation.datasets import Dataset, PosedImage
 
 # the split of datasets that suggest none: every 10th image is a query, the rest the map
 DEFAULT_REFERENCES = "rest"

@@ -1,0 +1,114 @@
+"""Retrieval contract types: a map's index as the engine searches it, the VLAD vocabulary it
+may use, and the storage protocol of vocabularies and VLAD vectors."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.retrieval.vlad import Vocabulary
+
+
+@dataclass(frozen=True)
+class VocabularyState:
+    """A map's published VLAD vocabulary: its version and the map size it was trained at."""
+
+    version: int
+    vocabulary: Vocabulary
+    trained_images: int
+
+
+@dataclass(frozen=True)
+class RetrievalIndex:
+    """Global descriptors of a map's reference images.
+
+    Attributes:
+        image_ids: N ids.
+        descriptors: (N, D) float32 unit rows.
+        centers: (N, 3) float64 camera centres.
+        vocabulary: with VLAD retrieval, the map's vocabulary (``descriptors`` are VLAD
+            vectors; the query is encoded with it); None: the localizer's global descriptor.
+        vocabulary_version: its version (0 without one).
+    """
+
+    image_ids: list[str]
+    descriptors: NDArray[np.float32]
+    centers: NDArray[np.float64]
+    vocabulary: Vocabulary | None = None
+    vocabulary_version: int = 0
+
+
+EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
+
+
+def empty_index(vocabulary: VocabularyState | None) -> RetrievalIndex:
+    """An index of no reference, tagged with ``vocabulary`` when there is one."""
+    if vocabulary is None:
+        return EMPTY_INDEX
+    return replace(
+        EMPTY_INDEX, vocabulary=vocabulary.vocabulary, vocabulary_version=vocabulary.version
+    )
+
+
+Encoder = Callable[[NDArray[np.float32]], NDArray[np.float32]]
+
+
+class VocabularyError(ValueError):
+    """A vocabulary cannot be trained (too few references or descriptors, or the map went)."""
+
+
+class VocabularyStore(Protocol):
+    """Where one map's vocabulary and VLAD vectors (of one feature model) are kept."""
+
+    map_id: str
+    feature_model: str
+
+    def count(self) -> int:
+        """How many references the map has."""
+        ...
+
+    def published(self) -> VocabularyState | None: ...
+
+    def reference_ids(self) -> list[str]:
+        """Every reference id, in insertion order."""
+        ...
+
+    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+        """(N, D) local descriptors of the references among ``image_ids`` still stored."""
+        ...
+
+    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
+        """Keep ``vectors`` of an unpublished version under ``tag`` (references deleted
+        meanwhile are skipped)."""
+        ...
+
+    def publish(
+        self,
+        vocabulary: Vocabulary,
+        tag: str,
+        trained_images: int,
+        previous: VocabularyState | None,
+        encoder: Encoder,
+    ) -> VocabularyState:
+        """Atomically: encode with ``encoder`` the references that have no staged vector, make
+        the staged vectors current, store ``vocabulary`` as the next version. When another
+        trainer published since ``previous`` was read, drop the staged vectors and return its
+        version instead.
+
+        Raises:
+            VocabularyError: the map was deleted.
+        """
+        ...
+
+    def stale_ids(self, version: int, limit: int) -> list[str]:
+        """Up to ``limit`` references without a vector of ``version``."""
+        ...
+
+    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
+        """Store current vectors of ``version``; False when a reference was deleted meanwhile
+        (nothing written)."""
+        ...

@@ -1,0 +1,1 @@
+"""Timing and accuracy benchmarks, each runnable as ``python -m tools.benchmarks.<name>``."""

@@ -1,0 +1,1 @@
+"""Rendered synthetic scenes and correspondences with exact ground truth, and the demo dataset."""
