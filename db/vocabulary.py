@@ -88,6 +88,7 @@ class SqlVocabularyStore:
         trained_images: int,
         previous: VocabularyState | None,
         encoder: Encoder,
+        yield_to_newer: bool,
     ) -> VocabularyState:
         staged = STAGED_PREFIX + tag
         in_map = select(ReferenceImage.id).where(*self._images())
@@ -97,9 +98,10 @@ class SqlVocabularyStore:
                 if map_row is None:
                     raise VocabularyError(f"map {self.map_id} was deleted while training")
                 current = read_vocabulary(session, self.map_id, self.feature_model)
-                if (None if current is None else current.version) != (
+                newer = (None if current is None else current.version) != (
                     None if previous is None else previous.version
-                ):  # another trainer published first
+                )
+                if yield_to_newer and newer:  # another trainer published first
                     session.execute(delete(FeatureArray).where(FeatureArray.kind == staged))
                     if current is None:
                         raise VocabularyError(f"map {self.map_id}'s vocabulary was removed")

@@ -209,3 +209,39 @@ def test_add_endpoint_trains_in_the_background(
             assert vocabulary is not None and vocabulary.version == 1
             assert vocabulary.trained_images == MIN_IMAGES
         engine.dispose()
+
+
+def test_background_training_yields_to_an_explicit_one(
+    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+) -> None:
+    """A due training that finds a version published meanwhile keeps that one; an explicit
+    training publishes on top of it."""
+    engine = make_engine(database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions.begin() as session:
+        map_id = MapRepository(session).create("racing", None).id
+    for view in reference_views[:3]:
+        image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
+        add_reference_image(sessions, localizer, map_id, image, encode_png(view.image))
+    store = SqlVocabularyStore(sessions, map_id, localizer.extractor.name)
+    explicit = VladIndexer(store).train()
+    assert explicit.version == 1
+    state = store.published()
+    assert state is not None
+    ids = store.reference_ids()
+    vectors = {i: np.ones(state.vocabulary.dimension, np.float32) for i in ids}
+
+    def encoder(d: np.ndarray) -> np.ndarray:
+        return np.ones(state.vocabulary.dimension, np.float32)
+
+    store.stage(vectors, "late0000")
+    kept = store.publish(state.vocabulary, "late0000", 3, None, encoder, yield_to_newer=True)
+    assert kept.version == 1  # the version published meanwhile stays
+    store.stage(vectors, "late0001")
+    on_top = store.publish(state.vocabulary, "late0001", 3, None, encoder, yield_to_newer=False)
+    assert on_top.version == 2
+    with sessions() as session:
+        kinds = set(session.scalars(select(FeatureArray.kind)).all())
+        assert not any(k.startswith(STAGED_PREFIX) for k in kinds)
+    engine.dispose()

@@ -93,11 +93,12 @@ class VocabularyStore(Protocol):
         trained_images: int,
         previous: VocabularyState | None,
         encoder: Encoder,
+        yield_to_newer: bool,
     ) -> VocabularyState:
         """Atomically: encode with ``encoder`` the references that have no staged vector, make
-        the staged vectors current, store ``vocabulary`` as the next version. When another
-        trainer published since ``previous`` was read, drop the staged vectors and return its
-        version instead.
+        the staged vectors current, store ``vocabulary`` as the next version. When
+        ``yield_to_newer`` and another trainer published since ``previous`` was read, drop the
+        staged vectors and return its version instead.
 
         Raises:
             VocabularyError: the map was deleted.

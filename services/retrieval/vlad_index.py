@@ -74,10 +74,13 @@ class VladIndexer:
         return state
 
     def train_if_due(self) -> ReindexReport | None:
-        return self.train() if self.due() else None
+        """Train when the policy asks for it; a version another trainer publishes meanwhile
+        is kept instead of this one."""
+        return self.train(yield_to_newer=True) if self.due() else None
 
-    def train(self) -> ReindexReport:
-        """Train a new vocabulary version now, encode every reference with it, publish it.
+    def train(self, yield_to_newer: bool = False) -> ReindexReport:
+        """Train a new vocabulary version now, encode every reference with it, publish it (on
+        top of any version published meanwhile, unless ``yield_to_newer``).
 
         Raises:
             VocabularyError: the map has too few references or descriptors, or was deleted.
@@ -104,7 +107,7 @@ class VladIndexer:
             batch = ids[first : first + ENCODE_BATCH]
             stored = self.store.descriptors(batch)
             self.store.stage({i: encoder(d) for i, d in stored.items()}, tag)
-        state = self.store.publish(vocabulary, tag, len(ids), previous, encoder)
+        state = self.store.publish(vocabulary, tag, len(ids), previous, encoder, yield_to_newer)
         seconds = time.perf_counter() - start
         logger.info(
             "map %s: VLAD vocabulary v%d (%s, K=%d) trained on %d of %d references in %.1f s",

@@ -140,6 +140,7 @@ def _load_references(
         if i % 10 == 0 or i == len(images):
             elapsed = time.perf_counter() - start
             log(f"[{runner.features}] references {i}/{len(images)} ({elapsed:.0f} s)")
+    runner.index_references(len(images))
 
 
 def _localize_all(

@@ -7,6 +7,7 @@ Both take the localize ``params`` as the API's JSON object and answer ``QueryOut
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 import time
@@ -20,14 +21,17 @@ import httpx
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from app.schemas.localize import LocalizeParamsIn
+from app.usecases.errors import ConflictError
 from app.usecases.images import add_reference_image
 from app.usecases.localize import localize
 from app.usecases.maps import create_map
+from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.policy import MIN_IMAGES
 from tools.evaluation.datasets import PosedImage
 
 
@@ -56,6 +60,12 @@ class Runner(Protocol):
     features: str
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None: ...
+
+    def index_references(self, count: int) -> None:
+        """After the ``count`` references are in: train the map's retrieval vocabulary on all of
+        them when the map is big enough for one, as an admin does after a bulk load, so
+        every mode searches the same index whatever the background trainer did meanwhile."""
+        ...
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         """``params``: the API's localize ``params`` object."""
@@ -97,6 +107,12 @@ class InProcessRunner:
             image.image_path.read_bytes(),
             depth,
         )
+
+    def index_references(self, count: int) -> None:
+        if count < MIN_IMAGES:
+            return
+        with contextlib.suppress(ConflictError):  # too few descriptors: global descriptors
+            reindex_map(self._sessions, self.localizer, self._map_id, vlad=True)
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
@@ -149,6 +165,7 @@ class HttpRunner:
         headers = {"X-API-Key": api_key} if api_key else {}
         self._client = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=600.0)
         self.keep_map = keep_map or map_id is not None
+        self.map_id_given = map_id is not None
         health = self._request("GET", "/v1/health").json()
         self.features = str(health["models"]["features"])
         if map_id is None:
@@ -184,6 +201,13 @@ class HttpRunner:
             files=self._files(image.image_path.read_bytes(), image.image_path.name, depth),
             data={"metadata": metadata_of(image).model_dump_json()},
         )
+
+    def index_references(self, count: int) -> None:
+        if count < MIN_IMAGES or self.map_id_given:
+            return  # a map the evaluator did not create is evaluated as it is
+        response = self._client.post(f"/v1/maps/{self.map_id}/reindex")
+        if response.status_code != 409:  # 409: retrieval by an ONNX global model
+            response.raise_for_status()
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
