@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from numpy.typing import NDArray
 from torch.nn import functional
 
 from services.runtime.manifest import ModelEntry
+from services.types import UInt8Array
 from tools.export import check_data, onnx_export
 from tools.export.extractor_parity import TorchExtractorOutputs, check_extractor
 from tools.export.torchvision_shim import install
@@ -97,7 +97,7 @@ def weights_path() -> Path:
     return Path(str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath("disk-depth-save.pth")))
 
 
-def _odd_sized(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+def _odd_sized(image: UInt8Array) -> UInt8Array:
     """A crop whose sides are not multiples of 16: exercises the graph's padding."""
     height, width = image.shape[:2]
     return np.ascontiguousarray(image[: height - 23, 5 : width - 6])
