@@ -113,16 +113,7 @@ def export_disk(models_dir: Path, budget: int = 2048) -> ModelEntry:
     torch_disk = load_torch_disk(budget)
     graph = _DiskGraph(torch_disk.get_submodule("model.unet"), budget, DESCRIPTOR_DIM).eval()
     path = models_dir / "disk.onnx"
-    dim_h = torch.export.Dim("height", min=64, max=4096)
-    dim_w = torch.export.Dim("width", min=64, max=4096)
-    onnx_export.export(
-        graph,
-        (torch.rand(1, 3, 480, 640),),
-        path,
-        ["image"],
-        ["keypoints", "scores", "descriptors"],
-        [{2: dim_h, 3: dim_w}],
-    )
+    onnx_export.export_extractor(graph, path)
     images = check_data.check_images()
     parity = check_extractor(
         "disk", path, TorchExtractorOutputs(torch_disk), [*images, _odd_sized(images[-1])]
