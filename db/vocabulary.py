@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from numpy.typing import NDArray
 from sqlalchemy import ColumnElement, delete, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
@@ -21,6 +20,7 @@ from db.arrays import from_row, to_row
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from services.retrieval.contracts import Encoder, VocabularyError, VocabularyState
 from services.retrieval.vlad import Vocabulary
+from services.types import Float32Array
 
 logger = logging.getLogger(__name__)
 
@@ -70,11 +70,11 @@ class SqlVocabularyStore:
                 )
             )
 
-    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+    def descriptors(self, image_ids: list[str]) -> dict[str, Float32Array]:
         with self.sessions() as session:
             return _descriptors(session, image_ids)
 
-    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
+    def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:
         try:
             with self.sessions.begin() as session:
                 _write(session, vectors, STAGED_PREFIX + tag)
@@ -154,7 +154,7 @@ class SqlVocabularyStore:
                 )
             )
 
-    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
+    def replace_vectors(self, vectors: dict[str, Float32Array], version: int) -> bool:
         ids = list(vectors)
         try:
             with self.sessions.begin() as session:
@@ -174,7 +174,7 @@ class SqlVocabularyStore:
         return True
 
 
-def _descriptors(session: Session, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+def _descriptors(session: Session, image_ids: list[str]) -> dict[str, Float32Array]:
     rows = session.scalars(
         select(FeatureArray).where(
             FeatureArray.image_id.in_(image_ids), FeatureArray.kind == "descriptors"
@@ -183,7 +183,7 @@ def _descriptors(session: Session, image_ids: list[str]) -> dict[str, NDArray[np
     return {row.image_id: from_row(row).astype(np.float32) for row in rows}
 
 
-def _write(session: Session, vectors: dict[str, NDArray[np.float32]], kind: str) -> None:
+def _write(session: Session, vectors: dict[str, Float32Array], kind: str) -> None:
     """Add ``vectors`` as arrays of ``kind`` for the references still stored."""
     existing = set(
         session.scalars(select(ReferenceImage.id).where(ReferenceImage.id.in_(list(vectors))))

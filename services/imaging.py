@@ -7,9 +7,9 @@ import struct
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
+from services.types import Float32Array, UInt8Array
 
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
@@ -42,7 +42,7 @@ def image_size_from_header(data: bytes) -> tuple[int, int]:
     raise ImageDecodeError("not a JPEG or PNG image")
 
 
-def decode_image(data: bytes, max_pixels: int) -> NDArray[np.uint8]:
+def decode_image(data: bytes, max_pixels: int) -> UInt8Array:
     """Decode a JPEG or PNG upload into an (H, W, 3) RGB uint8 array, EXIF orientation applied.
 
     Raises:
@@ -62,7 +62,7 @@ def decode_image(data: bytes, max_pixels: int) -> NDArray[np.uint8]:
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
-def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArray[np.float32]:
+def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> Float32Array:
     """Decode a depth map: 16-bit PNG in millimetres or ``.npy`` float32 in metres.
 
     Invalid depth (0, 65535, non-finite, negative) becomes 0. The map must match the image size.
@@ -77,7 +77,7 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArr
             raise InvalidInputError(f"depth .npy could not be read: {exc}") from exc
         if not isinstance(loaded, np.ndarray) or loaded.ndim != 2 or loaded.dtype.kind != "f":
             raise InvalidInputError("depth .npy must be a 2-D float array in metres")
-        depth: NDArray[np.float32] = loaded.astype(np.float32)
+        depth: Float32Array = loaded.astype(np.float32)
     else:
         w, h = image_size_from_header(data)
         if w * h > max_pixels:
@@ -92,5 +92,5 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> NDArr
             f"depth map is {depth.shape[1]}×{depth.shape[0]}, the image is {width}×{height}"
         )
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
-    out: NDArray[np.float32] = depth
+    out: Float32Array = depth
     return out

@@ -11,7 +11,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.errors import InvalidInputError
 from services.estimators.base import FailureReason, ReferenceObservation
@@ -26,6 +25,7 @@ from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
 from services.retrieval.vlad import encode
+from services.types import Float32Array, FloatArray, IntArray, UInt8Array
 from services.verification import verify_pose
 
 logger = logging.getLogger(__name__)
@@ -50,8 +50,8 @@ class RetrievedReference:
     score: float
     num_matches: int
     num_inliers: int
-    query_xy: NDArray[np.float64]
-    reference_xy: NDArray[np.float64]
+    query_xy: FloatArray
+    reference_xy: FloatArray
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,7 @@ class LocalizationResult:
     stats: dict[str, float]
 
 
-def _sample_depth(
-    depth: NDArray[np.float32] | None, xy: NDArray[np.float64]
-) -> NDArray[np.float64] | None:
+def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
     """Depth at (M, 2) COLMAP pixel coordinates (nearest pixel); None without a depth map."""
     if depth is None:
         return None
@@ -218,10 +216,10 @@ class Localizer:
 
 def _observe(
     query: LocalFeatures,
-    query_depth: NDArray[np.float32] | None,
+    query_depth: Float32Array | None,
     ref: ReferenceView,
     score: float,
-    pairs: NDArray[np.int64],
+    pairs: IntArray,
 ) -> ReferenceObservation:
     """The correspondences of ``pairs`` ((M, 2) query/reference keypoint indices)."""
     query_xy = query.keypoints[pairs[:, 0]].astype(np.float64)
@@ -238,7 +236,7 @@ def _observe(
     )
 
 
-def _check_camera_matches(camera: Camera, image: NDArray[np.uint8]) -> None:
+def _check_camera_matches(camera: Camera, image: UInt8Array) -> None:
     height, width = image.shape[:2]
     if (camera.width, camera.height) != (width, height):
         raise InvalidInputError(

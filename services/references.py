@@ -6,13 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
-import numpy as np
-from numpy.typing import NDArray
-
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.retrieval.contracts import RetrievalIndex
+from services.types import Float32Array
 
 
 @dataclass(frozen=True)
@@ -28,8 +26,8 @@ class ReferenceData:
     """
 
     features: LocalFeatures
-    global_descriptor: NDArray[np.float32]
-    depth: NDArray[np.float32] | None
+    global_descriptor: Float32Array
+    depth: Float32Array | None
     feature_model: str
     descriptor_model: str
 
@@ -43,7 +41,7 @@ class ReferenceView:
     camera: Camera
     cam_from_world: Rigid3d
     features: LocalFeatures
-    depth: NDArray[np.float32] | None
+    depth: Float32Array | None
 
 
 class ReferenceStore(Protocol):

@@ -51,14 +51,12 @@ class StructureCheck:
     Attributes:
         correspondence_verified: (K,) bool, the correspondence belongs to a verified point and
             its reference observation agrees with that point.
-        point_of_correspondence: (K,) int64 index into ``points`` of each correspondence.
         points: (T, 3) float64 world points, one per track (NaN where not triangulated).
         point_verified: (T,) bool, the track passed every check.
         num_tracks: tracks with at least ``min_views`` reference observations before checking.
     """
 
     correspondence_verified: BoolArray
-    point_of_correspondence: IntArray
     points: FloatArray
     point_verified: BoolArray
     num_tracks: int
@@ -199,9 +197,7 @@ def verify_by_reference_triangulation(
         raise ValueError("a point needs at least two reference views to be triangulated")
     k = int(reference_index.shape[0])
     if k == 0:
-        return StructureCheck(
-            np.zeros(0, bool), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool), 0
-        )
+        return StructureCheck(np.zeros(0, bool), np.zeros((0, 3)), np.zeros(0, bool), 0)
     _, inverse = np.unique(track_ids, return_inverse=True)
     tid = inverse.reshape(-1).astype(np.int64)
     num_tracks = int(tid.max()) + 1
@@ -237,7 +233,6 @@ def verify_by_reference_triangulation(
     point_verified = enough & (cos_query > np.cos(query_max_angle))
     return StructureCheck(
         correspondence_verified=use & point_verified[tid],
-        point_of_correspondence=tid,
         points=points,
         point_verified=point_verified,
         num_tracks=num_candidates,

@@ -8,8 +8,6 @@ class NotFoundError(Exception):
 
     def __init__(self, kind: str, ident: str) -> None:
         super().__init__(f"{kind} {ident!r} does not exist")
-        self.kind = kind
-        self.ident = ident
 
 
 class ConflictError(Exception):

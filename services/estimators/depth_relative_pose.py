@@ -31,13 +31,10 @@ Poses = tuple[FloatArray, FloatArray]
 
 @dataclass(frozen=True)
 class DepthRelativePose:
-    """``dst_from_src`` rotation, unit translation direction, scale of the similarity (metric
-    translation = ``t * scale_t``), inlier mask over all matches, and iterations run."""
+    """``dst_from_src`` rotation, unit translation direction, and RANSAC iterations run."""
 
     R: FloatArray
     t: FloatArray
-    translation_norm: float
-    inliers: BoolArray
     iterations: int
 
 
@@ -148,7 +145,7 @@ def ransac_relative_pose_depth(
     R_best, t_best = found.model
     norm = float(np.linalg.norm(t_best))
     direction = t_best / norm if norm > 0 else t_best
-    return DepthRelativePose(R_best, direction, norm, found.inliers, found.iterations)
+    return DepthRelativePose(R_best, direction, found.iterations)
 
 
 def polish_relative_pose(

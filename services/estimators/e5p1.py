@@ -1,17 +1,17 @@
-"""E5+1: semi-generalized relative pose with PoseLib (Zheng & Wu 2015; the guide's default).
+"""E5+1: semi-generalized relative pose with PoseLib (Zheng & Wu 2015).
 
 The retrieved references form a generalized camera whose rig frame is the world frame; the
 query is a single pinhole camera. PoseLib's 5+1 solver in LO-RANSAC (with Sampson-error
 refinement) gives the query's ``cam_from_world`` directly, metric scale from the references'
 known baselines.
 
-Speed: LO-RANSAC's cost is its iterations (at least ``min_iterations``, the guide's 1000)
-times the correspondences each hypothesis is scored on. The hypotheses are therefore scored
-on a seeded random sample of at most ``RANSAC_SAMPLE_PER_PAIR`` matches per reference; the
-winning pose is then re-scored and refined on every match (generalized Sampson refinement,
-``pose_triangulation.local_optimisation``), so the answer's inliers and accuracy come from all
-of them. At the guide's setting (10 references × 1000 matches) this is ~4× faster for the same
-accuracy (``python -m tools.benchmarks.estimators``).
+Speed: LO-RANSAC's cost is its iterations (at least ``min_iterations``, 1000 by default) times the
+correspondences each hypothesis is scored on. The hypotheses are therefore scored on a seeded random
+sample of at most ``RANSAC_SAMPLE_PER_PAIR`` matches per reference; the winning pose is then
+re-scored and refined on every match (generalized Sampson refinement,
+``pose_triangulation.local_optimisation``), so the answer's inliers and accuracy come from all of
+them. With 10 references × 1000 matches this is ~4× faster for the same accuracy
+(``python -m tools.benchmarks.estimators``).
 
 The pipeline then verifies the pose in 3D (``services.verification``).
 """

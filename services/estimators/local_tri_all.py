@@ -1,7 +1,8 @@
-"""Local triangulation over all references ("SfM on the fly", the guide's most accurate family):
-tracks through each query keypoint, RANSAC triangulation of every track over all retrieved
-references (threshold ``TriangulationOptions.max_error_px``: 2 px sparse, 8 px dense), then P3P
-LO-RANSAC with refinement (PoseLib) on the query keypoints ↔ triangulated points.
+"""Local triangulation over all references ("SfM on the fly", the most accurate family in
+Panek et al. 2025, "A Guide to Structureless Visual Localization"): tracks through each query
+keypoint, RANSAC triangulation of every track over all retrieved references (threshold
+``TriangulationOptions.max_error_px``: 2 px sparse, 8 px dense), then P3P LO-RANSAC with
+refinement (PoseLib) on the query keypoints ↔ triangulated points.
 
 The returned inlier masks are the matches within ``max_error_px`` Sampson error of the final
 pose (the same definition as every other estimator); ``stats`` also reports the 2D–3D

@@ -2,8 +2,8 @@
 references, the query keypoints matched in both are triangulated from the two references (2-view
 DLT, ``TriangulationOptions.max_error_px`` check, ≥ 1° parallax), P3P LO-RANSAC (PoseLib) gives a
 query pose from those points, and the pose with most 2D–3D inliers wins; it is then refined on the
-points of all pairs that reproject within an adaptive threshold (the guide stops at the best pair;
-this extra step costs one refinement and steadies the accuracy).
+points of all pairs that reproject within an adaptive threshold (a step beyond the best pair's
+pose: it costs one refinement and steadies the accuracy).
 
 Pairs are tried in decreasing order of shared tracks; when the time budget runs out the best
 pose so far is kept (``stats["budget_exhausted"] = 1``), or ``time_budget_exceeded`` without

@@ -8,11 +8,12 @@ reproject within an adaptive threshold ≤ ``max_error_px`` (three rounds,
 ``tracks.refine_on_points``). Without enough triangulated points the averaged pose is returned as is
 (``stats["refined"] = 0``).
 
-Speed (the guide's LazyLoc takes 101 ms a query): the pairwise relative poses are only
-proposals that robust averaging filters, so each pair's RANSAC scores its hypotheses on a
-sample of ``PAIR_SAMPLE`` matches and stops adaptively (PoseLib's success probability) after
-at least ``PAIR_MIN_ITERATIONS`` instead of the final estimators' ``min_iterations``; the
-refinement triangulates at most ``MAX_REFINEMENT_TRACKS`` tracks, sampled at random.
+Speed (LazyLoc takes 101 ms a query on a CPU in Panek et al. 2025, "A Guide to Structureless Visual
+Localization"): the pairwise relative poses are only proposals that robust averaging filters, so
+each pair's RANSAC scores its hypotheses on a sample of ``PAIR_SAMPLE`` matches and stops adaptively
+(PoseLib's success probability) after at least ``PAIR_MIN_ITERATIONS`` instead of the final
+estimators' ``min_iterations``; the refinement triangulates at most ``MAX_REFINEMENT_TRACKS``
+tracks, sampled at random.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Pose approximation (the guide's baseline): the query pose is the top-1 retrieved pose, or a
-retrieval-score-weighted interpolation of the retrieved poses (default).
+"""Pose approximation (the baseline of Panek et al. 2025, "A Guide to Structureless Visual
+Localization"): the query pose is the top-1 retrieved pose, or a retrieval-score-weighted
+interpolation of the retrieved poses (default).
 
 Weighted mode: weights are the retrieval scores clipped at 0 (uniform when all are ≤ 0); the
 centre is the weighted mean of the reference centres and the rotation the chordal L2 mean of

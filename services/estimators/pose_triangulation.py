@@ -1,6 +1,7 @@
-"""Pose triangulation (the guide's "Ess. mat." family), shared by ``essential_5pt``,
-``essential_3pt_depth`` (``PoseTriangulationEstimator``) and the first stages of
-``motion_averaging`` (``triangulated_pose``).
+"""Pose triangulation ("Ess. mat." in Panek et al. 2025, "A Guide to Structureless Visual
+Localization"), shared by ``essential_5pt``, ``essential_3pt_depth``
+(``PoseTriangulationEstimator``) and the first stages of ``motion_averaging``
+(``triangulated_pose``).
 
 1. Relative pose ``query_from_reference`` per pair (rotation + unit translation direction).
 2. Each pair implies a query rotation ``R_q = R_qr·R_r``: robust single-rotation averaging.

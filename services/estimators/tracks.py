@@ -4,7 +4,8 @@ references' keypoints, which can then be triangulated from the (posed) reference
 Query keypoints are identified by their pixel coordinates: the pipeline takes every match's
 query position from the one keypoint array, so equal coordinates mean the same keypoint. With
 ``merge_px > 0`` (dense matchers) coordinates are snapped to a ``merge_px`` grid first, an
-approximation of the guide's 5 px track merging (neighbours across a cell border stay apart).
+approximation of merging keypoints within ``merge_px`` (neighbours across a cell border stay
+apart).
 """
 
 from __future__ import annotations

@@ -5,8 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
-import numpy as np
-from numpy.typing import NDArray
+from services.types import Float32Array, UInt8Array
 
 
 @dataclass(frozen=True)
@@ -22,9 +21,9 @@ class LocalFeatures:
             keypoints by it.
     """
 
-    keypoints: NDArray[np.float32]
-    descriptors: NDArray[np.float32]
-    scores: NDArray[np.float32]
+    keypoints: Float32Array
+    descriptors: Float32Array
+    scores: Float32Array
     image_size: tuple[int, int]
 
     def __len__(self) -> int:
@@ -40,7 +39,7 @@ class FeatureExtractor(Protocol):
 
     name: str
 
-    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+    def extract(self, image: UInt8Array) -> LocalFeatures:
         """Features of an (H, W, 3) RGB uint8 image."""
         ...
 

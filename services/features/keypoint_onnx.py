@@ -13,10 +13,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.errors import InvalidInputError
 from services.features.base import LocalFeatures
+from services.types import UInt8Array
 
 MIN_SIDE = 64  # the graph's smallest input side (and enough candidates for its top-k)
 
@@ -58,7 +58,7 @@ class OnnxKeypointExtractor:
         )
         return OnnxKeypointExtractor(self.session, self.model_name, self.exported_budget, options)
 
-    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+    def extract(self, image: UInt8Array) -> LocalFeatures:
         height, width = image.shape[:2]
         scale = min(1.0, self.options.max_side / max(height, width))
         new_w, new_h = round(width * scale), round(height * scale)

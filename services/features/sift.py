@@ -6,9 +6,9 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
+from services.types import UInt8Array
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class SiftExtractor:
             )
         )
 
-    def extract(self, image: NDArray[np.uint8]) -> LocalFeatures:
+    def extract(self, image: UInt8Array) -> LocalFeatures:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         height, width = gray.shape
         scale = min(1.0, self.options.max_side / max(height, width))

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.errors import InvalidInputError
+from services.types import FloatArray
 
 # model name -> parameter names, in COLMAP order
 CAMERA_MODELS: dict[str, tuple[str, ...]] = {
@@ -65,7 +65,7 @@ class Camera:
         return self.params[i], self.params[i + 1]
 
     @property
-    def K(self) -> NDArray[np.float64]:
+    def K(self) -> FloatArray:
         """(3, 3) calibration matrix (distortion ignored)."""
         (fx, fy), (cx, cy) = self.focal_lengths, self.principal_point
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

@@ -16,10 +16,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.types import IntArray
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 
@@ -45,7 +45,7 @@ class OnnxLightGlueMatcher:
         cap = "" if lightglue_keypoints is None else f"-{lightglue_keypoints}kp"
         self.name = f"{model_name}{cap}-{budget}+{self.first_pass.name}"
 
-    def match(self, query: LocalFeatures, reference: LocalFeatures) -> NDArray[np.int64]:
+    def match(self, query: LocalFeatures, reference: LocalFeatures) -> IntArray:
         """(K, 2) query/reference keypoint indices; only the first ``lightglue_keypoints``
         keypoints of each image can match."""
         if len(query) < 2 or len(reference) < 2:
@@ -66,7 +66,7 @@ class OnnxLightGlueMatcher:
 
     def match_many(
         self, query: LocalFeatures, references: Sequence[LocalFeatures]
-    ) -> list[NDArray[np.int64]]:
+    ) -> list[IntArray]:
         if self.lightglue_pairs is None:
             return [self.match(query, reference) for reference in references]
         out = self.first_pass.match_many(query, references)

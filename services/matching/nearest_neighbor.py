@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
+from services.types import IntArray
 
 
 class NearestNeighborMatcher:
@@ -23,7 +23,7 @@ class NearestNeighborMatcher:
         self.ratio = ratio
         self.name = f"mnn-ratio-{ratio:g}"
 
-    def match(self, query: LocalFeatures, reference: LocalFeatures) -> NDArray[np.int64]:
+    def match(self, query: LocalFeatures, reference: LocalFeatures) -> IntArray:
         if len(query) < 2 or len(reference) < 2:
             return np.zeros((0, 2), dtype=np.int64)
         similarity = query.descriptors @ reference.descriptors.T  # (N, M) cosines
@@ -44,5 +44,5 @@ class NearestNeighborMatcher:
 
     def match_many(
         self, query: LocalFeatures, references: Sequence[LocalFeatures]
-    ) -> list[NDArray[np.int64]]:
+    ) -> list[IntArray]:
         return [self.match(query, reference) for reference in references]

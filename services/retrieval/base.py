@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from typing import Protocol
 
-import numpy as np
-from numpy.typing import NDArray
-
 from services.features.base import LocalFeatures
+from services.types import Float32Array, UInt8Array
 
 
 class GlobalDescriptor(Protocol):
@@ -19,6 +17,6 @@ class GlobalDescriptor(Protocol):
 
     name: str
 
-    def compute(self, image: NDArray[np.uint8], features: LocalFeatures) -> NDArray[np.float32]:
+    def compute(self, image: UInt8Array, features: LocalFeatures) -> Float32Array:
         """(D,) float32 unit vector of an (H, W, 3) RGB uint8 image and its local features."""
         ...

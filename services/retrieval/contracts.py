@@ -8,9 +8,9 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.retrieval.vlad import Vocabulary
+from services.types import Float32Array, FloatArray
 
 
 @dataclass(frozen=True)
@@ -36,8 +36,8 @@ class RetrievalIndex:
     """
 
     image_ids: list[str]
-    descriptors: NDArray[np.float32]
-    centers: NDArray[np.float64]
+    descriptors: Float32Array
+    centers: FloatArray
     vocabulary: Vocabulary | None = None
     vocabulary_version: int = 0
 
@@ -54,7 +54,7 @@ def empty_index(vocabulary: VocabularyState | None) -> RetrievalIndex:
     )
 
 
-Encoder = Callable[[NDArray[np.float32]], NDArray[np.float32]]
+Encoder = Callable[[Float32Array], Float32Array]
 
 
 class VocabularyError(ValueError):
@@ -77,11 +77,11 @@ class VocabularyStore(Protocol):
         """Every reference id, in insertion order."""
         ...
 
-    def descriptors(self, image_ids: list[str]) -> dict[str, NDArray[np.float32]]:
+    def descriptors(self, image_ids: list[str]) -> dict[str, Float32Array]:
         """(N, D) local descriptors of the references among ``image_ids`` still stored."""
         ...
 
-    def stage(self, vectors: dict[str, NDArray[np.float32]], tag: str) -> None:
+    def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:
         """Keep ``vectors`` of an unpublished version under ``tag`` (references deleted
         meanwhile are skipped)."""
         ...
@@ -109,7 +109,7 @@ class VocabularyStore(Protocol):
         """Up to ``limit`` references without a vector of ``version``."""
         ...
 
-    def replace_vectors(self, vectors: dict[str, NDArray[np.float32]], version: int) -> bool:
+    def replace_vectors(self, vectors: dict[str, Float32Array], version: int) -> bool:
         """Store current vectors of ``version``; False when a reference was deleted meanwhile
         (nothing written)."""
         ...

@@ -20,10 +20,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
 from services.runtime.manifest import file_sha256
+from services.types import Float32Array, UInt8Array
 
 _MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 _STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -50,7 +50,7 @@ class OnnxGlobalDescriptor:
         self.max_side = max_side
         self.name = f"onnx-{path.stem}-{file_sha256(path)[:12]}"
 
-    def compute(self, image: NDArray[np.uint8], features: LocalFeatures) -> NDArray[np.float32]:
+    def compute(self, image: UInt8Array, features: LocalFeatures) -> Float32Array:
         height, width = image.shape[:2]
         if self.fixed_size is not None:
             size = self.fixed_size

@@ -5,24 +5,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+
+from services.types import Float32Array, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
 class PositionPrior:
     """Keep references whose camera centre lies within ``radius`` of ``position`` (world units)."""
 
-    position: NDArray[np.float64]
+    position: FloatArray
     radius: float
 
 
 def top_k(
-    query: NDArray[np.float32],
-    descriptors: NDArray[np.float32],
+    query: Float32Array,
+    descriptors: Float32Array,
     k: int,
-    centers: NDArray[np.float64] | None = None,
+    centers: FloatArray | None = None,
     prior: PositionPrior | None = None,
-) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+) -> tuple[IntArray, Float32Array]:
     """Indices and cosine scores of the ``k`` most similar references, best first.
 
     Args:

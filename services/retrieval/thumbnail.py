@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
+from services.types import Float32Array, UInt8Array
 
 
 class ThumbnailDescriptor:
@@ -20,7 +20,7 @@ class ThumbnailDescriptor:
         self.blur_sigma = blur_sigma
         self.name = f"thumbnail-{width}x{height}-s{blur_sigma:g}"
 
-    def compute(self, image: NDArray[np.uint8], features: LocalFeatures) -> NDArray[np.float32]:
+    def compute(self, image: UInt8Array, features: LocalFeatures) -> Float32Array:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
         # blur relative to a 640-pixel-wide image, so the descriptor does not depend on resolution
         sigma = self.blur_sigma * gray.shape[1] / 640.0

@@ -16,7 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+
+from services.types import Float32Array, IntArray
 
 
 @dataclass(frozen=True)
@@ -29,9 +30,9 @@ class Vocabulary:
         projection: (K*D, P) float32 PCA-whitening matrix, or (0, 0) without whitening.
     """
 
-    centers: NDArray[np.float32]
-    mean: NDArray[np.float32]
-    projection: NDArray[np.float32]
+    centers: Float32Array
+    mean: Float32Array
+    projection: Float32Array
 
     @property
     def dimension(self) -> int:
@@ -41,18 +42,16 @@ class Vocabulary:
         return int(self.centers.size)
 
 
-def _nearest(points: NDArray[np.float32], centers: NDArray[np.float32]) -> NDArray[np.int64]:
+def _nearest(points: Float32Array, centers: Float32Array) -> IntArray:
     """(N,) index of the nearest centre of each of (N, D) points among (K, D) centres."""
-    distance: NDArray[np.float32] = (centers * centers).sum(axis=1)[None, :] - 2.0 * (
-        points @ centers.T
-    )
-    labels: NDArray[np.int64] = np.argmin(distance, axis=1).astype(np.int64)
+    distance: Float32Array = (centers * centers).sum(axis=1)[None, :] - 2.0 * (points @ centers.T)
+    labels: IntArray = np.argmin(distance, axis=1).astype(np.int64)
     return labels
 
 
 def kmeans(
-    points: NDArray[np.float32], k: int, rng: np.random.Generator, iterations: int = 20
-) -> NDArray[np.float32]:
+    points: Float32Array, k: int, rng: np.random.Generator, iterations: int = 20
+) -> Float32Array:
     """(k, D) float32 centres of (N, D) points by Lloyd's algorithm (k-means++ seeding).
 
     Deterministic for a given generator state. Empty clusters are re-seeded with the point
@@ -84,7 +83,7 @@ def kmeans(
     return centers.astype(np.float32)
 
 
-def raw_vlad(descriptors: NDArray[np.float32], centers: NDArray[np.float32]) -> NDArray[np.float32]:
+def raw_vlad(descriptors: Float32Array, centers: Float32Array) -> Float32Array:
     """(K*D,) float32 intra-normalised, power-law, L2-normalised VLAD of (N, D) descriptors."""
     k, d = centers.shape
     if descriptors.shape[0] == 0:
@@ -94,12 +93,12 @@ def raw_vlad(descriptors: NDArray[np.float32], centers: NDArray[np.float32]) -> 
     np.add.at(blocks, labels, descriptors - centers[labels])
     norms = np.linalg.norm(blocks, axis=1, keepdims=True)
     blocks = np.divide(blocks, norms, out=np.zeros_like(blocks), where=norms > 0)
-    vector: NDArray[np.float32] = (np.sign(blocks) * np.sqrt(np.abs(blocks))).ravel()
+    vector: Float32Array = (np.sign(blocks) * np.sqrt(np.abs(blocks))).ravel()
     norm = float(np.linalg.norm(vector))
     return (vector / norm if norm > 0 else vector).astype(np.float32)
 
 
-def encode(descriptors: NDArray[np.float32], vocabulary: Vocabulary) -> NDArray[np.float32]:
+def encode(descriptors: Float32Array, vocabulary: Vocabulary) -> Float32Array:
     """(P,) float32 unit VLAD vector of one image's (N, D) local descriptors."""
     vector = raw_vlad(descriptors, vocabulary.centers)
     if not vocabulary.projection.size:
@@ -110,7 +109,7 @@ def encode(descriptors: NDArray[np.float32], vocabulary: Vocabulary) -> NDArray[
 
 
 def train_vocabulary(
-    images: list[NDArray[np.float32]],
+    images: list[Float32Array],
     num_centers: int = 16,
     dimension: int | None = None,
     seed: int = 0,

@@ -17,12 +17,12 @@ import uuid
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
 from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode, train_vocabulary
+from services.types import Float32Array
 
 logger = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ class VladIndexer:
             )
         vocabulary = train_vocabulary(descriptors, num_centers=NUM_CENTERS)
 
-        def encoder(d: NDArray[np.float32]) -> NDArray[np.float32]:
+        def encoder(d: Float32Array) -> Float32Array:
             return encode(d, vocabulary)
 
         tag = uuid.uuid4().hex[:8]

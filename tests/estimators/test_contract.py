@@ -135,7 +135,7 @@ def test_exhausted_time_budget(name: str, scene: SyntheticCorrespondences) -> No
 
 @pytest.mark.parametrize("name", GEOMETRIC)
 def test_only_outliers(name: str, scene: SyntheticCorrespondences) -> None:
-    """Wrong matches only. 30 per reference: with the guide's loose 12 px epipolar threshold a
+    """Wrong matches only. 30 per reference: with the default loose 12 px epipolar threshold a
     few percent of random matches fit any pose, so with hundreds of random matches the
     min_inliers = 30 test alone cannot reject them (a known limit of inlier-count tests)."""
     rng = np.random.default_rng(3)

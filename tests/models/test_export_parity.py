@@ -1,6 +1,6 @@
-"""The exported graphs agree with the PyTorch modules on real images (issue 3's thresholds:
-keypoints within 0.01 px, descriptors within 1e-3, the same match for ≥ 99 % of keypoints),
-for ALIKED-n16 + LightGlue and DISK + LightGlue-DISK."""
+"""The exported graphs agree with the PyTorch modules on real images (keypoints within 0.01 px,
+descriptors within 1e-3, the same match for ≥ 99 % of keypoints), for ALIKED-n16 + LightGlue
+and DISK + LightGlue-DISK."""
 
 from __future__ import annotations
 

@@ -22,7 +22,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.features.base import LocalFeatures
 from services.features.sift import SiftExtractor
@@ -31,6 +30,7 @@ from services.retrieval.policy import NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
+from services.types import Float32Array, UInt8Array
 from tools.evaluation.datasets import redkitchen_dataset
 
 NEAR_M, NEAR_DEG = 0.5, 30.0
@@ -57,7 +57,7 @@ def search_times(rng: np.random.Generator) -> None:
             )
 
 
-def _load(path: Path) -> NDArray[np.uint8]:
+def _load(path: Path) -> UInt8Array:
     bgr = cv2.imread(str(path))
     if bgr is None:
         raise OSError(f"cannot read {path}")
@@ -72,7 +72,7 @@ def recall(dataset: Path) -> None:
     sift = SiftExtractor()
     features = {name: sift.extract(image) for name, image in rgb.items()}
     thumbnail = ThumbnailDescriptor()
-    describers: dict[str, Callable[[str], NDArray[np.float32]]] = {
+    describers: dict[str, Callable[[str], Float32Array]] = {
         thumbnail.name: lambda name: thumbnail.compute(rgb[name], features[name])
     }
     for centers in (NUM_CENTERS, 16):
@@ -111,9 +111,7 @@ def recall(dataset: Path) -> None:
         print(f"| {label} | {table.shape[1]} | {cells} |", flush=True)
 
 
-def _vlad(
-    features: dict[str, LocalFeatures], vocabulary: Vocabulary, name: str
-) -> NDArray[np.float32]:
+def _vlad(features: dict[str, LocalFeatures], vocabulary: Vocabulary, name: str) -> Float32Array:
     return encode(features[name].descriptors, vocabulary)
 
 

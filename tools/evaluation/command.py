@@ -63,7 +63,6 @@ def eval_main(args: argparse.Namespace) -> int:
         return 2
     options = EvalOptions(
         estimators=estimators,
-        thresholds=thresholds,
         top_k=args.top_k,
         max_error_px=args.max_error_px,
         use_depth=not args.no_depth,

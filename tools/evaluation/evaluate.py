@@ -16,7 +16,6 @@ from services.estimators.registry import DEPTH_ESTIMATORS
 from services.geometry.camera import Camera
 from tools.evaluation.datasets import PosedImage
 from tools.evaluation.metrics import (
-    DEFAULT_THRESHOLDS,
     QueryRecord,
     ReferencePoses,
     make_record,
@@ -30,7 +29,7 @@ from tools.synthetic.scene import encode_png, unrelated_image
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """What to run: estimator names, the localize params they share, and what to report.
+    """What to run: estimator names, the localize params they share, and which queries.
 
     Attributes:
         max_error_px: the API's ``max_error_px`` (None: the service default).
@@ -41,7 +40,6 @@ class EvalOptions:
     """
 
     estimators: Sequence[str]
-    thresholds: tuple[tuple[float, float], ...] = DEFAULT_THRESHOLDS
     top_k: int = 10
     max_error_px: float | None = None
     use_depth: bool = True
@@ -210,6 +208,4 @@ def write_outputs(
     md_path.write_text(evaluation.markdown)
     evaluation.files = [md_path, json_path]
     if evaluation.records:
-        evaluation.files += write_plots(
-            out_dir, evaluation.summaries, evaluation.records, thresholds
-        )
+        evaluation.files += write_plots(out_dir, evaluation.summaries, evaluation.records)

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from services.geometry.rigid import Rigid3d, pose_error
+from services.types import BoolArray, FloatArray
 
 if TYPE_CHECKING:  # the runner needs the `eval` extra (httpx); the CLI reads these names without it
     from tools.evaluation.runner import QueryOutcome
@@ -54,8 +54,8 @@ class ReferencePoses:
     """Ground-truth poses of the map's references, for the neighbour facts of a query."""
 
     names: list[str]
-    centers: NDArray[np.float64]  # (N, 3)
-    rotations: NDArray[np.float64]  # (N, 3, 3) cam_from_world
+    centers: FloatArray  # (N, 3)
+    rotations: FloatArray  # (N, 3, 3) cam_from_world
 
     @classmethod
     def of(cls, poses: dict[str, Rigid3d]) -> ReferencePoses:
@@ -66,13 +66,13 @@ class ReferencePoses:
             np.array([poses[n].rotation for n in names]).reshape(-1, 3, 3),
         )
 
-    def near(self, truth: Rigid3d, max_m: float, max_deg: float) -> NDArray[np.bool_]:
+    def near(self, truth: Rigid3d, max_m: float, max_deg: float) -> BoolArray:
         """(N,) references within ``max_m`` metres and ``max_deg`` degrees of ``truth``."""
         dist = np.linalg.norm(self.centers - truth.center, axis=1)
         rel = self.rotations @ truth.rotation.T
         cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
         angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-        near: NDArray[np.bool_] = (dist <= max_m) & (angle <= max_deg)
+        near: BoolArray = (dist <= max_m) & (angle <= max_deg)
         return near
 
 
@@ -115,7 +115,7 @@ def recall_key(max_m: float, max_deg: float) -> str:
     return f"{max_m * 100:g}cm_{max_deg:g}deg"
 
 
-def _quantile(ordered: NDArray[np.float64], q: float) -> float:
+def _quantile(ordered: FloatArray, q: float) -> float:
     """Linear-interpolated quantile of sorted values; where the upper neighbour is a
     failure's inf, the lower order statistic (interpolating towards inf means nothing)."""
     position = (len(ordered) - 1) * q

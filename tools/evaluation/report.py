@@ -104,10 +104,9 @@ def write_plots(
     out_dir: Path,
     summaries: dict[str, dict[str, Any]],
     records: list[QueryRecord],
-    thresholds: tuple[tuple[float, float], ...],
 ) -> list[Path]:
-    """``errors.png`` (cumulative position and rotation error per configuration, up to twice
-    the largest recall threshold) and ``timings.png`` (median time per stage, stacked)."""
+    """``errors.png`` (cumulative position and rotation error per configuration, up to 50 cm
+    and 10°) and ``timings.png`` (median time per stage, stacked)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -82,18 +82,21 @@ class LocalServer:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
+                log = self.log_text()
                 self.close()
-                raise RuntimeError(f"slloc serve exited with {self.process.returncode}")
+                raise RuntimeError(f"slloc serve exited with {self.process.returncode}:\n{log}")
             try:
                 if httpx.get(f"{self.url}/v1/health", timeout=2.0).status_code == 200:
                     return
             except httpx.TransportError:
                 pass
             time.sleep(0.2)
+        log = self.log_text()
         self.close()
-        raise RuntimeError(f"slloc serve did not answer on {self.url} in {timeout_s:.0f} s")
+        raise RuntimeError(f"slloc serve did not answer on {self.url} in {timeout_s:.0f} s:\n{log}")
 
     def log_text(self) -> str:
+        """What the server wrote to stdout and stderr so far."""
         self._log.flush()
         return (Path(self._tmp.name) / "server.log").read_text(errors="replace")
 

@@ -50,16 +50,7 @@ def export_aliked(name: str, models_dir: Path, budget: int = 2048) -> ModelEntry
         raise ValueError(f"unknown ALIKED model {name!r}; known: {', '.join(ALIKED_MODELS)}")
     model = TorchExtractorOutputs(load_torch_aliked(name, budget)).eval()
     path = models_dir / f"{name}.onnx"
-    dim_h = torch.export.Dim("height", min=64, max=4096)
-    dim_w = torch.export.Dim("width", min=64, max=4096)
-    onnx_export.export(
-        model,
-        (torch.rand(1, 3, 480, 640),),
-        path,
-        ["image"],
-        ["keypoints", "scores", "descriptors"],
-        [{2: dim_h, 3: dim_w}],
-    )
+    onnx_export.export_extractor(model, path)
     parity = check_extractor(name, path, model, check_data.check_images())
     return onnx_export.model_entry(
         name,

@@ -12,11 +12,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
+from services.types import UInt8Array
 from tools.synthetic.scene import SyntheticScene
-
-Image = NDArray[np.uint8]
 
 
 def _redkitchen_dir() -> Path | None:
@@ -29,18 +27,18 @@ def _redkitchen_dir() -> Path | None:
     return path if (path / "images").is_dir() else None
 
 
-def _frame(root: Path, index: int) -> Image | None:
+def _frame(root: Path, index: int) -> UInt8Array | None:
     bgr = cv2.imread(str(root / "images" / f"frame-{index:06d}.color.jpg"), cv2.IMREAD_COLOR)
     return None if bgr is None else np.ascontiguousarray(bgr[:, :, ::-1])
 
 
-def check_pairs() -> list[tuple[str, Image, Image]]:
+def check_pairs() -> list[tuple[str, UInt8Array, UInt8Array]]:
     """(label, image0, image1) pairs of overlapping RGB uint8 views."""
     views = SyntheticScene(seed=7).views(4, stream=0, prefix="check")
     pairs = [(f"synthetic {a}-{b}", views[a].image, views[b].image) for a, b in ((0, 1), (2, 3))]
     root = _redkitchen_dir()
     if root is not None:
-        frames: dict[int, Image | None] = {}
+        frames: dict[int, UInt8Array | None] = {}
         for start in (0, 300, 700):
             for gap in (10, 20, 40):
                 for i in (start, start + gap):
@@ -52,9 +50,9 @@ def check_pairs() -> list[tuple[str, Image, Image]]:
     return pairs
 
 
-def check_images() -> list[Image]:
+def check_images() -> list[UInt8Array]:
     """The distinct images of ``check_pairs``."""
-    seen: dict[int, Image] = {}
+    seen: dict[int, UInt8Array] = {}
     for _, a, b in check_pairs():
         seen.setdefault(id(a), a)
         seen.setdefault(id(b), b)

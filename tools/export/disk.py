@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from numpy.typing import NDArray
 from torch.nn import functional
 
 from services.runtime.manifest import ModelEntry
+from services.types import UInt8Array
 from tools.export import check_data, onnx_export
 from tools.export.extractor_parity import TorchExtractorOutputs, check_extractor
 from tools.export.torchvision_shim import install
@@ -97,7 +97,7 @@ def weights_path() -> Path:
     return Path(str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath("disk-depth-save.pth")))
 
 
-def _odd_sized(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+def _odd_sized(image: UInt8Array) -> UInt8Array:
     """A crop whose sides are not multiples of 16: exercises the graph's padding."""
     height, width = image.shape[:2]
     return np.ascontiguousarray(image[: height - 23, 5 : width - 6])
@@ -113,16 +113,7 @@ def export_disk(models_dir: Path, budget: int = 2048) -> ModelEntry:
     torch_disk = load_torch_disk(budget)
     graph = _DiskGraph(torch_disk.get_submodule("model.unet"), budget, DESCRIPTOR_DIM).eval()
     path = models_dir / "disk.onnx"
-    dim_h = torch.export.Dim("height", min=64, max=4096)
-    dim_w = torch.export.Dim("width", min=64, max=4096)
-    onnx_export.export(
-        graph,
-        (torch.rand(1, 3, 480, 640),),
-        path,
-        ["image"],
-        ["keypoints", "scores", "descriptors"],
-        [{2: dim_h, 3: dim_w}],
-    )
+    onnx_export.export_extractor(graph, path)
     images = check_data.check_images()
     parity = check_extractor(
         "disk", path, TorchExtractorOutputs(torch_disk), [*images, _odd_sized(images[-1])]

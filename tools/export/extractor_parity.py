@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from numpy.typing import NDArray
+
+from services.types import Float32Array, UInt8Array
 
 KEYPOINT_TOLERANCE_PX = 0.01
 DESCRIPTOR_TOLERANCE = 1e-3
@@ -35,13 +36,13 @@ class TorchExtractorOutputs(torch.nn.Module):
         return out["keypoints"][0], out["keypoint_scores"][0], out["descriptors"][0]
 
 
-def to_tensor(image: NDArray[np.uint8]) -> torch.Tensor:
+def to_tensor(image: UInt8Array) -> torch.Tensor:
     """(H, W, 3) RGB uint8 → (1, 3, H, W) float32 in [0, 1]: the graphs' input."""
     return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float() / 255.0
 
 
 def compare_features(
-    onnx_out: Sequence[NDArray[np.float32]], torch_out: tuple[torch.Tensor, ...]
+    onnx_out: Sequence[Float32Array], torch_out: tuple[torch.Tensor, ...]
 ) -> tuple[float, float]:
     """Share of the keypoints (of the larger set: ONNX rows with a finite score, or PyTorch's)
     with a counterpart in the other set within 0.01 px, and the largest descriptor difference
@@ -65,7 +66,7 @@ def check_extractor(
     name: str,
     path: Path,
     reference: torch.nn.Module,
-    images: Sequence[NDArray[np.uint8]],
+    images: Sequence[UInt8Array],
 ) -> dict[str, float]:
     """Run the ONNX file at ``path`` and ``reference`` (image tensor → (keypoints, scores,
     descriptors)) on ``images``; the worst figures, for the manifest.

@@ -92,6 +92,21 @@ def export(
     tmp.replace(path)
 
 
+def export_extractor(module: torch.nn.Module, path: Path) -> None:
+    """Export a local-feature extractor: ``image`` (1, 3, H, W) with 64 ≤ H, W ≤ 4096 →
+    ``keypoints``, ``scores``, ``descriptors``."""
+    height = torch.export.Dim("height", min=64, max=4096)
+    width = torch.export.Dim("width", min=64, max=4096)
+    export(
+        module,
+        (torch.rand(1, 3, 480, 640),),
+        path,
+        ["image"],
+        ["keypoints", "scores", "descriptors"],
+        [{2: height, 3: width}],
+    )
+
+
 def io_spec(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """Input and output tensors of an ONNX file: name → {dtype, shape} (symbolic dims as str)."""
     model = onnx.load(str(path), load_external_data=False)

@@ -13,13 +13,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.estimators.base import ReferenceObservation
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-
-Array = NDArray[np.float64]
+from services.types import BoolArray, FloatArray
 
 # (origin, u, v) of the room's planes, as in ``SyntheticScene`` (x right, y down, z forward)
 _PLANES = [
@@ -46,15 +44,15 @@ class SyntheticCorrespondences:
     query_pose: Rigid3d
     references: list[ReferenceObservation]
     scene_depth: float
-    inlier_masks: list[NDArray[np.bool_]]
+    inlier_masks: list[BoolArray]
 
 
-def _rotation(rng: np.random.Generator, base: Array, max_deg: float) -> Array:
+def _rotation(rng: np.random.Generator, base: FloatArray, max_deg: float) -> FloatArray:
     angles = np.radians(rng.uniform(-max_deg, max_deg, 3))
     return np.asarray(cv2.Rodrigues(angles)[0] @ base, dtype=np.float64)
 
 
-def sample_room_points(rng: np.random.Generator, count: int) -> Array:
+def sample_room_points(rng: np.random.Generator, count: int) -> FloatArray:
     """(count, 3) points uniformly on the room's planes (by area)."""
     planes = [tuple(np.array(p, float) for p in plane) for plane in _PLANES]
     areas = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v in planes])
@@ -67,8 +65,8 @@ def sample_room_points(rng: np.random.Generator, count: int) -> Array:
 
 
 def _project(
-    camera: Camera, pose: Rigid3d, points: Array
-) -> tuple[Array, Array, NDArray[np.bool_]]:
+    camera: Camera, pose: Rigid3d, points: FloatArray
+) -> tuple[FloatArray, FloatArray, BoolArray]:
     X = pose.apply(points)
     z = X[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from services.types import Float32Array, FloatArray, UInt8Array
 
 TEXTURE_SIZE = 1024
 
@@ -24,10 +24,10 @@ TEXTURE_SIZE = 1024
 class TexturedPlane:
     """A rectangle ``origin + a·u + b·v`` for a, b in [0, 1] carrying an RGB texture."""
 
-    origin: NDArray[np.float64]
-    u: NDArray[np.float64]
-    v: NDArray[np.float64]
-    texture: NDArray[np.uint8]
+    origin: FloatArray
+    u: FloatArray
+    v: FloatArray
+    texture: UInt8Array
 
 
 @dataclass(frozen=True)
@@ -37,11 +37,11 @@ class SyntheticView:
     name: str
     camera: Camera
     cam_from_world: Rigid3d
-    image: NDArray[np.uint8]
-    depth: NDArray[np.float32]
+    image: UInt8Array
+    depth: Float32Array
 
 
-def procedural_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> NDArray[np.uint8]:
+def procedural_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> UInt8Array:
     """Rich, non-repeating texture: multi-scale noise under random coloured shapes."""
     base = np.zeros((size, size, 3), np.float32)
     for cells in (4, 16, 64):
@@ -99,7 +99,7 @@ class SyntheticScene:
         corners = np.array([[-6, -3, -6], [6, 3, 8]], float)
         self.extent = float(np.linalg.norm(corners[1] - corners[0]))
 
-    def render(self, cam_from_world: Rigid3d) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+    def render(self, cam_from_world: Rigid3d) -> tuple[UInt8Array, Float32Array]:
         """Ray-cast the scene: (H, W, 3) RGB uint8 image and (H, W) float32 z-depth."""
         cam = self.camera
         # pixel centres in COLMAP convention, as rays with unit z in camera coordinates
@@ -154,13 +154,13 @@ class SyntheticScene:
         return out
 
 
-def unrelated_image(seed: int, width: int = 640, height: int = 480) -> NDArray[np.uint8]:
+def unrelated_image(seed: int, width: int = 640, height: int = 480) -> UInt8Array:
     """An image of texture that appears nowhere in any ``SyntheticScene``."""
     texture = procedural_texture(np.random.default_rng([seed, 999_983]), size=max(width, height))
     return np.ascontiguousarray(texture[:height, :width])
 
 
-def encode_png(image: NDArray[np.uint8]) -> bytes:
+def encode_png(image: UInt8Array) -> bytes:
     """PNG bytes of an (H, W, 3) RGB or (H, W) uint8/uint16 image."""
     data = image[:, :, ::-1] if image.ndim == 3 else image
     ok, buf = cv2.imencode(".png", data)
@@ -169,6 +169,6 @@ def encode_png(image: NDArray[np.uint8]) -> bytes:
     return buf.tobytes()
 
 
-def encode_depth_png(depth: NDArray[np.float32]) -> bytes:
+def encode_depth_png(depth: Float32Array) -> bytes:
     """16-bit PNG in millimetres of a depth map in metres (0 = unknown)."""
     return encode_png(np.clip(np.round(depth * 1000.0), 0, 65534).astype(np.uint16))
