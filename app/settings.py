@@ -26,7 +26,6 @@ class Settings(BaseSettings):
         "sqlite:///./data/slloc.db",
         description="SQLAlchemy URL; e.g. postgresql+psycopg://user@host:5432/slloc",
     )
-    data_dir: Path = Field(Path("./data"), description="Directory for the SQLite file and logs")
     models_dir: Path = Field(
         Path("./models"), description="Where `slloc models build` writes ONNX models"
     )

@@ -50,7 +50,6 @@ class LocalServer:
         env = {
             **os.environ,
             "SLLOC_DATABASE_URL": f"sqlite:///{self._tmp.name}/slloc.db",
-            "SLLOC_DATA_DIR": self._tmp.name,
             "SLLOC_API_KEYS": "",
             **(extra_env or {}),
         }
