@@ -9,6 +9,13 @@ from typing import Literal
 from pydantic import BaseModel, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from services.features.configs import (
+    AUTO,
+    FALLBACK_FEATURES,
+    PREFERRED_FEATURES,
+    feature_config_names,
+)
+
 Role = Literal["admin", "client"]
 
 
@@ -30,10 +37,10 @@ class Settings(BaseSettings):
         Path("./models"), description="Where `slloc models build` writes ONNX models"
     )
     features: str = Field(
-        "auto",
-        description="Feature configuration: auto (ALIKED + LightGlue when `slloc models build` "
-        "has run, else SIFT), sift, aliked, aliked-fast, aliked-full, aliked-nn, or disk / "
-        "disk-fast (after `slloc models build --models disk,lightglue-disk`)",
+        AUTO,
+        description=f"Feature configuration: {AUTO} ({PREFERRED_FEATURES} when its models are "
+        f"built, else {FALLBACK_FEATURES}) or one of {', '.join(feature_config_names())}; "
+        "`slloc features` lists what each runs and the models it needs",
     )
     onnx_providers: str = Field(
         "auto",

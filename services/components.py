@@ -1,23 +1,30 @@
 """Builds the localizer's heavy components once (at app start-up or in a CLI command).
 
-Feature configurations (a local-feature extractor with its matcher) are chosen by name from
-``FEATURE_CONFIGS``; ``slloc eval --features`` takes these names. ONNX sessions are created
-once per model file and shared by every configuration that uses it.
+A feature configuration (a local-feature extractor with its matcher) is a row of the table in
+``services/features/configs.py``, chosen by name. ONNX sessions are created once per model file
+and shared by every configuration that uses it.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.errors import UnknownComponentError
 from services.features.base import FeatureExtractor
+from services.features.configs import (
+    AUTO,
+    FALLBACK_FEATURES,
+    PREFERRED_FEATURES,
+    PREFERRED_MODELS,
+    SIFT,
+    FeatureConfig,
+    get_feature_config,
+)
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
-from services.features.sift import SiftExtractor
+from services.features.sift import SiftExtractor, SiftOptions
 from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
@@ -29,8 +36,6 @@ from services.runtime.manifest import ModelEntry, read_manifest, verified_path
 from services.runtime.onnx import OnnxOptions, create_session
 
 logger = logging.getLogger(__name__)
-
-AUTO = "auto"
 
 
 class ModelsMissingError(RuntimeError):
@@ -66,68 +71,32 @@ class ModelStore:
             return self._sessions[name]
 
 
-FeatureFactory = Callable[[ModelStore], tuple[FeatureExtractor, Matcher]]
+def build_features(config: FeatureConfig, models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
+    """The extractor and matcher of ``config``, on the sessions of ``models``.
 
-
-def _sift(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
-    """OpenCV SIFT (RootSIFT) + mutual-nearest-neighbour matching; needs no weights."""
-    return SiftExtractor(), NearestNeighborMatcher()
-
-
-def _learned(
-    options: ResizeOptions,
-    lightglue_pairs: int | None,
-    model: str,
-    lightglue_keypoints: int | None = None,
-) -> FeatureFactory:
-    """An exported keypoint extractor ``model``; LightGlue for its features (the manifest's
-    ``matcher``) on the ``lightglue_pairs`` best nearest-neighbour pairs (None: every pair)
-    with each image's ``lightglue_keypoints`` best keypoints (None: all), or for 0 nearest
-    neighbours alone (LightGlue need not be built)."""
-
-    def factory(models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
-        entry = models.entry(model)
-        extractor = OnnxKeypointExtractor(
-            models.session(model), model, entry.keypoint_budget or options.max_keypoints, options
-        )
-        matcher_name = str(entry.config.get("matcher", f"lightglue-{model.split('-')[0]}"))
-        matcher: Matcher
-        if lightglue_pairs == 0:
-            matcher = NearestNeighborMatcher(ratio=0.95)
-        else:
-            matcher = OnnxLightGlueMatcher(
-                models.session(matcher_name),
-                matcher_name,
-                lightglue_pairs,
-                lightglue_keypoints=lightglue_keypoints,
-            )
-        return extractor, matcher
-
-    return factory
-
-
-# name → factory of (extractor, matcher). ALIKED-n16 with 1024 keypoints; mutual nearest
-# neighbours on every retrieved pair, then LightGlue on the pairs with the most of them (the
-# others keep theirs). "aliked" (default): 640 px, LightGlue on 3 pairs with each image's
-# 512 best keypoints (~0.2 s a pair on two cores); "aliked-fast": 480 px, LightGlue on 1 pair
-# with 256 keypoints; "aliked-full": 640 px, LightGlue on every pair with all 1024 (slowest,
-# ~0.7 s a pair); "aliked-nn": 640 px, nearest neighbours only. "disk": DISK (DISK_KEYPOINTS
-# keypoints) + LightGlue on 3 pairs, "disk-fast": DISK + nearest neighbours; both need
-# `slloc models build --models disk,lightglue-disk`.
-DISK_KEYPOINTS = 1024
-FEATURE_CONFIGS: dict[str, FeatureFactory] = {
-    "sift": _sift,
-    "aliked": _learned(ResizeOptions(1024, 640), 3, "aliked-n16", lightglue_keypoints=512),
-    "aliked-full": _learned(ResizeOptions(1024, 640), None, "aliked-n16"),
-    "aliked-fast": _learned(ResizeOptions(1024, 480), 1, "aliked-n16", lightglue_keypoints=256),
-    "aliked-nn": _learned(ResizeOptions(1024, 640), 0, "aliked-n16"),
-    "disk": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 3, "disk"),
-    "disk-fast": _learned(ResizeOptions(DISK_KEYPOINTS, 640), 0, "disk"),
-}
-
-PREFERRED_FEATURES = "aliked"  # what "auto" picks when its models are built
-PREFERRED_MODELS = ("aliked-n16", "lightglue-aliked")
-FALLBACK_FEATURES = "sift"  # what "auto" picks otherwise: needs no weights
+    Raises:
+        ModelsMissingError: a model ``config`` needs is not built.
+    """
+    nearest = NearestNeighborMatcher(ratio=config.ratio)
+    if config.extractor == SIFT:
+        return SiftExtractor(SiftOptions(config.max_keypoints, config.max_side)), nearest
+    entry = models.entry(config.extractor)
+    extractor = OnnxKeypointExtractor(
+        models.session(config.extractor),
+        config.extractor,
+        entry.keypoint_budget or config.max_keypoints,
+        ResizeOptions(config.max_keypoints, config.max_side),
+    )
+    if config.lightglue is None:
+        return extractor, nearest
+    matcher = OnnxLightGlueMatcher(
+        models.session(config.lightglue),
+        config.lightglue,
+        config.lightglue_pairs,
+        first_pass=nearest,
+        lightglue_keypoints=config.lightglue_keypoints,
+    )
+    return extractor, matcher
 
 
 def resolve_features(models_dir: Path, name: str | None = None) -> str:
@@ -152,10 +121,6 @@ def resolve_features(models_dir: Path, name: str | None = None) -> str:
     return PREFERRED_FEATURES
 
 
-def feature_config_names() -> list[str]:
-    return sorted(FEATURE_CONFIGS)
-
-
 def build_localizer(
     models_dir: Path,
     max_pixels: int,
@@ -170,19 +135,13 @@ def build_localizer(
     and the weight-free ``FALLBACK_FEATURES`` otherwise (logged with the reason).
 
     Raises:
-        UnknownComponentError: ``features`` is not a name in ``FEATURE_CONFIGS``.
+        UnknownComponentError: ``features`` names no feature configuration.
         ModelsMissingError: a named configuration needs models that are not built.
     """
     name = resolve_features(models_dir, features)
-    try:
-        factory = FEATURE_CONFIGS[name]
-    except KeyError:
-        raise UnknownComponentError(
-            f"unknown feature configuration {name!r}; known: "
-            f"{', '.join([AUTO, *feature_config_names()])}"
-        ) from None
+    config = get_feature_config(name)
     onnx = onnx or OnnxOptions()
-    extractor, matcher = factory(ModelStore(models_dir, onnx))
+    extractor, matcher = build_features(config, ModelStore(models_dir, onnx))
     global_descriptor: GlobalDescriptor = ThumbnailDescriptor()
     if global_model is not None:
         global_descriptor = OnnxGlobalDescriptor(create_session(global_model, onnx), global_model)

@@ -1,4 +1,5 @@
-"""The ``slloc`` command: serve, import, db upgrade, synth, openapi, eval, bench."""
+"""The ``slloc`` command: serve, import, db upgrade, synth, models build, features, openapi,
+eval, bench."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import time
 from pathlib import Path
 
 from app.settings import get_settings
+from services.features.configs import PREFERRED_MODELS
 
 logger = logging.getLogger("slloc")
 
@@ -59,10 +61,14 @@ def main(argv: list[str] | None = None) -> int:
     build.add_argument(
         "--models",
         default=None,
-        help="comma-separated model names (default: aliked-n16,lightglue-aliked; DISK: "
-        "disk,lightglue-disk)",
+        help=f"comma-separated model names (default: {','.join(PREFERRED_MODELS)}); "
+        "`slloc features` lists the models of each feature configuration",
     )
     build.add_argument("--force", action="store_true", help="rebuild models that are up to date")
+
+    sub.add_parser(
+        "features", help="print the table of feature configurations (SLLOC_FEATURES presets)"
+    )
 
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
@@ -104,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
         from tools.evaluation.bench import bench_main
 
         return bench_main(args)
+    if args.command == "features":
+        from tools.feature_table import feature_table
+
+        print(feature_table(), end="")
+        return 0
     if args.command == "synth":
         from tools.synthetic.dataset import write_synthetic_dataset
 

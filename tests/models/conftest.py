@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from services.components import PREFERRED_MODELS, ModelStore
+from services.components import ModelStore
+from services.features.configs import PREFERRED_MODELS
 from services.runtime.manifest import read_manifest
 
 MODELS_DIR = Path(os.environ.get("SLLOC_TEST_MODELS_DIR", "models"))

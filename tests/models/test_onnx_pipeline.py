@@ -10,13 +10,15 @@ import cv2
 import numpy as np
 import pytest
 
-from services.components import ModelsMissingError, ModelStore, build_localizer
+from services.components import ModelsMissingError, ModelStore, build_features, build_localizer
 from services.features.base import LocalFeatures
+from services.features.configs import FEATURE_CONFIGS, feature_config_names
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.pipeline import LocalizeParams
+from services.runtime.manifest import read_manifest
 from tests.models.conftest import MODELS_DIR
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
@@ -173,3 +175,23 @@ def test_budget_beyond_the_exported_one_is_refused(models: ModelStore) -> None:
 def test_disk_without_its_models_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ModelsMissingError, match="--models disk"):
         build_localizer(tmp_path, 40_000_000, "disk")
+
+
+@pytest.fixture(scope="module")
+def every_model() -> ModelStore:
+    """The built models, whichever they are (none at all included)."""
+    return ModelStore(MODELS_DIR)
+
+
+@pytest.mark.parametrize("name", feature_config_names())
+def test_every_preset_builds_from_the_built_models(name: str, every_model: ModelStore) -> None:
+    config = FEATURE_CONFIGS[name]
+    if not set(config.models) <= set(read_manifest(MODELS_DIR)):
+        with pytest.raises(ModelsMissingError, match="slloc models build --models"):
+            build_features(config, every_model)
+        return
+    extractor, matcher = build_features(config, every_model)
+    image = unrelated_image(0)
+    features = extractor.extract(image)
+    assert 0 < len(features) <= config.max_keypoints
+    assert len(matcher.match_many(features, [features])[0]) > 0

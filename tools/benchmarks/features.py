@@ -1,35 +1,31 @@
-"""Local features and matchers on redkitchen: time per image and pair, and correct matches.
+"""The feature configurations on redkitchen: time per image and pair, and correct matches.
 
-For each combination it prints the median extraction time per image (at the configured size),
-the median matching time per pair, and per frame gap (10, 20, 40) the median matches and
-correct matches per pair: a match is correct when its symmetric epipolar distance under the
-ground-truth poses is below 2 px (fx = fy = 525, cx = 320, cy = 240). Pairs start at frames
-0, 100, …, 900. DISK rows appear when DISK is built (``slloc models build --models
-disk,lightglue-disk``). Run from the repository root after ``scripts/build_models.sh``::
+For each preset of ``services/features/configs.py`` whose models are built it prints the median
+extraction time per image (at the preset's size), the median time of its matcher on one pair
+(a LightGlue preset runs LightGlue on it, on the preset's keypoints), and per frame gap (10,
+20, 40) the median matches and correct matches per pair: a match is correct when its symmetric
+epipolar distance under the ground-truth poses is below 2 px (fx = fy = 525, cx = 320,
+cy = 240). Pairs start at frames 0, 100, …, 900. ``--max-keypoints`` runs every preset at
+another keypoint budget. Run from the repository root after ``scripts/build_models.sh``::
 
     .venv/bin/python -m tools.benchmarks.features [--dataset DIR] [--models-dir models] \
-        [--only disk]
+        [--only disk] [--max-keypoints 2048]
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
-from functools import partial
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from services.components import ModelStore
-from services.features.base import FeatureExtractor, LocalFeatures
-from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
-from services.features.sift import SiftExtractor
+from services.components import ModelStore, build_features
+from services.features.base import LocalFeatures
+from services.features.configs import FEATURE_CONFIGS, FeatureConfig
 from services.geometry.epipolar import epipolar_errors
-from services.matching.base import Matcher
-from services.matching.lightglue_onnx import OnnxLightGlueMatcher
-from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.runtime.manifest import read_manifest
 from tools.evaluation.datasets import PosedImage, redkitchen_dataset
 
@@ -38,36 +34,23 @@ STARTS = range(0, 1000, 100)
 CORRECT_PX = 2.0
 
 
-def _combinations(models: ModelStore) -> dict[str, Callable[[], tuple[FeatureExtractor, Matcher]]]:
-    def learned(model: str, keypoints: int, lightglue: bool) -> tuple[FeatureExtractor, Matcher]:
-        entry = models.entry(model)
-        extractor = OnnxKeypointExtractor(
-            models.session(model),
-            model,
-            entry.keypoint_budget or keypoints,
-            ResizeOptions(keypoints, 640),
-        )
-        matcher_name = str(entry.config["matcher"])
-        matcher: Matcher = (
-            OnnxLightGlueMatcher(models.session(matcher_name), matcher_name)
-            if lightglue
-            else NearestNeighborMatcher(ratio=0.95)
-        )
-        return extractor, matcher
-
-    combinations: dict[str, Callable[[], tuple[FeatureExtractor, Matcher]]] = {
-        "sift + mnn (fallback)": lambda: (SiftExtractor(), NearestNeighborMatcher()),
-    }
+def _presets(models: ModelStore, max_keypoints: int | None) -> dict[str, FeatureConfig]:
+    """Label → preset, for the presets whose models are built (at ``max_keypoints``)."""
     built = read_manifest(models.models_dir)
-    for model in ("aliked-n16", "disk"):  # DISK only when built (`--models disk,lightglue-disk`)
-        if model not in built:
+    presets = {}
+    for config in FEATURE_CONFIGS.values():
+        if not set(config.models) <= set(built):
+            print(
+                f"{config.name}: skipped, needs `slloc models build --models "
+                f"{','.join(config.models)}`"
+            )
             continue
-        combinations |= {
-            f"{model} 1024 + mnn": partial(learned, model, 1024, False),
-            f"{model} 1024 + lightglue": partial(learned, model, 1024, True),
-            f"{model} 2048 + lightglue": partial(learned, model, 2048, True),
-        }
-    return combinations
+        if max_keypoints is None:
+            presets[config.name] = config
+        else:
+            label = f"{config.name} at {max_keypoints} keypoints"
+            presets[label] = replace(config, max_keypoints=max_keypoints)
+    return presets
 
 
 def _load(image: PosedImage) -> np.ndarray:
@@ -84,20 +67,24 @@ def main() -> None:
         "--dataset", type=Path, default=root / ".." / "shared" / "datasets" / "redkitchen"
     )
     parser.add_argument("--models-dir", type=Path, default=root / "models")
-    parser.add_argument("--only", default="", help="run the rows whose label contains this")
+    parser.add_argument("--only", default="", help="run the presets whose name contains this")
+    parser.add_argument(
+        "--max-keypoints", type=int, help="every preset at this keypoint budget instead of its own"
+    )
     args = parser.parse_args()
     images = redkitchen_dataset(args.dataset).images
     frames = sorted({s + g for s in STARTS for g in (0, *GAPS) if s + g < len(images)})
     pixels = {i: _load(images[i]) for i in frames}
     print(f"{len(frames)} frames, {len(STARTS)} pairs per gap; correct = epipolar error < 2 px")
-    header = "| features + matcher | extract ms/image | match ms/pair | " + " | ".join(
+    header = "| preset | extract ms/image | match ms/pair | " + " | ".join(
         f"gap {g}: matches / correct" for g in GAPS
     )
     rows = []
-    for label, make in _combinations(ModelStore(args.models_dir)).items():
+    models = ModelStore(args.models_dir)
+    for label, config in _presets(models, args.max_keypoints).items():
         if args.only not in label:
             continue
-        extractor, matcher = make()
+        extractor, matcher = build_features(config, models)
         features: dict[int, LocalFeatures] = {}
         extract_ms = []
         for i in frames:

@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.components import AUTO, feature_config_names
 from services.estimators.registry import DEFAULT_ESTIMATOR, estimator_names
+from services.features.configs import AUTO, feature_config_names
 from tools.evaluation.metrics import DEFAULT_THRESHOLDS
 
 

@@ -10,8 +10,9 @@ from collections.abc import Callable
 from functools import partial
 
 from app.settings import get_settings
-from services.components import AUTO, feature_config_names, resolve_features
+from services.components import resolve_features
 from services.estimators.registry import estimator_names
+from services.features.configs import AUTO, feature_config_names
 from tools.evaluation.datasets import open_dataset
 from tools.evaluation.evaluate import EvalOptions, run_evaluation, write_outputs
 from tools.evaluation.metrics import DEFAULT_THRESHOLDS

@@ -6,9 +6,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from services.features.configs import PREFERRED_MODELS
 from services.runtime.manifest import ModelEntry, read_manifest, verified_path, write_entry
 
-DEFAULT_MODELS = ("aliked-n16", "lightglue-aliked")
+DEFAULT_MODELS = PREFERRED_MODELS  # the models of the feature configuration auto prefers
 
 
 def _exporter(name: str) -> tuple[Callable[[Path], ModelEntry], int]:

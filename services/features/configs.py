@@ -1,0 +1,117 @@
+"""The named feature configurations (presets): a local-feature extractor with its budget and
+the matcher for its features, one row each.
+
+``SLLOC_FEATURES`` and ``slloc eval --features`` take these names; the settings help, the
+README table (``slloc features`` prints it) and the feature benchmark read this table, and
+``services/components.py`` builds an (extractor, matcher) pair from a row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from services.errors import UnknownComponentError
+
+AUTO = "auto"  # the preferred configuration when its models are built, else the fallback
+SIFT = "sift"  # the extractor that needs no exported model
+DISK_KEYPOINTS = 1024
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """name: what ``SLLOC_FEATURES`` takes. extractor: ``"sift"`` or an exported keypoint
+    model. max_keypoints / max_side: keypoints per image and the longer image side (px) it is
+    resized to before detection. lightglue: the exported LightGlue model for the extractor's
+    features, or None for mutual nearest neighbours alone. lightglue_pairs: LightGlue runs on
+    the retrieved pairs with the most nearest-neighbour matches, this many (None: every pair;
+    the others keep their nearest-neighbour matches). lightglue_keypoints: each image's best
+    keypoints LightGlue sees (None: all). ratio: the nearest neighbours' ratio test (LightGlue's
+    first pass included). description: one line on when to choose it.
+    """
+
+    name: str
+    extractor: str
+    description: str
+    max_keypoints: int = 1024
+    max_side: int = 640
+    lightglue: str | None = None
+    lightglue_pairs: int | None = None
+    lightglue_keypoints: int | None = None
+    ratio: float = 0.95
+
+    def __post_init__(self) -> None:
+        if self.lightglue is None and (
+            self.lightglue_pairs is not None or self.lightglue_keypoints is not None
+        ):
+            raise ValueError(f"{self.name}: lightglue_pairs / lightglue_keypoints need lightglue")
+        if self.lightglue_pairs is not None and self.lightglue_pairs < 1:
+            raise ValueError(f"{self.name}: lightglue_pairs must be >= 1 or None")
+
+    @property
+    def models(self) -> tuple[str, ...]:
+        """The exported models it needs (none for SIFT)."""
+        return tuple(m for m in (self.extractor, self.lightglue) if m is not None and m != SIFT)
+
+
+FEATURE_CONFIGS: dict[str, FeatureConfig] = {
+    config.name: config
+    for config in (
+        FeatureConfig(
+            "aliked",
+            "aliked-n16",
+            "the learned default: ~0.2 s a LightGlue pair on two cores",
+            lightglue="lightglue-aliked",
+            lightglue_pairs=3,
+            lightglue_keypoints=512,
+        ),
+        FeatureConfig(
+            "aliked-fast",
+            "aliked-n16",
+            "LightGlue in about half aliked's time a query",
+            max_side=480,
+            lightglue="lightglue-aliked",
+            lightglue_pairs=1,
+            lightglue_keypoints=256,
+        ),
+        FeatureConfig(
+            "aliked-full",
+            "aliked-n16",
+            "the most LightGlue matches, slowest: ~0.7 s a pair",
+            lightglue="lightglue-aliked",
+        ),
+        FeatureConfig("aliked-nn", "aliked-n16", "ALIKED without LightGlue"),
+        FeatureConfig(
+            "disk",
+            "disk",
+            "more correct matches a pair than ALIKED, twice its extraction time",
+            max_keypoints=DISK_KEYPOINTS,
+            lightglue="lightglue-disk",
+            lightglue_pairs=3,
+        ),
+        FeatureConfig("disk-fast", "disk", "DISK without LightGlue", max_keypoints=DISK_KEYPOINTS),
+        FeatureConfig(SIFT, SIFT, "needs no weights", max_keypoints=2048, max_side=1024, ratio=0.8),
+    )
+}
+
+PREFERRED_FEATURES = "aliked"  # what AUTO picks when its models are built
+PREFERRED_MODELS = FEATURE_CONFIGS[PREFERRED_FEATURES].models
+FALLBACK_FEATURES = SIFT  # what AUTO picks otherwise: needs no weights
+
+
+def feature_config_names() -> list[str]:
+    return sorted(FEATURE_CONFIGS)
+
+
+def get_feature_config(name: str) -> FeatureConfig:
+    """The preset called ``name``.
+
+    Raises:
+        UnknownComponentError: no preset (nor ``auto``) is called ``name``.
+    """
+    try:
+        return FEATURE_CONFIGS[name]
+    except KeyError:
+        raise UnknownComponentError(
+            f"unknown feature configuration {name!r}; known: "
+            f"{', '.join([AUTO, *feature_config_names()])}"
+        ) from None

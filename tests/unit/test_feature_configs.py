@@ -1,0 +1,115 @@
+"""The table of feature configurations: what each preset builds, and the texts read from it
+(settings help, ``slloc features``, the README table)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from app.settings import Settings
+from services.components import ModelsMissingError, ModelStore, build_features, build_localizer
+from services.errors import UnknownComponentError
+from services.features.configs import (
+    AUTO,
+    FEATURE_CONFIGS,
+    PREFERRED_FEATURES,
+    PREFERRED_MODELS,
+    FeatureConfig,
+    feature_config_names,
+    get_feature_config,
+)
+from services.runtime.manifest import ModelEntry
+from tools.cli import main
+from tools.feature_table import feature_table
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+# preset → (extractor name, matcher name): the components each preset has always built
+BUILDS = {
+    "aliked": ("aliked-n16-1024-640", "lightglue-aliked-512kp-top3+mnn-ratio-0.95"),
+    "aliked-fast": ("aliked-n16-1024-480", "lightglue-aliked-256kp-top1+mnn-ratio-0.95"),
+    "aliked-full": ("aliked-n16-1024-640", "lightglue-aliked-all+mnn-ratio-0.95"),
+    "aliked-nn": ("aliked-n16-1024-640", "mnn-ratio-0.95"),
+    "disk": ("disk-1024-640", "lightglue-disk-top3+mnn-ratio-0.95"),
+    "disk-fast": ("disk-1024-640", "mnn-ratio-0.95"),
+    "sift": ("sift-rootsift-2048-1024-c0.02", "mnn-ratio-0.8"),
+}
+
+
+class _SessionlessStore(ModelStore):
+    """Every model 'built' with a 2048-keypoint budget; records the models asked for."""
+
+    def __init__(self) -> None:
+        super().__init__(Path("/nonexistent-models"))
+        self.asked: list[str] = []
+
+    def entry(self, name: str) -> ModelEntry:
+        self.asked.append(name)
+        return ModelEntry(
+            name, "extractor", f"{name}.onnx", "", "", "", {}, {}, keypoint_budget=2048
+        )
+
+    def session(self, name: str) -> Any:
+        self.asked.append(name)
+        return object()
+
+
+def test_every_preset_is_pinned() -> None:
+    assert sorted(BUILDS) == feature_config_names()
+
+
+@pytest.mark.parametrize("name", sorted(BUILDS))
+def test_preset_builds_its_components_from_the_models_it_declares(name: str) -> None:
+    store = _SessionlessStore()
+    extractor, matcher = build_features(FEATURE_CONFIGS[name], store)
+    assert (extractor.name, matcher.name) == BUILDS[name]
+    assert tuple(dict.fromkeys(store.asked)) == FEATURE_CONFIGS[name].models
+
+
+@pytest.mark.parametrize("name", sorted(BUILDS))
+def test_preset_without_its_models_is_refused(name: str, tmp_path: Path) -> None:
+    config = FEATURE_CONFIGS[name]
+    if not config.models:
+        localizer = build_localizer(tmp_path, 40_000_000, name)
+        assert (localizer.extractor.name, localizer.matcher.name) == BUILDS[name]
+        return
+    with pytest.raises(ModelsMissingError, match=f"--models {config.models[0]}`"):
+        build_localizer(tmp_path, 40_000_000, name)
+
+
+def test_unknown_name_lists_the_known_ones() -> None:
+    with pytest.raises(UnknownComponentError, match="known: auto, aliked, aliked-fast"):
+        get_feature_config("superpoint")
+
+
+def test_auto_prefers_the_models_of_the_preferred_preset() -> None:
+    assert PREFERRED_MODELS == ("aliked-n16", "lightglue-aliked")
+    assert FEATURE_CONFIGS[PREFERRED_FEATURES].models == PREFERRED_MODELS
+
+
+def test_lightglue_settings_need_lightglue() -> None:
+    with pytest.raises(ValueError, match="need lightglue"):
+        FeatureConfig("x", "aliked-n16", "", lightglue_pairs=3)
+    with pytest.raises(ValueError, match="lightglue_pairs"):
+        FeatureConfig("x", "aliked-n16", "", lightglue="lightglue-aliked", lightglue_pairs=0)
+
+
+def test_settings_help_lists_every_preset() -> None:
+    help_text = Settings.model_fields["features"].description or ""
+    assert Settings.model_fields["features"].default == AUTO
+    assert f"one of {', '.join(feature_config_names())};" in help_text
+
+
+def test_cli_prints_the_table(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["features"]) == 0
+    out = capsys.readouterr().out
+    assert out == feature_table()
+    assert len(out.splitlines()) == 2 + len(FEATURE_CONFIGS)
+
+
+def test_readme_holds_the_table() -> None:
+    assert feature_table() in README.read_text(), (
+        "README.md's table of feature configurations is stale: paste `slloc features` over it"
+    )
