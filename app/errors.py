@@ -181,7 +181,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        logger.exception("unhandled error on %s %s", request.method, request.url.path)
+        logger.exception("unhandled error on %s %r", request.method, request.url.path)
         return problem_response(
             request, 500, "internal-error", "Internal server error", "an unexpected error occurred"
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import uuid
 from datetime import UTC, datetime
 
@@ -37,6 +38,15 @@ class UTCDateTime(TypeDecorator[datetime]):
 
 def _new_id() -> str:
     return str(uuid.uuid4())
+
+
+_STORED_ID = re.compile(r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
+
+
+def is_stored_id(value: str) -> bool:
+    """Whether ``value`` has the shape of the ids rows get (a UUID's canonical text). Anything
+    else names no row, and is not sent to the database (PostgreSQL refuses NUL in text)."""
+    return _STORED_ID.fullmatch(value) is not None
 
 
 def _now() -> datetime:

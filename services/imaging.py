@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import io
 import struct
+from tokenize import TokenError
 
 import cv2
 import numpy as np
+from numpy.lib import format as npy_format
 
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
+from services.jpeg_integrity import check_jpeg_complete
 from services.types import Float32Array, UInt8Array
 
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
@@ -56,10 +59,18 @@ def decode_image(data: bytes, max_pixels: int) -> UInt8Array:
         )
     if width == 0 or height == 0:
         raise ImageDecodeError("image has zero width or height")
+    if data[:2] == b"\xff\xd8":
+        check_jpeg_complete(data)
     bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ImageDecodeError("image data is corrupt or truncated")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    if bgr.shape[:2] not in ((height, width), (width, height)):  # EXIF may rotate by 90°
+        raise ImageDecodeError(
+            f"the header says {width}×{height}, the data decodes to {bgr.shape[1]}×{bgr.shape[0]}"
+        )
+    cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=bgr)  # to RGB in place: no copy
+    rgb: UInt8Array = np.asarray(bgr, dtype=np.uint8)
+    return rgb
 
 
 def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> Float32Array:
@@ -71,26 +82,59 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> Float
         (H, W) float32 depth in metres, 0 where unknown.
     """
     if data[:6] == b"\x93NUMPY":
-        try:
-            loaded = np.load(io.BytesIO(data), allow_pickle=False)
-        except ValueError as exc:
-            raise InvalidInputError(f"depth .npy could not be read: {exc}") from exc
-        if not isinstance(loaded, np.ndarray) or loaded.ndim != 2 or loaded.dtype.kind != "f":
-            raise InvalidInputError("depth .npy must be a 2-D float array in metres")
-        depth: Float32Array = loaded.astype(np.float32)
+        depth: Float32Array = _load_npy_depth(data, width, height)
     else:
         w, h = image_size_from_header(data)
         if w * h > max_pixels:
             raise ImageTooLargeError(f"depth map has {w * h} pixels; the limit is {max_pixels}")
+        _check_depth_size(w, h, width, height)
         raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise InvalidInputError("depth PNG must be single-channel 16-bit (millimetres)")
         depth = raw.astype(np.float32) / 1000.0
         depth[raw == 65535] = 0.0
-    if depth.shape != (height, width):
-        raise InvalidInputError(
-            f"depth map is {depth.shape[1]}×{depth.shape[0]}, the image is {width}×{height}"
-        )
+    _check_depth_size(depth.shape[1], depth.shape[0], width, height)
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
     out: Float32Array = depth
     return out
+
+
+def _load_npy_depth(data: bytes, width: int, height: int) -> Float32Array:
+    """A ``.npy`` depth map as (height, width) float32. Its header (shape, dtype) is checked
+    against the image and the upload's length before anything is allocated.
+
+    Raises:
+        InvalidInputError: not a 2-D float32/float64 array of the image's size, or a header
+            that the data does not match.
+    """
+    stream = io.BytesIO(data)
+    try:
+        version = npy_format.read_magic(stream)
+        if version == (1, 0):
+            shape, _, dtype = npy_format.read_array_header_1_0(stream)
+        else:
+            shape, _, dtype = npy_format.read_array_header_2_0(stream)
+    except (ValueError, SyntaxError, TokenError) as exc:  # numpy parses the header as Python
+        raise InvalidInputError(f"depth .npy header could not be read: {exc}") from None
+    if len(shape) != 2 or dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        raise InvalidInputError(
+            f"depth .npy must be a 2-D float32 or float64 array in metres, "
+            f"got shape {shape} of {dtype}"
+        )
+    _check_depth_size(shape[1], shape[0], width, height)
+    if len(data) - stream.tell() != height * width * dtype.itemsize:
+        raise InvalidInputError("depth .npy data does not match its header")
+    stream.seek(0)
+    try:
+        loaded = npy_format.read_array(stream, allow_pickle=False)
+    except ValueError as exc:
+        raise InvalidInputError(f"depth .npy could not be read: {exc}") from None
+    depth: Float32Array = loaded.astype(np.float32)
+    return depth
+
+
+def _check_depth_size(depth_width: int, depth_height: int, width: int, height: int) -> None:
+    if (depth_width, depth_height) != (width, height):
+        raise InvalidInputError(
+            f"depth map is {depth_width}×{depth_height}, the image is {width}×{height}"
+        )

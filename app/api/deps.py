@@ -6,7 +6,7 @@ import hmac
 import threading
 from typing import Annotated, Any, TypeVar
 
-from fastapi import Depends, Request, Security, UploadFile
+from fastapi import Depends, Query, Request, Security, UploadFile
 from fastapi.security import APIKeyHeader
 from pydantic import BaseModel, ValidationError
 from sqlalchemy.orm import Session, sessionmaker
@@ -58,6 +58,11 @@ LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
 RetrievalCacheDep = Annotated[RetrievalIndexCache, Depends(get_retrieval_cache)]
 LocalizeSlotsDep = Annotated[threading.BoundedSemaphore, Depends(get_localize_slots)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
+
+# paging: bounded so that every value fits the databases' integer types (else 422)
+MAX_OFFSET = 2**31 - 1
+Offset = Annotated[int, Query(ge=0, le=MAX_OFFSET, description="Items to skip")]
+Limit = Annotated[int, Query(ge=1, le=1000, description="Items per page")]
 
 
 def _role_of(settings: Settings, key: str | None) -> Role | None:

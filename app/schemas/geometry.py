@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Literal, cast
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from services.errors import InvalidInputError
-from services.geometry.camera import Camera
+from services.geometry.camera import Camera, check_plausible
 from services.geometry.rigid import Rigid3d
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -38,8 +38,9 @@ class CameraSchema(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> CameraSchema:
+        """The model's parameter count, then physical plausibility (``check_plausible``)."""
         try:
-            self.to_camera()
+            check_plausible(self.to_camera())
         except InvalidInputError as exc:
             raise ValueError(str(exc)) from None
         return self
@@ -49,8 +50,10 @@ class CameraSchema(BaseModel):
 
     @classmethod
     def from_camera(cls, camera: Camera) -> CameraSchema:
-        return cls(
-            model=camera.model,
+        """A stored camera as it was accepted (not checked again: the plausible range may
+        have narrowed since)."""
+        return cls.model_construct(
+            model=cast(CameraModelName, camera.model),
             width=camera.width,
             height=camera.height,
             params=list(camera.params),

@@ -2,16 +2,17 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel
 
 from app.schemas.geometry import CameraSchema, PoseSchema
+from app.schemas.text import Name
 from app.usecases.images import NewImage, StoredImage
 
 
 class ImageMetadata(BaseModel):
     """The ``metadata`` form field of an image upload (a JSON string)."""
 
-    name: str = Field(min_length=1, max_length=255)
+    name: Name
     camera: CameraSchema
     cam_from_world: PoseSchema
 

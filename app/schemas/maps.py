@@ -5,6 +5,7 @@ from datetime import datetime
 from pydantic import BaseModel, Field
 
 from app.schemas.estimators import EstimatorEnum, EstimatorName
+from app.schemas.text import Description, Name
 from app.usecases.maps import MapRecord
 from app.usecases.reindex import Reindexed
 from services.estimators.registry import DEFAULT_ESTIMATOR
@@ -22,8 +23,8 @@ class FeatureOptions(BaseModel):
 
 
 class MapCreate(BaseModel):
-    name: str = Field(min_length=1, max_length=255)
-    description: str | None = Field(None, max_length=10_000)
+    name: Name
+    description: Description | None = None
     default_estimator: EstimatorName = Field(
         EstimatorEnum(DEFAULT_ESTIMATOR),
         description="Estimator used when a localize request names none",

@@ -86,7 +86,7 @@ def add_reference_image(
                 raise NotFoundError("map", map_id) from exc
         raise ConflictError(taken) from exc
     logger.info(
-        "map %s: added image %s (%s, %d keypoints)",
+        "map %s: added image %s (%r, %d keypoints)",
         map_id,
         stored.id,
         stored.name,

@@ -13,6 +13,7 @@ from db.store import SqlReferenceStore
 from db.vocabulary import SqlVocabularyStore
 from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
+from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
 from services.pipeline import LocalizationResult, LocalizeParams, Localizer
 from services.retrieval.cache import RetrievalIndexCache
@@ -90,12 +91,18 @@ def localize(
 
     Raises:
         NotFoundError: unknown map.
-        InvalidInputError: the image, depth, camera or parameters are unusable.
+        InvalidInputError: the image, depth, camera or parameters are unusable, or the
+            estimator needs depth and none was uploaded.
     """
     with sessions() as session:
         map_row = require_map(session, map_id)
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
         params = engine_params(request, map_row.default_estimator, max_top_k)
+    if depth_bytes is None and get_estimator(params.estimator).needs_depth:
+        raise InvalidInputError(
+            f"depth: estimator {params.estimator} needs the query's depth map (the depth "
+            "upload); the references need depth too"
+        )
     store = reference_store(sessions, map_id, localizer, cache, vlad, trainer)
     with slots:
         return localizer.localize(image_bytes, params, store, depth_bytes)

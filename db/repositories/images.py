@@ -6,7 +6,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from db.arrays import to_row
-from db.models import FeatureArray, Map, ReferenceImage
+from db.models import FeatureArray, Map, ReferenceImage, is_stored_id
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.references import ReferenceData
@@ -62,6 +62,8 @@ class ImageRepository:
         return row
 
     def get(self, map_id: str, image_id: str) -> ReferenceImage | None:
+        if not (is_stored_id(map_id) and is_stored_id(image_id)):
+            return None
         return self.session.scalars(
             select(ReferenceImage).where(
                 ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
@@ -99,6 +101,8 @@ class ImageRepository:
 
     def delete(self, map_id: str, image_id: str) -> bool:
         """Delete an image and its feature arrays. True when it existed."""
+        if not (is_stored_id(map_id) and is_stored_id(image_id)):
+            return False
         result = self.session.execute(
             delete(ReferenceImage).where(
                 ReferenceImage.id == image_id, ReferenceImage.map_id == map_id

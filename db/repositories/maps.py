@@ -5,7 +5,7 @@ from __future__ import annotations
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
-from db.models import Map, ReferenceImage
+from db.models import Map, ReferenceImage, is_stored_id
 
 
 class MapRepository:
@@ -33,6 +33,8 @@ class MapRepository:
         return row
 
     def get(self, map_id: str) -> Map | None:
+        if not is_stored_id(map_id):
+            return None
         return self.session.get(Map, map_id)
 
     def get_by_name(self, name: str) -> Map | None:
@@ -59,5 +61,7 @@ class MapRepository:
         """Delete a map with its images and their features. True when it existed."""
         # ON DELETE CASCADE does the work on both backends; the explicit statement keeps the
         # result independent of ORM state.
+        if not is_stored_id(map_id):
+            return False
         result = self.session.execute(delete(Map).where(Map.id == map_id))
         return bool(result.rowcount)  # type: ignore[attr-defined]

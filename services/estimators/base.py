@@ -21,6 +21,7 @@ class FailureReason(StrEnum):
     TOO_FEW_MATCHES = "too_few_matches"  # not enough correspondences for the solver
     DEGENERATE_GEOMETRY = "degenerate_geometry"  # e.g. all reference centres coincide
     NO_CONSENSUS = "no_consensus"  # the robust loop found too few inliers
+    MISSING_DEPTH = "missing_depth"  # a depth estimator, but the query or no reference has depth
     TIME_BUDGET_EXCEEDED = "time_budget_exceeded"
 
 

@@ -2,7 +2,8 @@
 comes from the 3-point-with-depth solver (``depth_relative_pose``) in LO-RANSAC. Depths may be
 known up to one scale per image (the solver fits a similarity), so monocular depth works too.
 Matches without depth (0) still count in scoring and refinement; pairs without any depth
-arrays are skipped, so without depth the result is ``too_few_matches`` / ``no_consensus``."""
+arrays are skipped: with depth for fewer than two references the result is ``too_few_matches``
+(without any, ``missing_depth``)."""
 
 from __future__ import annotations
 

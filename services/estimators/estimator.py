@@ -88,6 +88,17 @@ def precheck(
     return None
 
 
+def missing_depth(references: list[ReferenceObservation]) -> FailureReason | None:
+    """``missing_depth`` when there are references but the query has no depth map or none of
+    them has one; None otherwise."""
+    if references and (
+        all(ref.query_depth is None for ref in references)
+        or all(ref.reference_depth is None for ref in references)
+    ):
+        return FailureReason.MISSING_DEPTH
+    return None
+
+
 def finish(
     cam_from_world: Rigid3d,
     masks: list[BoolArray],
@@ -149,7 +160,8 @@ class Estimator(ABC):
         options: EstimatorOptions,
     ) -> EstimateResult:
         request = Request(query_camera, references, options, Deadline(options.time_budget_s))
-        reason = self.check(references)
+        reason = missing_depth(references) if self.needs_depth else None
+        reason = reason or self.check(references)
         if reason is not None:
             return EstimateResult.failure(reason, references)
         try:

@@ -80,6 +80,44 @@ class Camera:
         }
 
 
+# physically plausible intrinsics, relative to the longer image side: a focal length from 0.05×
+# (a field of view of about 169°) to 100× (about 0.6°), a principal point within the image
+# extended by its size on every side, and distortion coefficients of at most 10 in magnitude
+FOCAL_RANGE = (0.05, 100.0)
+MAX_DISTORTION = 10.0
+
+
+def check_plausible(camera: Camera) -> None:
+    """Refuse intrinsics no real camera has, which would only mislead the estimators.
+
+    Raises:
+        InvalidInputError: naming the parameter and its plausible range.
+    """
+    side = max(camera.width, camera.height)
+    low, high = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+    names = CAMERA_MODELS[camera.model]
+    for name, value in zip(names, camera.params, strict=True):
+        if name in ("f", "fx", "fy"):
+            if not low <= value <= high:
+                raise InvalidInputError(
+                    f"camera {name} = {value:g} px is implausible: focal lengths lie within "
+                    f"{FOCAL_RANGE[0]:g}–{FOCAL_RANGE[1]:g} × the longer image side "
+                    f"({low:g}–{high:g} px)"
+                )
+        elif name in ("cx", "cy"):
+            size = camera.width if name == "cx" else camera.height
+            if not -size <= value <= 2 * size:
+                raise InvalidInputError(
+                    f"camera {name} = {value:g} px is implausible: the principal point lies "
+                    f"within the image extended by its size ({-size}–{2 * size} px)"
+                )
+        elif abs(value) > MAX_DISTORTION:
+            raise InvalidInputError(
+                f"camera {name} = {value:g} is implausible: distortion coefficients lie within "
+                f"±{MAX_DISTORTION:g}"
+            )
+
+
 def default_camera(width: int, height: int) -> Camera:
     """Camera assumed for a query that comes without intrinsics: a pinhole with focal length
     1.2 × the longer image side (a ~45° horizontal field of view at 4:3, typical of phone and

@@ -13,6 +13,8 @@ import numpy as np
 from services.features.base import LocalFeatures
 from services.types import Float32Array, UInt8Array
 
+_BLUR_WIDTH = 640
+
 
 class ThumbnailDescriptor:
     def __init__(self, width: int = 32, height: int = 24, blur_sigma: float = 4.0) -> None:
@@ -21,9 +23,16 @@ class ThumbnailDescriptor:
         self.name = f"thumbnail-{width}x{height}-s{blur_sigma:g}"
 
     def compute(self, image: UInt8Array, features: LocalFeatures) -> Float32Array:
-        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
-        # blur relative to a 640-pixel-wide image, so the descriptor does not depend on resolution
-        sigma = self.blur_sigma * gray.shape[1] / 640.0
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        height, width = gray.shape
+        if width > _BLUR_WIDTH:
+            # the blur is relative to a 640-pixel-wide image (so the descriptor does not depend
+            # on resolution): a larger image is first averaged down to that width, as blurring
+            # it in full (a kernel of hundreds of pixels) costs seconds for nothing
+            size = (_BLUR_WIDTH, max(1, round(height * _BLUR_WIDTH / width)))
+            gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        gray = gray.astype(np.float32)
+        sigma = self.blur_sigma * gray.shape[1] / _BLUR_WIDTH
         thumb = cv2.resize(
             cv2.GaussianBlur(gray, (0, 0), sigma), self.size, interpolation=cv2.INTER_AREA
         ).ravel()

@@ -162,7 +162,19 @@ def test_depth_estimators_without_depth(name: str, scene: SyntheticCorrespondenc
     ]
     result = get_estimator(name).estimate(scene.query_camera, refs, TEST_OPTIONS)
     _check_shape(result, refs)
-    assert result.failure_reason is FailureReason.TOO_FEW_MATCHES
+    assert result.failure_reason is FailureReason.MISSING_DEPTH
+
+
+@pytest.mark.parametrize("name", sorted(DEPTH_ESTIMATORS))
+@pytest.mark.parametrize("side", ["query_depth", "reference_depth"])
+def test_depth_estimators_with_one_side_without_depth(
+    name: str, side: str, scene: SyntheticCorrespondences
+) -> None:
+    """Issue 14: the reason says that depth is missing, not that matches are too few."""
+    refs = [dataclasses.replace(ref, **{side: None}) for ref in scene.references]
+    result = get_estimator(name).estimate(scene.query_camera, refs, TEST_OPTIONS)
+    _check_shape(result, refs)
+    assert result.failure_reason is FailureReason.MISSING_DEPTH
 
 
 def test_e3p1_up_to_scale_depth(scene: SyntheticCorrespondences) -> None:

@@ -1,8 +1,11 @@
+import cv2
 import numpy as np
+import pytest
 
 from services.features.base import LocalFeatures
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.retrieval.search import PositionPrior, top_k
+from services.retrieval.thumbnail import ThumbnailDescriptor
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -60,3 +63,32 @@ class TestNearestNeighborMatcher:
     def test_too_few_keypoints(self) -> None:
         one = self._features(np.ones((1, 4)))
         assert NearestNeighborMatcher().match(one, one).shape == (0, 2)
+
+
+class TestThumbnail:
+    def test_large_image_is_averaged_down_before_the_blur(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """Issue 14: blurring a 6300×6300 upload in full took 6 s per add; the blur now runs
+        at 640 pixels wide, and the descriptor is the same as the 640-pixel image's."""
+        rng = np.random.default_rng(0)
+        small = cv2.resize(
+            rng.integers(0, 255, (24, 32, 3), dtype=np.uint8), (640, 480), cv2.INTER_CUBIC
+        )
+        large = cv2.resize(small, (3200, 2400), interpolation=cv2.INTER_CUBIC)
+        blurred: list[tuple[int, ...]] = []
+        real_blur = cv2.GaussianBlur
+
+        def recording_blur(image: np.ndarray, *args: object) -> np.ndarray:
+            blurred.append(image.shape)
+            return real_blur(image, *args)  # type: ignore[call-overload, no-any-return]
+
+        monkeypatch.setattr(cv2, "GaussianBlur", recording_blur)
+        descriptor = ThumbnailDescriptor()
+        no_features = LocalFeatures(
+            np.zeros((0, 2), np.float32), np.zeros((0, 8), np.float32), np.zeros(0), (0, 0)
+        )
+        a = descriptor.compute(small, no_features)
+        b = descriptor.compute(large, no_features)
+        assert blurred == [(480, 640), (480, 640)]
+        assert float(a @ b) > 0.999

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Query, Response, UploadFile
+from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from app.api.deps import (
     AdminKey,
     ClientKey,
+    Limit,
     LocalizerDep,
+    Offset,
     SessionsDep,
     SettingsDep,
     TrainerDep,
@@ -76,8 +78,8 @@ def add_image(
 def list_images(
     map_id: str,
     sessions: SessionsDep,
-    offset: int = Query(0, ge=0),
-    limit: int = Query(100, ge=1, le=1000),
+    offset: Offset = 0,
+    limit: Limit = 100,
 ) -> ImagePage:
     stored, total = images.list_images(sessions, map_id, offset, limit)
     items = [ImageOut.from_stored(image) for image in stored]

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Response
 
-from app.api.deps import AdminKey, ClientKey, LocalizerDep, SessionsDep, SettingsDep
+from app.api.deps import (
+    AdminKey,
+    ClientKey,
+    Limit,
+    LocalizerDep,
+    Offset,
+    SessionsDep,
+    SettingsDep,
+)
 from app.errors import problem_responses
 from app.schemas.maps import MapCreate, MapOut, MapPage, ReindexOut
 from app.usecases import maps
@@ -42,8 +50,8 @@ def create_map(body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep) 
 )
 def list_maps(
     sessions: SessionsDep,
-    offset: int = Query(0, ge=0),
-    limit: int = Query(100, ge=1, le=1000),
+    offset: Offset = 0,
+    limit: Limit = 100,
 ) -> MapPage:
     records, total = maps.list_maps(sessions, offset, limit)
     items = [MapOut.from_record(record) for record in records]
