@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -10,6 +11,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.formparsers import MultiPartException
+from starlette.routing import BaseRoute, Match, Route
+from starlette.types import Scope
 
 from app.usecases.errors import ConflictError, NotFoundError
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
@@ -41,6 +45,7 @@ class ProblemError(Exception):
         title: str,
         detail: str | None = None,
         errors: list[dict[str, Any]] | None = None,
+        headers: dict[str, str] | None = None,
     ) -> None:
         super().__init__(detail or title)
         self.status = status
@@ -48,6 +53,7 @@ class ProblemError(Exception):
         self.title = title
         self.detail = detail
         self.errors = errors
+        self.headers = headers
 
 
 def invalid(detail: str, errors: list[dict[str, Any]] | None = None) -> ProblemError:
@@ -109,6 +115,7 @@ def _describe(status: int) -> str:
         409: "Name already taken",
         413: "Upload or image too large",
         422: "Invalid input",
+        503: "Busy: too many requests in progress or waiting; retry after Retry-After seconds",
     }.get(status, "Problem")
 
 
@@ -125,17 +132,46 @@ def _response(
 
 
 def problem_response(
-    request: Request, status: int, slug: str, title: str, detail: str
+    request: Request,
+    status: int,
+    slug: str,
+    title: str,
+    detail: str,
+    headers: dict[str, str] | None = None,
 ) -> JSONResponse:
     return _response(
-        request, Problem(type=PROBLEM_BASE + slug, title=title, status=status, detail=detail)
+        request,
+        Problem(type=PROBLEM_BASE + slug, title=title, status=status, detail=detail),
+        headers,
     )
 
 
-def install_error_handlers(app: FastAPI) -> None:
+def _part_too_large(exc: StarletteHTTPException) -> bool:
+    """Whether ``exc`` is the form parser refusing a text part over its size limit (raised
+    as a 400 while handling the parser's ``MultiPartException``)."""
+    cause = exc.__context__
+    return isinstance(cause, MultiPartException) and "exceeded maximum size" in cause.message
+
+
+def _allowed_methods(routes: Sequence[BaseRoute], scope: Scope) -> str:
+    """The methods of every route at the request's path (the router names only the first
+    route's)."""
+    methods: set[str] = set()
+    for route in routes:
+        if isinstance(route, Route) and route.methods and route.matches(scope)[0] is Match.PARTIAL:
+            methods |= route.methods
+    return ", ".join(sorted(methods))
+
+
+def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
+    """Problem documents for every error; ``routes`` are the API's (a 405's ``Allow`` names
+    the methods of all of them at the path)."""
+
     @app.exception_handler(ProblemError)
     async def _problem(request: Request, exc: ProblemError) -> JSONResponse:
-        headers = {"WWW-Authenticate": "X-API-Key"} if exc.status == 401 else None
+        headers = dict(exc.headers or {})
+        if exc.status == 401:
+            headers["WWW-Authenticate"] = "X-API-Key"
         return _response(
             request,
             Problem(
@@ -176,12 +212,22 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        slug, title = _STATUS_SLUGS.get(exc.status_code, ("error", "Error"))
-        return problem_response(request, exc.status_code, slug, title, str(exc.detail))
+        status = 413 if exc.status_code == 400 and _part_too_large(exc) else exc.status_code
+        slug, title = _STATUS_SLUGS.get(status, ("error", "Error"))
+        headers = dict(exc.headers or {})
+        if status == 405:
+            headers["Allow"] = _allowed_methods(routes, request.scope) or headers.get("Allow", "")
+        return problem_response(request, status, slug, title, str(exc.detail), headers or None)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         logger.exception("unhandled error on %s %r", request.method, request.url.path)
+        # the server drops the connection after an unhandled error; say so
         return problem_response(
-            request, 500, "internal-error", "Internal server error", "an unexpected error occurred"
+            request,
+            500,
+            "internal-error",
+            "Internal server error",
+            "an unexpected error occurred",
+            {"Connection": "close"},
         )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.errors import PROBLEM_BASE, PROBLEM_JSON
@@ -34,12 +35,14 @@ class BodySizeLimit:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
-                    raise _BodyTooLargeError
+                    # an HTTPException passes the framework's body parsing unwrapped, so the
+                    # exception handlers answer it; one raised outside them lands below
+                    raise BodyTooLargeError(self.max_bytes)
             return message
 
         try:
             await self.app(scope, limited_receive, send)
-        except _BodyTooLargeError:
+        except BodyTooLargeError:
             await self._reject(scope, send)
 
     async def _reject(self, scope: Scope, send: Send) -> None:
@@ -48,7 +51,7 @@ class BodySizeLimit:
                 "type": PROBLEM_BASE + "payload-too-large",
                 "title": "Payload too large",
                 "status": 413,
-                "detail": f"request body exceeds {self.max_bytes} bytes",
+                "detail": _detail(self.max_bytes),
                 "instance": scope.get("path", ""),
             }
         ).encode()
@@ -66,5 +69,13 @@ class BodySizeLimit:
         await send({"type": "http.response.body", "body": body})
 
 
-class _BodyTooLargeError(Exception):
-    pass
+class BodyTooLargeError(HTTPException):
+    """A chunked request body grew past the limit; the rest of it is not read, so the
+    connection closes after the answer."""
+
+    def __init__(self, max_bytes: int) -> None:
+        super().__init__(413, _detail(max_bytes), headers={"Connection": "close"})
+
+
+def _detail(max_bytes: int) -> str:
+    return f"request body exceeds {max_bytes} bytes"

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib.metadata import version
 
+from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
+from app.admission import Admission
 from app.api.routes import health, images, localize, maps
+from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
 from app.localizer_factory import build_localizer
@@ -41,7 +43,9 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.localizer = localizer or build_localizer(settings)
         app.state.retrieval_cache = RetrievalIndexCache()
         app.state.vocabulary_trainer = BackgroundTrainer()
-        app.state.localize_slots = threading.BoundedSemaphore(settings.localize_workers)
+        app.state.admission = Admission(settings.localize_workers, settings.max_queued)
+        # health's database probe; apart from the thread pool other routes may fill
+        app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
             logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
@@ -58,7 +62,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     )
     # Two uploads (image, depth) plus form fields may share one request.
     app.add_middleware(BodySizeLimit, max_bytes=2 * settings.max_upload_bytes + 1024 * 1024)
-    install_error_handlers(app)
+    # outermost: a missing or unknown key is answered before anything reads the body
+    routes = [
+        route for module in (maps, images, localize, health) for route in module.router.routes
+    ]
+    app.add_middleware(ApiKeyGate, routes=routes)
+    install_error_handlers(app, routes)
     for module in (maps, images, localize, health):
         app.include_router(module.router)
     install_openapi(app)

@@ -62,6 +62,31 @@ class Settings(BaseSettings):
     max_top_k: int = Field(50, gt=0, description="Largest top_k a localize request may ask for")
     auto_migrate: bool = Field(True, description="Upgrade the schema to head at start-up")
     localize_workers: int = Field(2, gt=0, description="Threads for CPU-bound engine work")
+    max_queued: int = Field(
+        8,
+        ge=0,
+        description="Localize and add requests that may wait for a worker; more get 503",
+    )
+    max_keypoints: int = Field(
+        4096, gt=0, description="Largest keypoint budget a map's feature options may ask for"
+    )
+    max_side: int = Field(
+        2048, ge=64, description="Largest image side (px) a map's feature options may ask for"
+    )
+    localize_time_budget_s: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Wall-clock budget of one localize (s); a request may ask for less",
+    )
+    timeout_keep_alive_s: int = Field(
+        5, gt=0, description="`slloc serve`: an idle keep-alive connection is closed after this"
+    )
+    limit_concurrency: int = Field(
+        64,
+        gt=0,
+        description="`slloc serve`: open connections and tasks at once; more get 503",
+    )
 
     @field_validator("api_keys")
     @classmethod

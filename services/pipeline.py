@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from services.errors import InvalidInputError
-from services.estimators.base import FailureReason, ReferenceObservation
+from services.estimators.base import FailureReason, PoseEstimator, ReferenceObservation
 from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
@@ -33,11 +34,19 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LocalizeParams:
+    """Attributes:
+    time_budget_s: wall-clock budget of the whole localization in seconds (None =
+        unbounded). It is checked after each stage (decode, extract, retrieve) and before
+        the match of each reference, and it bounds the estimator's own budget; once spent,
+        the result is ``time_budget_exceeded``.
+    """
+
     camera: Camera | None = None
     estimator: str = DEFAULT_ESTIMATOR
     top_k: int = 10
     prior: PositionPrior | None = None
     options: EstimatorOptions = field(default_factory=EstimatorOptions)
+    time_budget_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -134,15 +143,32 @@ class Localizer:
         depth_bytes: bytes | None = None,
     ) -> LocalizationResult:
         estimator = get_estimator(params.estimator)
-        timings: dict[str, float] = {}
-        t_start = t = time.perf_counter()
+        clock = _StageClock(params.time_budget_s)
+        try:
+            return self._localize(image_bytes, params, store, depth_bytes, estimator, clock)
+        except _OutOfTimeError:
+            return LocalizationResult(
+                localized=False,
+                reason=FailureReason.TIME_BUDGET_EXCEEDED.value,
+                estimator=estimator.name,
+                cam_from_world=None,
+                num_inliers=0,
+                confidence=0.0,
+                retrieved=[],
+                timings_ms=clock.finish(),
+                stats={},
+            )
 
-        def lap(stage: str) -> None:
-            nonlocal t
-            now = time.perf_counter()
-            timings[stage] = (now - t) * 1000.0
-            t = now
-
+    def _localize(
+        self,
+        image_bytes: bytes,
+        params: LocalizeParams,
+        store: ReferenceStore,
+        depth_bytes: bytes | None,
+        estimator: PoseEstimator,
+        clock: _StageClock,
+    ) -> LocalizationResult:
+        lap = clock.lap
         image = decode_image(image_bytes, self.max_pixels)
         camera = params.camera or default_camera(image.shape[1], image.shape[0])
         _check_camera_matches(camera, image)
@@ -166,25 +192,28 @@ class Localizer:
         references = store.load_references([index.image_ids[i] for i in rows])
         score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
         lap("retrieve")
-        pairs = self.matcher.match_many(query, [ref.features for ref in references])
+        pairs = self.matcher.match_many(
+            query, [ref.features for ref in references], stop=clock.deadline.expired
+        )
+        lap("match")  # before the pairs are used: a stopped matcher returns fewer
         observations = [
             _observe(query, query_depth, ref, score_of[ref.image_id], ref_pairs)
             for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
-        lap("match")
         if not observations:
             outcome = None
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
+            options = clock.bound(params.options)
             outcome = verify_pose(
-                estimator.estimate(camera, observations, params.options),
+                estimator.estimate(camera, observations, options),
                 camera,
                 observations,
-                params.options,
+                options,
             )
             reason = outcome.failure_reason.value if outcome.failure_reason else None
-        lap("estimate")
-        timings["total"] = (time.perf_counter() - t_start) * 1000.0
+        lap("estimate", check=False)  # the work is done: its answer is kept
+        timings = clock.finish()
 
         retrieved = []
         for i, (ref, obs) in enumerate(zip(references, observations, strict=True)):
@@ -212,6 +241,48 @@ class Localizer:
             timings_ms=timings,
             stats=outcome.stats if outcome is not None else {},
         )
+
+
+STAGES = ("decode", "extract", "retrieve", "match", "estimate")
+
+
+class _OutOfTimeError(Exception):
+    """The localization's time budget ran out between stages."""
+
+
+class _StageClock:
+    """Times the stages (milliseconds) and enforces the time budget between them."""
+
+    def __init__(self, budget_s: float | None) -> None:
+        self.deadline = Deadline(budget_s)
+        self._timings: dict[str, float] = {}
+        self._start = self._lap_start = time.perf_counter()
+
+    def lap(self, stage: str, check: bool = True) -> None:
+        """Records ``stage`` as ended now.
+
+        Raises:
+            _OutOfTimeError: ``check`` and the budget is spent.
+        """
+        now = time.perf_counter()
+        self._timings[stage] = (now - self._lap_start) * 1000.0
+        self._lap_start = now
+        if check and self.deadline.expired():
+            raise _OutOfTimeError
+
+    def bound(self, options: EstimatorOptions) -> EstimatorOptions:
+        """``options`` with an estimator budget no longer than what is left of this one."""
+        left = self.deadline.remaining_s()
+        if left == float("inf"):
+            return options
+        own = options.time_budget_s
+        return replace(options, time_budget_s=max(0.0, left if own is None else min(own, left)))
+
+    def finish(self) -> dict[str, float]:
+        """The stage timings (0 for the stages not reached) and their ``total``."""
+        timings = {stage: self._timings.get(stage, 0.0) for stage in STAGES}
+        timings["total"] = (time.perf_counter() - self._start) * 1000.0
+        return timings
 
 
 def _observe(

@@ -133,8 +133,19 @@ def _serve(host: str, port: int, log_level: str) -> int:
     import uvicorn
 
     from app.main import create_app
+    from app.slow_clients import MAX_REQUEST_HEAD_BYTES, HeadTimeoutH11Protocol
 
-    uvicorn.run(create_app(), host=host, port=port, log_level=log_level)
+    settings = get_settings()
+    uvicorn.run(
+        create_app(settings),
+        host=host,
+        port=port,
+        log_level=log_level,
+        http=HeadTimeoutH11Protocol,
+        timeout_keep_alive=settings.timeout_keep_alive_s,
+        limit_concurrency=settings.limit_concurrency,
+        h11_max_incomplete_event_size=MAX_REQUEST_HEAD_BYTES,
+    )
     return 0
 
 

@@ -37,6 +37,14 @@ class LocalizeParamsIn(BaseModel):
         allow_inf_nan=False,
         description="Inlier threshold in pixels (default 12)",
     )
+    time_budget_s: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="Wall-clock budget in seconds, at most the service's "
+        "(SLLOC_LOCALIZE_TIME_BUDGET_S, its default); past it the answer is localized: false "
+        "with reason time_budget_exceeded",
+    )
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -46,6 +54,7 @@ class LocalizeParamsIn(BaseModel):
             top_k=self.top_k,
             prior=PositionPrior(np.array(prior.position), prior.radius) if prior else None,
             max_error_px=self.max_error_px,
+            time_budget_s=self.time_budget_s,
         )
 
 

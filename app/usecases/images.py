@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -56,10 +57,12 @@ def add_reference_image(
     image_bytes: bytes,
     depth_bytes: bytes | None = None,
     trainer: BackgroundTrainer | None = None,
+    slots: AbstractContextManager[object] = nullcontext(),
 ) -> StoredImage:
     """Describe and store a posed reference image: the row and all its features in one
     transaction, or nothing. With a ``trainer``, a retrieval vocabulary that the add makes due
-    is trained in the background, so no request waits for it.
+    is trained in the background, so no request waits for it. ``slots`` is held while the
+    image is described (bounds concurrent engine work).
 
     Raises:
         NotFoundError: unknown map.
@@ -72,7 +75,8 @@ def add_reference_image(
         if ImageRepository(session).name_exists(map_id, image.name):
             raise ConflictError(taken)
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
-    data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
+    with slots:
+        data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
     try:
         with sessions.begin() as session:
             require_map(session, map_id)  # deleted while we extracted

@@ -32,6 +32,7 @@ class LocalizeRequest:
         top_k: references to retrieve.
         prior: keep only references near a known position.
         max_error_px: inlier threshold in pixels (None: the estimator options' default).
+        time_budget_s: wall-clock budget of the localization in seconds (None: the service's).
     """
 
     camera: Camera | None = None
@@ -39,19 +40,30 @@ class LocalizeRequest:
     top_k: int = 10
     prior: PositionPrior | None = None
     max_error_px: float | None = None
+    time_budget_s: float | None = None
 
 
 def engine_params(
-    request: LocalizeRequest, default_estimator: str, max_top_k: int
+    request: LocalizeRequest,
+    default_estimator: str,
+    max_top_k: int,
+    max_time_budget_s: float | None = None,
 ) -> LocalizeParams:
     """The engine's parameters for ``request`` on a map whose default estimator is
-    ``default_estimator``.
+    ``default_estimator``, with the time budget ``max_time_budget_s`` unless the request asks
+    for less (None: unbounded).
 
     Raises:
-        InvalidInputError: ``top_k`` exceeds ``max_top_k``.
+        InvalidInputError: ``top_k`` exceeds ``max_top_k``, or ``time_budget_s`` exceeds
+            ``max_time_budget_s``.
     """
     if request.top_k > max_top_k:
         raise InvalidInputError(f"top_k may be at most {max_top_k}")
+    budget = max_time_budget_s
+    if request.time_budget_s is not None:
+        if max_time_budget_s is not None and request.time_budget_s > max_time_budget_s:
+            raise InvalidInputError(f"time_budget_s may be at most {max_time_budget_s}")
+        budget = request.time_budget_s
     options = EstimatorOptions()
     if request.max_error_px is not None:
         ransac = replace(options.ransac, max_error_px=request.max_error_px)
@@ -62,6 +74,7 @@ def engine_params(
         top_k=request.top_k,
         prior=request.prior,
         options=options,
+        time_budget_s=budget,
     )
 
 
@@ -74,6 +87,7 @@ def localize(
     depth_bytes: bytes | None = None,
     *,
     max_top_k: int,
+    max_time_budget_s: float | None = None,
     cache: RetrievalIndexCache | None = None,
     vlad: bool = True,
     slots: AbstractContextManager[object] = nullcontext(),
@@ -83,6 +97,9 @@ def localize(
     a result with ``localized`` False and a reason, not an error.
 
     Args:
+        max_top_k: the largest ``top_k`` a request may ask for.
+        max_time_budget_s: the time budget, and the largest a request may ask for (None:
+            unbounded).
         cache: keeps the map's retrieval index in memory between calls.
         vlad: retrieve by the map's VLAD vocabulary once it has one (False: the localizer's
             global descriptor).
@@ -97,7 +114,7 @@ def localize(
     with sessions() as session:
         map_row = require_map(session, map_id)
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
-        params = engine_params(request, map_row.default_estimator, max_top_k)
+        params = engine_params(request, map_row.default_estimator, max_top_k, max_time_budget_s)
     if depth_bytes is None and get_estimator(params.estimator).needs_depth:
         raise InvalidInputError(
             f"depth: estimator {params.estimator} needs the query's depth map (the depth "

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.usecases.errors import ConflictError, NotFoundError
 from db.models import Map
 from db.repositories.maps import MapRepository
+from services.errors import InvalidInputError
 from services.pipeline import Localizer
 
 
@@ -40,6 +41,26 @@ def require_map(session: Session, map_id: str) -> Map:
     return row
 
 
+@dataclass(frozen=True)
+class FeatureLimits:
+    """The largest feature options a map may ask for: they bound the cost of every add and
+    localize on it."""
+
+    max_keypoints: int
+    max_side: int
+
+    def check(self, max_keypoints: int | None, max_side: int | None) -> None:
+        """Raises:
+        InvalidInputError: an option exceeds its limit.
+        """
+        for field, value, limit in (
+            ("max_keypoints", max_keypoints, self.max_keypoints),
+            ("max_side", max_side, self.max_side),
+        ):
+            if value is not None and value > limit:
+                raise InvalidInputError(f"features.{field} may be at most {limit}")
+
+
 def create_map(
     sessions: sessionmaker[Session],
     localizer: Localizer,
@@ -48,13 +69,17 @@ def create_map(
     default_estimator: str,
     max_keypoints: int | None,
     max_side: int | None,
+    limits: FeatureLimits | None = None,
 ) -> MapRecord:
     """Create an empty map.
 
     Raises:
-        InvalidInputError: the localizer's extractor cannot honour the feature options.
+        InvalidInputError: the feature options exceed ``limits``, or the localizer's
+            extractor cannot honour them.
         ConflictError: the name is taken.
     """
+    if limits is not None:
+        limits.check(max_keypoints, max_side)
     localizer.for_map(max_keypoints, max_side)
     taken = f"a map named {name!r} exists"
     try:

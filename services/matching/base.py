@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 from services.features.base import LocalFeatures
@@ -17,7 +17,27 @@ class Matcher(Protocol):
         ...
 
     def match_many(
-        self, query: LocalFeatures, references: Sequence[LocalFeatures]
+        self,
+        query: LocalFeatures,
+        references: Sequence[LocalFeatures],
+        stop: Callable[[], bool] | None = None,
     ) -> list[IntArray]:
-        """``match(query, r)`` for every reference, in order; backends may share work."""
+        """``match(query, r)`` for every reference, in order; backends may share work.
+        ``stop`` is asked before each reference: once it answers True the rest is skipped
+        (the list may then be shorter, or hold first-pass matches only)."""
         ...
+
+
+def match_each(
+    match: Callable[[LocalFeatures, LocalFeatures], IntArray],
+    query: LocalFeatures,
+    references: Sequence[LocalFeatures],
+    stop: Callable[[], bool] | None = None,
+) -> list[IntArray]:
+    """``match(query, r)`` for the references in order, until ``stop`` answers True."""
+    out = []
+    for reference in references:
+        if stop is not None and stop():
+            break
+        out.append(match(query, reference))
+    return out

@@ -12,12 +12,13 @@ instead of 1024 is ~3x faster a pair).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
 from services.features.base import LocalFeatures
+from services.matching.base import match_each
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.types import IntArray
 
@@ -65,12 +66,17 @@ class OnnxLightGlueMatcher:
         return np.stack([rows, matches0[0][rows]], axis=1).astype(np.int64)
 
     def match_many(
-        self, query: LocalFeatures, references: Sequence[LocalFeatures]
+        self,
+        query: LocalFeatures,
+        references: Sequence[LocalFeatures],
+        stop: Callable[[], bool] | None = None,
     ) -> list[IntArray]:
         if self.lightglue_pairs is None:
-            return [self.match(query, reference) for reference in references]
-        out = self.first_pass.match_many(query, references)
+            return match_each(self.match, query, references, stop)
+        out = self.first_pass.match_many(query, references, stop)
         ranked = np.argsort([-len(m) for m in out], kind="stable")
         for i in ranked[: self.lightglue_pairs]:
+            if stop is not None and stop():
+                break
             out[i] = self.match(query, references[i])
         return out

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from services.features.base import LocalFeatures
+from services.matching.base import match_each
 from services.types import IntArray
 
 
@@ -43,6 +44,9 @@ class NearestNeighborMatcher:
         return np.stack([rows[keep], best[keep]], axis=1).astype(np.int64)
 
     def match_many(
-        self, query: LocalFeatures, references: Sequence[LocalFeatures]
+        self,
+        query: LocalFeatures,
+        references: Sequence[LocalFeatures],
+        stop: Callable[[], bool] | None = None,
     ) -> list[IntArray]:
-        return [self.match(query, reference) for reference in references]
+        return match_each(self.match, query, references, stop)

@@ -64,6 +64,19 @@ class TestNearestNeighborMatcher:
         one = self._features(np.ones((1, 4)))
         assert NearestNeighborMatcher().match(one, one).shape == (0, 2)
 
+    def test_match_many_stops_when_asked(self) -> None:
+        features = self._features(np.random.default_rng(2).normal(size=(20, 8)))
+        matcher = NearestNeighborMatcher()
+        asked = []
+
+        def stop_after_two() -> bool:
+            asked.append(True)
+            return len(asked) > 2
+
+        matched = matcher.match_many(features, [features] * 4, stop=stop_after_two)
+        assert len(matched) == 2
+        assert len(matcher.match_many(features, [features] * 4)) == 4
+
 
 class TestThumbnail:
     def test_large_image_is_averaged_down_before_the_blur(

@@ -8,6 +8,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from app.api.deps import (
     AdminKey,
+    AdmissionDep,
     ClientKey,
     Limit,
     LocalizerDep,
@@ -37,10 +38,11 @@ METADATA_HELP = (
     status_code=201,
     operation_id="add_image",
     dependencies=[AdminKey],
-    responses=problem_responses(401, 403, 404, 409, 413, 422),
+    responses=problem_responses(401, 403, 404, 409, 413, 422, 503),
 )
 def add_image(
     map_id: str,
+    admission: AdmissionDep,
     sessions: SessionsDep,
     localizer: LocalizerDep,
     settings: SettingsDep,
@@ -57,15 +59,17 @@ def add_image(
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    stored = images.add_reference_image(
-        sessions,
-        localizer,
-        map_id,
-        meta.to_new_image(),
-        image_bytes,
-        depth_bytes,
-        trainer=trainer if settings.global_model is None else None,
-    )
+    with admission.admit():
+        stored = images.add_reference_image(
+            sessions,
+            localizer,
+            map_id,
+            meta.to_new_image(),
+            image_bytes,
+            depth_bytes,
+            trainer=trainer if settings.global_model is None else None,
+            slots=admission.slots,
+        )
     return ImageOut.from_stored(stored)
 
 

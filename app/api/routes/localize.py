@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, UploadFile
 
 from app.api.deps import (
+    AdmissionDep,
     ClientKey,
     LocalizerDep,
-    LocalizeSlotsDep,
     RetrievalCacheDep,
     SessionsDep,
     SettingsDep,
@@ -36,7 +36,7 @@ PARAMS_HELP = (
     "/localize",
     operation_id="localize",
     dependencies=[ClientKey],
-    responses=problem_responses(401, 404, 413, 422),
+    responses=problem_responses(401, 404, 413, 422, 503),
 )
 def localize(
     map_id: str,
@@ -44,7 +44,7 @@ def localize(
     localizer: LocalizerDep,
     settings: SettingsDep,
     cache: RetrievalCacheDep,
-    slots: LocalizeSlotsDep,
+    admission: AdmissionDep,
     trainer: TrainerDep,
     image: Annotated[UploadFile, File(description="Query image, JPEG or PNG")],
     params: Annotated[
@@ -56,21 +56,24 @@ def localize(
     ] = None,
 ) -> LocalizeResult:
     """Returns 200 with ``localized: false`` and a ``reason`` when the image cannot be
-    localized; 4xx only for bad input."""
+    localized (``time_budget_exceeded`` past the time budget); 4xx only for bad input; 503
+    with ``Retry-After`` when every worker is busy and the queue is full."""
     body = parse_json_form(LocalizeParamsIn, params, "params")
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    result = localize_image(
-        sessions,
-        localizer,
-        map_id,
-        body.to_request(),
-        image_bytes,
-        depth_bytes,
-        max_top_k=settings.max_top_k,
-        cache=cache,
-        vlad=settings.global_model is None,
-        slots=slots,
-        trainer=trainer,
-    )
+    with admission.admit():
+        result = localize_image(
+            sessions,
+            localizer,
+            map_id,
+            body.to_request(),
+            image_bytes,
+            depth_bytes,
+            max_top_k=settings.max_top_k,
+            max_time_budget_s=settings.localize_time_budget_s,
+            cache=cache,
+            vlad=settings.global_model is None,
+            slots=admission.slots,
+            trainer=trainer,
+        )
     return LocalizeResult.from_result(result, body.return_inliers)

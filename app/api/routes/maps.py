@@ -26,10 +26,13 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
     status_code=201,
     operation_id="create_map",
     dependencies=[AdminKey],
-    responses=problem_responses(401, 403, 409, 422),
+    responses=problem_responses(401, 403, 409, 413, 422),
 )
-def create_map(body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep) -> MapOut:
-    """``features`` must be honourable by the service's extractor (else 422)."""
+def create_map(
+    body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep, settings: SettingsDep
+) -> MapOut:
+    """``features`` must be honourable by the service's extractor and within the service's
+    limits (``SLLOC_MAX_KEYPOINTS``, ``SLLOC_MAX_SIDE``), else 422."""
     record = maps.create_map(
         sessions,
         localizer,
@@ -38,6 +41,7 @@ def create_map(body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep) 
         body.default_estimator,
         body.features.max_keypoints,
         body.features.max_side,
+        maps.FeatureLimits(settings.max_keypoints, settings.max_side),
     )
     return MapOut.from_record(record)
 

@@ -1,0 +1,52 @@
+"""Admission control for the requests that run the engine (localize, add): a bounded number
+compute at once, a bounded number wait, the rest are refused at once."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from app.errors import ProblemError
+
+RETRY_AFTER_S = 1
+
+
+class Admission:
+    """``workers`` requests compute at once (``slots``, held around engine work) and at most
+    ``queued`` more wait for a slot; a request beyond that is refused without waiting.
+
+    Attributes:
+        slots: held while a request runs the engine.
+    """
+
+    def __init__(self, workers: int, queued: int) -> None:
+        self.slots = threading.BoundedSemaphore(workers)
+        self._capacity = workers + queued
+        self._admitted = 0
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def admit(self) -> Iterator[None]:
+        """Counts the request in while the block runs.
+
+        Raises:
+            ProblemError: 503 with ``Retry-After`` when every worker is busy and the queue is
+                full.
+        """
+        with self._lock:
+            if self._admitted >= self._capacity:
+                raise ProblemError(
+                    503,
+                    "service-busy",
+                    "Service busy",
+                    f"{self._capacity} localize or add requests are in progress or waiting; "
+                    f"retry after {RETRY_AFTER_S} s",
+                    headers={"Retry-After": str(RETRY_AFTER_S)},
+                )
+            self._admitted += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._admitted -= 1
