@@ -29,6 +29,7 @@ focal length. Pure numpy, no per-point Python loops.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -39,6 +40,8 @@ from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray, IntArray
+
+logger = logging.getLogger(__name__)
 
 # Two rays closer to parallel than this (sine of their angle, ~0.006°) do not triangulate.
 _MIN_SINE = 1e-4
@@ -114,6 +117,21 @@ def two_ray_midpoints(c1: FloatArray, d1: FloatArray, c2: FloatArray, d2: FloatA
     s2 = (e2 - b * e1) / safe
     mid = 0.5 * (c1 + s1[..., None] * d1 + c2 + s2[..., None] * d2)
     out: FloatArray = np.where(ok[..., None], mid, np.nan)
+    return out
+
+
+def _well_conditioned(normal: FloatArray) -> BoolArray:
+    """(T,) whether each (T, 3, 3) ray-intersection system Σ (I − d dᵀ) has a unique solution.
+
+    Its eigenvalues are 0 along a direction all its rays share; for two rays at angle θ the
+    smallest over the largest is about θ²/4. Agreeing rays can all be parallel (they agreed
+    with a hypothesis of a pair whose other ray did not), so the system is checked, not
+    assumed: tracks under the two-ray limit ``_MIN_SINE`` stay untriangulated.
+    """
+    finite: BoolArray = np.asarray(np.isfinite(normal).all(axis=(1, 2)))
+    eig = np.linalg.eigvalsh(np.where(finite[:, None, None], normal, np.eye(3)))
+    ratio = eig[:, 0] / np.maximum(eig[:, -1], np.finfo(np.float64).tiny)
+    out: BoolArray = finite & (ratio > _MIN_SINE**2 / 4.0)
     return out
 
 
@@ -217,9 +235,8 @@ def verify_by_reference_triangulation(
     rhs = _group_sum(tid, np.einsum("kij,kj->ki", projector, center), num_tracks)  # (T, 3)
     enough = np.bincount(tid, weights=weight, minlength=num_tracks) >= min_views
     points = np.full((num_tracks, 3), np.nan)
-    if enough.any():
-        solvable = np.flatnonzero(enough)
-        # agreeing rays of a track are never all parallel (their pair hypothesis was finite)
+    solvable = np.flatnonzero(enough & _well_conditioned(normal))
+    if solvable.size:
         points[solvable] = np.linalg.solve(normal[solvable], rhs[solvable][..., None])[..., 0]
     # NaN compares False; cos > cos(threshold) > 0 also means the point is in front
     use &= _cosine_to(points[tid], center, ray) > cos_limit
@@ -295,7 +312,8 @@ def verify_pose(
 
     Applied by the pipeline to every estimator's answer. Results without a pose, without
     inliers (``pose_approx`` uses no correspondences) or with the check disabled
-    (``min_verified_points = 0``) pass through unchanged.
+    (``min_verified_points = 0``) pass through unchanged. A singular system on the way is a
+    ``degenerate_geometry`` failure.
     """
     if (
         result.cam_from_world is None
@@ -303,9 +321,19 @@ def verify_pose(
         or result.num_inliers == 0
     ):
         return result
-    verified, tracks = count_verified_points(
-        query_camera, result.cam_from_world, references, result.inliers, options.ransac.max_error_px
-    )
+    try:
+        verified, tracks = count_verified_points(
+            query_camera,
+            result.cam_from_world,
+            references,
+            result.inliers,
+            options.ransac.max_error_px,
+        )
+    except np.linalg.LinAlgError:  # a system the conditioning checks let through
+        logger.warning("pose verification met a singular system", exc_info=True)
+        return EstimateResult(
+            None, result.inliers, 0.0, result.stats, FailureReason.DEGENERATE_GEOMETRY
+        )
     stats = {
         **result.stats,
         "verified_points": float(verified),

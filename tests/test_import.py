@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import csv
 import re
+import threading
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -21,12 +23,15 @@ from sqlalchemy.orm import Session
 from app.main import create_app
 from app.settings import Settings, get_settings
 from db.arrays import from_row
+from db.migrate import upgrade
 from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.images import ImageRepository
+from db.repositories.maps import MapRepository
 from db.session import make_engine
 from services.pipeline import Localizer
 from tools import cli
 from tools.importers import read_colmap
+from tools.synthetic.dataset import write_synthetic_dataset
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
 
 NUM_VIEWS = 6
@@ -384,6 +389,67 @@ def test_resume_after_interrupt(
     assert "done: 0 added, 0 failed" in third.out
     again = stored(slloc_env)
     assert sorted(r.id for r in again.images) == sorted(r.id for r in db.images)
+
+
+# ---------------------------------------------------------------------------------------------
+# concurrent runs
+
+
+def test_concurrent_imports_into_one_new_map(
+    slloc_env: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Regression: two imports of one source into one new map. Both find no map and both
+    create it (held at a barrier until both have looked); both list the stored names before
+    either adds one, so both try every image. The loser of each race takes the winner's map
+    or counts the image as stored by the other run: both exit 0, every image is stored once."""
+    write_synthetic_dataset(tmp_path / "source", NUM_VIEWS, 0)
+    table = tmp_path / "source" / "references.csv"
+    upgrade_engine = make_engine(slloc_env)
+    upgrade(upgrade_engine)  # an existing database, as the server keeps it
+    upgrade_engine.dispose()
+    created, listed = threading.Barrier(2, timeout=30), threading.Barrier(2, timeout=30)
+    real_create, real_names = MapRepository.create, ImageRepository.names
+
+    def create_together(self: MapRepository, *args: Any, **kwargs: Any) -> Any:
+        created.wait()
+        return real_create(self, *args, **kwargs)
+
+    def names_together(self: ImageRepository, map_id: str) -> set[str]:
+        names = real_names(self, map_id)
+        listed.wait()
+        return names
+
+    monkeypatch.setattr(MapRepository, "create", create_together)
+    monkeypatch.setattr(ImageRepository, "names", names_together)
+    codes: list[int | BaseException] = []
+
+    def run() -> None:
+        try:
+            codes.append(cli.main(["import", "--map", "scene", "--csv", str(table)]))
+        except BaseException as exc:  # the assertion below names it
+            codes.append(exc)
+
+    capsys.readouterr()
+    threads = [threading.Thread(target=run) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(120)
+    out = capsys.readouterr().out
+    assert codes == [0, 0], out
+    assert out.count(f"{NUM_VIEWS} images listed, 0 stored, {NUM_VIEWS} to add") == 2
+    assert out.count("added (") == NUM_VIEWS
+    assert out.count("exists (stored meanwhile by another run)") == NUM_VIEWS
+    db = stored(slloc_env)
+    assert_consistent(db)
+    assert sorted(db.by_name()) == [f"references/ref{i:04d}.png" for i in range(NUM_VIEWS)]
+    engine = make_engine(slloc_env)
+    with Session(engine) as session:
+        assert session.scalars(select(Map.name)).all() == ["scene"]
+    engine.dispose()
 
 
 # ---------------------------------------------------------------------------------------------

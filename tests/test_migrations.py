@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import threading
+import time
+
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
-from sqlalchemy import inspect
+from sqlalchemy import inspect, text
 
 from db.base import Base
 from db.migrate import upgrade
@@ -24,3 +29,49 @@ def test_upgrade_head_matches_models(database_url: str) -> None:
         )
     engine.dispose()
     assert diff == []
+
+
+# upgrades ``argv[1]`` once the clock passes ``argv[2]``, so two processes start together
+_UPGRADE_AT = """
+import sys, time
+from db.migrate import upgrade
+from db.session import make_engine
+engine = make_engine(sys.argv[1])
+time.sleep(max(0.0, float(sys.argv[2]) - time.time()))
+upgrade(engine)
+"""
+
+
+def test_concurrent_upgrades_of_a_fresh_database(database_url: str) -> None:
+    """Two processes (two imports, two server workers) and two threads upgrade one fresh
+    database at once: every one succeeds and the schema is at head once."""
+    start = time.time() + 3.0
+    processes = [
+        subprocess.Popen(
+            [sys.executable, "-c", _UPGRADE_AT, database_url, str(start)],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    for process in processes:
+        _, err = process.communicate(timeout=120)
+        assert process.returncode == 0, err
+    engine = make_engine(database_url)
+    errors: list[BaseException] = []
+
+    def again() -> None:
+        try:
+            upgrade(engine)
+        except BaseException as exc:  # the assertion below names it
+            errors.append(exc)
+
+    threads = [threading.Thread(target=again) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert errors == []
+    with engine.connect() as conn:
+        assert len(conn.execute(text("SELECT version_num FROM alembic_version")).all()) == 1
+    engine.dispose()

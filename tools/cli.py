@@ -226,11 +226,11 @@ def _reindex(map_name: str) -> int:
 
 def _import(args: argparse.Namespace) -> int:
     from app.localizer_factory import build_localizer
-    from app.usecases.errors import ConflictError, NotFoundError
+    from app.usecases.errors import NameTakenError, NotFoundError
     from app.usecases.images import add_reference_image
+    from app.usecases.maps import open_map
     from db.migrate import upgrade
     from db.repositories.images import ImageRepository
-    from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
     from db.vocabulary import SqlVocabularyStore
     from services.errors import InvalidInputError
@@ -252,10 +252,9 @@ def _import(args: argparse.Namespace) -> int:
     engine = make_engine(settings.database_url)
     upgrade(engine)
     sessions = make_session_factory(engine)
-    with sessions.begin() as session:
-        maps = MapRepository(session)
-        row = maps.get_by_name(args.map) or maps.create(args.map, None)
-        map_id, max_keypoints, max_side = row.id, row.max_keypoints, row.max_side
+    opened = open_map(sessions, args.map)  # another import may be creating it too
+    map_id, max_keypoints, max_side = opened.id, opened.max_keypoints, opened.max_side
+    with sessions() as session:
         existing = ImageRepository(session).names(map_id)
     pending = list(iter_pending(items, existing))
     print(
@@ -265,7 +264,8 @@ def _import(args: argparse.Namespace) -> int:
     )
     localizer = build_localizer(settings)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
-    failed = 0
+    failed = stored_meanwhile = 0
+    added_here: set[str] = set()
     start = time.perf_counter()
     for done, item in enumerate(pending, start=1):
         try:
@@ -278,8 +278,16 @@ def _import(args: argparse.Namespace) -> int:
                 item.image_path.read_bytes(),
                 depth,
             )
+            added_here.add(item.metadata.name)
             status = f"added ({out.num_keypoints} keypoints)"
-        except (OSError, InvalidInputError, NotFoundError, ConflictError) as exc:
+        except NameTakenError as exc:
+            if item.metadata.name in added_here:  # the source lists the name twice
+                failed += 1
+                status = f"FAILED: {exc}"
+            else:  # another import of the same source stored it meanwhile
+                stored_meanwhile += 1
+                status = "exists (stored meanwhile by another run)"
+        except (OSError, InvalidInputError, NotFoundError) as exc:
             failed += 1
             status = f"FAILED: {exc}"
         elapsed = time.perf_counter() - start
@@ -287,7 +295,9 @@ def _import(args: argparse.Namespace) -> int:
         print(
             f"[{done}/{len(pending)}] {item.metadata.name}: {status} (eta {eta:.0f} s)", flush=True
         )
-    print(f"done: {len(pending) - failed} added, {failed} failed", flush=True)
+    added = len(pending) - failed - stored_meanwhile
+    meanwhile = f", {stored_meanwhile} stored meanwhile by another run" if stored_meanwhile else ""
+    print(f"done: {added} added, {failed} failed{meanwhile}", flush=True)
     if settings.global_model is None:  # train the vocabulary now so the server need not
         try:
             report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train_if_due()

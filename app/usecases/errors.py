@@ -12,3 +12,7 @@ class NotFoundError(Exception):
 
 class ConflictError(Exception):
     """The request contradicts the stored state (a name taken, nothing to reindex)."""
+
+
+class NameTakenError(ConflictError):
+    """A map of that name exists, or the map has an image of that name."""

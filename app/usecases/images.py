@@ -10,7 +10,7 @@ from datetime import datetime
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.errors import NameTakenError, NotFoundError
 from app.usecases.maps import require_map
 from db.models import ReferenceImage
 from db.repositories.images import ImageRepository
@@ -66,14 +66,15 @@ def add_reference_image(
 
     Raises:
         NotFoundError: unknown map.
-        ConflictError: the map has an image of that name.
+        NameTakenError: the map has an image of that name (also when another add stored it
+            while this one was describing the image).
         InvalidInputError: the image, depth or camera is unusable.
     """
     taken = f"map already has an image named {image.name!r}"
     with sessions() as session:
         map_row = require_map(session, map_id)
         if ImageRepository(session).name_exists(map_id, image.name):
-            raise ConflictError(taken)
+            raise NameTakenError(taken)
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
     with slots:
         data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
@@ -88,7 +89,7 @@ def add_reference_image(
         with sessions() as session:
             if MapRepository(session).get(map_id) is None:
                 raise NotFoundError("map", map_id) from exc
-        raise ConflictError(taken) from exc
+        raise NameTakenError(taken) from exc
     logger.info(
         "map %s: added image %s (%r, %d keypoints)",
         map_id,

@@ -8,7 +8,7 @@ from datetime import datetime
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.errors import NameTakenError, NotFoundError
 from db.models import Map
 from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
@@ -76,7 +76,7 @@ def create_map(
     Raises:
         InvalidInputError: the feature options exceed ``limits``, or the localizer's
             extractor cannot honour them.
-        ConflictError: the name is taken.
+        NameTakenError: the name is taken.
     """
     if limits is not None:
         limits.check(max_keypoints, max_side)
@@ -86,11 +86,38 @@ def create_map(
         with sessions.begin() as session:
             repo = MapRepository(session)
             if repo.get_by_name(name) is not None:
-                raise ConflictError(taken)
+                raise NameTakenError(taken)
             row = repo.create(name, description, default_estimator, max_keypoints, max_side)
             return _record(row, 0)
     except IntegrityError as exc:
-        raise ConflictError(taken) from exc
+        raise NameTakenError(taken) from exc
+
+
+def open_map(sessions: sessionmaker[Session], name: str) -> MapRecord:
+    """The map named ``name``, created empty with the service's defaults when there is none.
+    A creation that loses the race with another one (another import) opens the winner's map.
+
+    Raises:
+        NotFoundError: the map created meanwhile was deleted before it could be read.
+    """
+    found = _find_by_name(sessions, name)
+    if found is not None:
+        return found
+    try:
+        with sessions.begin() as session:
+            return _record(MapRepository(session).create(name, None), 0)
+    except IntegrityError:  # another creation of the name committed first
+        found = _find_by_name(sessions, name)
+        if found is None:
+            raise NotFoundError("map", name) from None
+        return found
+
+
+def _find_by_name(sessions: sessionmaker[Session], name: str) -> MapRecord | None:
+    with sessions() as session:
+        repo = MapRepository(session)
+        row = repo.get_by_name(name)
+        return None if row is None else _record(row, repo.image_counts([row.id]).get(row.id, 0))
 
 
 def list_maps(

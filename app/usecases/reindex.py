@@ -45,7 +45,7 @@ def reindex_map(
     every reference with it (no image is re-read).
 
     Raises:
-        NotFoundError: unknown map.
+        NotFoundError: unknown map, also one deleted while it was being trained.
         ConflictError: retrieval uses an ONNX global model (``vlad`` False), or the map has
             too few descriptors.
     """
@@ -61,6 +61,8 @@ def reindex_map(
     try:
         report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train()
     except VocabularyError as exc:
+        with sessions() as session:
+            require_map(session, map_id)  # gone meanwhile: not found, not a conflict
         raise ConflictError(str(exc)) from exc
     logger.info(
         "map %s: reindexed %d references with vocabulary v%d in %.1f s",

@@ -4,6 +4,7 @@ pose, acceptance, confidence). A method subclasses ``Estimator`` and writes ``so
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -27,6 +28,8 @@ from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray
+
+logger = logging.getLogger(__name__)
 
 
 class EstimationError(Exception):
@@ -133,7 +136,8 @@ def finish(
 
 
 class Estimator(ABC):
-    """A pose estimator (``base.PoseEstimator``): ``check``, then ``solve``, then ``result``.
+    """A pose estimator (``base.PoseEstimator``): ``check``, then ``solve``, then ``result``;
+    a linear system found singular on the way is a ``degenerate_geometry`` failure.
 
     Attributes:
         name: the API name.
@@ -165,10 +169,14 @@ class Estimator(ABC):
         if reason is not None:
             return EstimateResult.failure(reason, references)
         try:
-            solution = self.solve(request)
+            return self.result(request, self.solve(request))
         except EstimationError as failed:
             return EstimateResult.failure(failed.reason, references, request.stats)
-        return self.result(request, solution)
+        except np.linalg.LinAlgError:  # a singular system the method's own checks let through
+            logger.warning("%s: singular linear system", self.name, exc_info=True)
+            return EstimateResult.failure(
+                FailureReason.DEGENERATE_GEOMETRY, references, request.stats
+            )
 
     def result(self, request: Request, solution: Solution) -> EstimateResult:
         """The answer: inliers within ``max_error_px`` Sampson error of the pose over the

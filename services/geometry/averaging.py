@@ -15,12 +15,15 @@ from services.types import BoolArray, FloatArray
 
 
 def project_to_rotation(M: FloatArray) -> FloatArray:
-    """Nearest rotation (Frobenius) to each (..., 3, 3) matrix."""
-    U, _, Vt = np.linalg.svd(M)
+    """Nearest rotation (Frobenius) to each (..., 3, 3) matrix; NaN for a non-finite one
+    (the SVD would not converge)."""
+    finite: BoolArray = np.asarray(np.isfinite(M).all(axis=(-2, -1)))
+    U, _, Vt = np.linalg.svd(np.where(finite[..., None, None], M, np.eye(3)))
     d = np.sign(np.linalg.det(U @ Vt))
     D = np.ones(M.shape[:-1])
     D[..., 2] = d
-    return np.asarray((U * D[..., None, :]) @ Vt, dtype=np.float64)
+    R = (U * D[..., None, :]) @ Vt
+    return np.asarray(np.where(finite[..., None, None], R, np.nan), dtype=np.float64)
 
 
 def rotation_log(R: FloatArray) -> FloatArray:
@@ -103,12 +106,15 @@ def intersect_rays(
         origins, directions: (N, 3); weights: (N,).
     Returns:
         (3,) point and the conditioning of the problem: the ratio of the smallest to the largest
-        eigenvalue of Σ w (I − d dᵀ) (0 when all lines are parallel, i.e. degenerate).
+        eigenvalue of Σ w (I − d dᵀ) (0 when all lines are parallel or an input is not finite,
+        i.e. degenerate; the point is then NaN).
     """
     d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     A = np.einsum("n,nij->ij", weights, P)
     b = np.einsum("n,nij,nj->i", weights, P, origins)
+    if not (np.isfinite(A).all() and np.isfinite(b).all()):
+        return np.full(3, np.nan), 0.0
     eig = np.linalg.eigvalsh(A)
     cond = float(eig[0] / max(eig[-1], 1e-300))
     if cond < 1e-12:

@@ -28,11 +28,13 @@ def similarity_from_points(
     a = src - mu_src[:, None]
     b = dst - mu_dst[:, None]
     cov = np.einsum("bni,bnj->bij", b, a) / src.shape[1]
-    U, S, Vt = np.linalg.svd(cov)
+    # a sample with a non-finite point gets a NaN transform (its SVD would not converge)
+    finite = np.isfinite(cov).all(axis=(1, 2))
+    U, S, Vt = np.linalg.svd(np.where(finite[:, None, None], cov, np.eye(3)))
     d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     D = np.ones((src.shape[0], 3))
     D[:, 2] = d
-    R = (U * D[:, None, :]) @ Vt
+    R = np.where(finite[:, None, None], (U * D[:, None, :]) @ Vt, np.nan)
     if with_scale:
         var_src = (a * a).sum(axis=(1, 2)) / src.shape[1]
         s = (S * D).sum(axis=1) / np.maximum(var_src, 1e-300)

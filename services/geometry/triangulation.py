@@ -35,8 +35,10 @@ def triangulate_dlt(
         np.concatenate([rows_x, rows_y], axis=1)
         * np.concatenate([weights, weights], axis=1)[..., None]
     )
-    # the null vector of A is the eigenvector of AᵀA with the smallest eigenvalue
-    _, vecs = np.linalg.eigh(np.swapaxes(A, 1, 2) @ A)
+    # the null vector of A is the eigenvector of AᵀA with the smallest eigenvalue; a track
+    # with a non-finite observation is dropped like one without views (eigh would not converge)
+    AtA = np.swapaxes(A, 1, 2) @ A
+    _, vecs = np.linalg.eigh(np.where(np.isfinite(AtA).all(axis=(1, 2))[:, None, None], AtA, 0.0))
     X = vecs[..., :, 0]
     w = X[:, 3]
     w = np.where(np.abs(w) < 1e-12, 1e-12, w)

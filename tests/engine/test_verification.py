@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from services.estimators.base import FailureReason
+from services import verification
+from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions, VerificationOptions
 from services.features.sift import SiftExtractor
+from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.pipeline import LocalizeParams, Localizer
@@ -38,6 +40,14 @@ def _look_at(center: NDArray[np.float64], yaw_deg: float) -> Rigid3d:
 def _normalized(pose: Rigid3d, points: NDArray[np.float64]) -> NDArray[np.float64]:
     cam = pose.apply(points)
     out: NDArray[np.float64] = cam[:, :2] / cam[:, 2:]
+    return out
+
+
+_CAMERA = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+
+
+def _pixels(pose: Rigid3d, points: NDArray[np.float64]) -> NDArray[np.float64]:
+    out: NDArray[np.float64] = _normalized(pose, points) * 500.0 + [320.0, 240.0]
     return out
 
 
@@ -151,6 +161,59 @@ def test_single_reference_tracks_and_parallel_rays_are_not_verified() -> None:
     )
     assert single.num_tracks == 0
     assert single.num_verified_points == 0
+
+
+def test_parallel_agreeing_rays_leave_the_track_untriangulated() -> None:
+    """Regression (singular matrix on a driving frame): two far references on one line see the
+    point straight ahead, so their rays are the same line; a near reference whose ray misses
+    it by 0.02 pairs with one of them into a hypothesis the far two agree with and it does
+    not. The agreeing rays are then exactly parallel and their system singular: the track
+    stays untriangulated instead of raising."""
+    identity = np.eye(3)
+    centers = np.array([[0.0, 0.0, -100.0], [1.0, 0.0, 4.0], [0.0, 0.0, -90.0]])
+    near_ray = np.array([0.0, 0.02, 5.0]) - centers[1]
+    check = verify_by_reference_triangulation(
+        identity,
+        np.array([0.0, 0.0, 50.0]),  # the query at z = −50 on the same line
+        np.zeros((3, 2)),
+        np.arange(3, dtype=np.int64),
+        np.stack([identity] * 3),
+        -centers,
+        np.array([[0.0, 0.0], near_ray[:2] / near_ray[2], [0.0, 0.0]]),
+        np.zeros(3, np.int64),
+        1e-3,
+        np.full(3, 1e-3),
+    )
+    assert check.num_tracks == 1
+    assert check.num_verified_points == 0
+    assert np.isnan(check.points).all()
+
+
+def test_singular_system_in_verification_is_degenerate_geometry(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    setup = _Setup()
+    observations = [
+        ReferenceObservation(
+            f"ref{i}",
+            _CAMERA,
+            ref,
+            _pixels(setup.query, setup.points),
+            _pixels(ref, setup.points),
+        )
+        for i, ref in enumerate(setup.references)
+    ]
+    masks = [np.ones(len(setup.points), bool) for _ in observations]
+    result = EstimateResult(setup.query, masks, 0.9, {"score": 1.0})
+
+    def singular(*args: object) -> tuple[int, int]:
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(verification, "count_verified_points", singular)
+    verified = verification.verify_pose(result, _CAMERA, observations, EstimatorOptions())
+    assert verified.cam_from_world is None
+    assert verified.failure_reason is FailureReason.DEGENERATE_GEOMETRY
+    assert verified.stats == {"score": 1.0}
 
 
 # ---------------------------------------------------------------- pipeline on a synthetic map

@@ -96,6 +96,32 @@ def test_ctrl_c_leaves_partial_results(
     assert (tmp_path / "errors.png").is_file()
 
 
+def test_a_query_that_raises_is_its_failure_and_the_run_goes_on(
+    synthetic_csv: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Regression: a singular matrix in one query's pose verification aborted the run."""
+    original = InProcessRunner.localize
+    calls = 0
+
+    def singular_once(self: InProcessRunner, *args: Any) -> Any:
+        nonlocal calls
+        calls += 1
+        if calls == 2:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return original(self, *args)
+
+    monkeypatch.setattr(InProcessRunner, "localize", singular_once)
+    code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "pose_approx")
+    assert code == 0
+    assert results["meta"]["error"] is None
+    queries = results["queries"]
+    assert len(queries) == NUM_QUERIES
+    assert [q["localized"] for q in queries] == [True, False, True, True]
+    assert queries[1]["reason"] == "error: LinAlgError"
+    summary = results["summaries"]["sift/pose_approx"]
+    assert summary["failures"] == {"error: LinAlgError": 1}
+
+
 @pytest.fixture(scope="module")
 def server() -> Iterator[LocalServer]:
     with LocalServer() as running:

@@ -22,7 +22,7 @@ from tools.evaluation.metrics import (
     summarize,
 )
 from tools.evaluation.report import markdown_tables, write_json, write_plots
-from tools.evaluation.runner import Runner
+from tools.evaluation.runner import QueryOutcome, Runner
 from tools.evaluation.split import Split
 from tools.synthetic.scene import encode_png, unrelated_image
 
@@ -106,7 +106,8 @@ def run_evaluation(
     on_record: Callable[[QueryRecord], None] | None = None,
 ) -> Evaluation:
     """Run every feature configuration (one runner each) × estimator; stops early, keeping
-    what it has, on KeyboardInterrupt (``interrupted``) or an error (``error``).
+    what it has, on KeyboardInterrupt (``interrupted``) or an error outside a query
+    (``error``). A query whose localize raises is recorded as failed and the run goes on.
     ``on_record`` sees each record as it is made."""
     evaluation = Evaluation()
     references = ReferencePoses.of({r.name: r.cam_from_world for r in split.references})
@@ -127,6 +128,20 @@ def run_evaluation(
         log(traceback.format_exc())
         log(f"failed ({evaluation.error}): writing the results so far")
     return evaluation
+
+
+def failed_query(exc: Exception) -> QueryOutcome:
+    """The outcome recorded for a query whose localize raised ``exc`` (reason
+    ``error: <exception type>``)."""
+    return QueryOutcome(
+        localized=False,
+        reason=f"error: {type(exc).__name__}",
+        cam_from_world=None,
+        num_inliers=0,
+        confidence=0.0,
+        retrieved=[],
+        timings_ms={},
+    )
 
 
 def _load_references(
@@ -160,11 +175,12 @@ def _localize_all(
                 if query is not None and estimator in DEPTH_ESTIMATORS
                 else None
             )
-            outcome = runner.localize(
-                image,
-                depth,
-                localize_params(item.camera, estimator, options.top_k, options.max_error_px),
-            )
+            params = localize_params(item.camera, estimator, options.top_k, options.max_error_px)
+            try:
+                outcome = runner.localize(image, depth, params)
+            except Exception as exc:  # this query's failure; the run goes on
+                log(traceback.format_exc())
+                outcome = failed_query(exc)
             record = make_record(
                 f"{runner.features}/{estimator}",
                 item.name,

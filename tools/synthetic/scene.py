@@ -153,6 +153,17 @@ class SyntheticScene:
             out.append(SyntheticView(f"{prefix}{i:04d}.png", self.camera, pose, image, depth))
         return out
 
+    def forward_views(self, distances: list[float], prefix: str) -> list[SyntheticView]:
+        """Frames of a camera moving straight ahead, as from a driving vehicle: centres at
+        ``(0, 0, z)`` for each z in ``distances``, every frame looking along that line (+z,
+        no rotation), so each centre lies on the others' optical axes."""
+        out = []
+        for i, z in enumerate(distances):
+            pose = Rigid3d(np.eye(3), np.array([0.0, 0.0, -float(z)]))
+            image, depth = self.render(pose)
+            out.append(SyntheticView(f"{prefix}{i:04d}.png", self.camera, pose, image, depth))
+        return out
+
 
 def unrelated_image(seed: int, width: int = 640, height: int = 480) -> UInt8Array:
     """An image of texture that appears nowhere in any ``SyntheticScene``."""
