@@ -9,12 +9,13 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 from starlette.routing import BaseRoute, Match, Route
 from starlette.types import Scope
 
+from app.request_context import REQUEST_ID_HEADER, current_request_id
 from app.usecases.errors import ConflictError, NotFoundError
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 
@@ -33,6 +34,9 @@ class Problem(BaseModel):
     detail: str | None = None
     instance: str | None = None
     errors: list[dict[str, Any]] | None = None
+    request_id: str | None = Field(
+        None, description="The request's id, as in its X-Request-ID header and its log lines"
+    )
 
 
 class ProblemError(Exception):
@@ -123,6 +127,7 @@ def _response(
     request: Request, problem: Problem, headers: dict[str, str] | None = None
 ) -> JSONResponse:
     problem.instance = problem.instance or request.url.path
+    problem.request_id = current_request_id()
     return JSONResponse(
         problem.model_dump(exclude_none=True),
         status_code=problem.status,
@@ -222,12 +227,17 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         logger.exception("unhandled error on %s %r", request.method, request.url.path)
-        # the server drops the connection after an unhandled error; say so
+        # the server drops the connection after an unhandled error; say so. This answer is
+        # sent outside the middleware that echoes the request id.
+        headers = {"Connection": "close"}
+        request_id = current_request_id()
+        if request_id is not None:
+            headers[REQUEST_ID_HEADER] = request_id
         return problem_response(
             request,
             500,
             "internal-error",
             "Internal server error",
             "an unexpected error occurred",
-            {"Connection": "close"},
+            headers,
         )

@@ -8,6 +8,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.errors import PROBLEM_BASE, PROBLEM_JSON
+from app.request_context import current_request_id
 
 
 class BodySizeLimit:
@@ -53,6 +54,7 @@ class BodySizeLimit:
                 "status": 413,
                 "detail": _detail(self.max_bytes),
                 "instance": scope.get("path", ""),
+                "request_id": current_request_id(),
             }
         ).encode()
         await send(

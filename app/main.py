@@ -17,7 +17,9 @@ from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
 from app.localizer_factory import build_localizer
+from app.logs import install_request_id_records
 from app.openapi import install_openapi
+from app.request_context import RequestContext
 from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
@@ -31,6 +33,7 @@ logger = logging.getLogger(__name__)
 def create_app(settings: Settings | None = None, localizer: Localizer | None = None) -> FastAPI:
     """Build the app. ``localizer`` may be injected (tests share one across apps)."""
     settings = settings or get_settings()
+    install_request_id_records()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -62,11 +65,14 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     )
     # Two uploads (image, depth) plus form fields may share one request.
     app.add_middleware(BodySizeLimit, max_bytes=2 * settings.max_upload_bytes + 1024 * 1024)
-    # outermost: a missing or unknown key is answered before anything reads the body
+    # outside the body limit: a missing or unknown key is answered before anything reads the
+    # body
     routes = [
         route for module in (maps, images, localize, health) for route in module.router.routes
     ]
     app.add_middleware(ApiKeyGate, routes=routes)
+    # around the others: every answer, their 401 and 413 included, carries the request id
+    app.add_middleware(RequestContext)
     install_error_handlers(app, routes)
     for module in (maps, images, localize, health):
         app.include_router(module.router)

@@ -17,6 +17,7 @@ from services.features.configs import (
 )
 
 Role = Literal["admin", "client"]
+LogFormat = Literal["text", "json"]
 
 
 class ApiKey(BaseModel):
@@ -81,6 +82,11 @@ class Settings(BaseSettings):
     )
     timeout_keep_alive_s: int = Field(
         5, gt=0, description="`slloc serve`: an idle keep-alive connection is closed after this"
+    )
+    log_format: LogFormat = Field(
+        "text",
+        description="`slloc serve`: log lines as text (time level logger [request id]: "
+        "message) or as JSON objects, one per line",
     )
     limit_concurrency: int = Field(
         64,

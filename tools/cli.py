@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+from app.logs import configure_logging
 from app.settings import get_settings
 from services.features.configs import PREFERRED_MODELS
 
@@ -23,7 +24,12 @@ def main(argv: list[str] | None = None) -> int:
     serve = sub.add_parser("serve", help="run the HTTP API")
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument("--log-level", default="info")
+    serve.add_argument(
+        "--log-level",
+        default="info",
+        choices=("critical", "error", "warning", "info", "debug", "trace"),
+        help="the least severe records written (the access lines are info)",
+    )
 
     imp = sub.add_parser("import", help="bulk-load posed images into a map (resumable)")
     imp.add_argument("--map", required=True, help="map name; created when missing")
@@ -81,11 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     add_bench_arguments(sub.add_parser("bench", help="latency and throughput of /localize"))
 
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
     if args.command == "serve":
         return _serve(args.host, args.port, args.log_level)
+    configure_logging("text")
     if args.command == "import":
         return _import(args)
     if args.command == "db":
@@ -131,16 +135,21 @@ def _missing_modules(*names: str) -> list[str]:
 
 def _serve(host: str, port: int, log_level: str) -> int:
     import uvicorn
+    from uvicorn.config import LOG_LEVELS
 
     from app.main import create_app
     from app.slow_clients import MAX_REQUEST_HEAD_BYTES, HeadTimeoutH11Protocol
 
     settings = get_settings()
+    configure_logging(settings.log_format, LOG_LEVELS[log_level])
     uvicorn.run(
         create_app(settings),
         host=host,
         port=port,
         log_level=log_level,
+        # uvicorn's records go to the handler above; the app writes the access lines
+        log_config=None,
+        access_log=False,
         http=HeadTimeoutH11Protocol,
         timeout_keep_alive=settings.timeout_keep_alive_s,
         limit_concurrency=settings.limit_concurrency,
