@@ -113,6 +113,7 @@ def document_problems(schema: dict[str, Any]) -> None:
 
 def _describe(status: int) -> str:
     return {
+        400: "Malformed body: JSON that is not UTF-8, or multipart without a boundary",
         401: "Missing or unknown API key",
         403: "The API key's role may not do this",
         404: "Map or image not found",

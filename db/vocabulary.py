@@ -158,6 +158,13 @@ class SqlVocabularyStore:
         ids = list(vectors)
         try:
             with self.sessions.begin() as session:
+                # the images first (as every writer): a delete of one waits for this
+                session.execute(
+                    select(ReferenceImage.id)
+                    .where(ReferenceImage.id.in_(ids))
+                    .order_by(ReferenceImage.id)
+                    .with_for_update(read=True, key_share=True)
+                )
                 session.execute(
                     delete(FeatureArray).where(
                         FeatureArray.image_id.in_(ids), FeatureArray.kind == VLAD_KIND

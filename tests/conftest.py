@@ -61,7 +61,7 @@ def postgres_admin_url() -> str:
     return POSTGRES_ADMIN_URL
 
 
-def _fresh_postgres_database(admin_url: str) -> Iterator[str]:
+def fresh_postgres_database(admin_url: str) -> Iterator[str]:
     name = f"slloc_test_{uuid.uuid4().hex[:12]}"
     admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
     with admin.connect() as conn:
@@ -80,7 +80,7 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str
     if request.param == "sqlite":
         yield f"sqlite:///{tmp_path / 'slloc.db'}"
     else:
-        yield from _fresh_postgres_database(request.getfixturevalue("postgres_admin_url"))
+        yield from fresh_postgres_database(request.getfixturevalue("postgres_admin_url"))
 
 
 def make_client(

@@ -9,7 +9,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from services.errors import InvalidInputError
-from services.geometry.camera import Camera, check_plausible
+from services.geometry.camera import (
+    CAMERA_MODELS,
+    FOCAL_RANGE,
+    MAX_DISTORTION,
+    Camera,
+    check_plausible,
+)
 from services.geometry.rigid import Rigid3d
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -27,14 +33,30 @@ class CameraSchema(BaseModel):
                 "width": 640,
                 "height": 480,
                 "params": [525.0, 525.0, 320.0, 240.0],
-            }
+            },
+            # each model's number of parameters
+            "allOf": [
+                {
+                    "if": {"properties": {"model": {"const": model}}},
+                    "then": {
+                        "properties": {"params": {"minItems": len(names), "maxItems": len(names)}}
+                    },
+                }
+                for model, names in CAMERA_MODELS.items()
+            ],
         }
     )
 
     model: CameraModelName
     width: int = Field(gt=0, le=100_000)
     height: int = Field(gt=0, le=100_000)
-    params: list[FiniteFloat] = Field(description="COLMAP order, e.g. PINHOLE: fx, fy, cx, cy")
+    params: list[FiniteFloat] = Field(
+        description="COLMAP order: "
+        + "; ".join(f"{model}: {', '.join(names)}" for model, names in CAMERA_MODELS.items())
+        + f". Plausible: focal lengths {FOCAL_RANGE[0]:g}–{FOCAL_RANGE[1]:g} × the longer "
+        "image side, the principal point within the image extended by its size, distortion "
+        f"within ±{MAX_DISTORTION:g}"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraSchema:

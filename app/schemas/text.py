@@ -22,8 +22,21 @@ def _refuse_control(allowed: str) -> AfterValidator:
     return AfterValidator(check)
 
 
-Name = Annotated[str, Field(min_length=1, max_length=255), _refuse_control("")]
+# The same rule as JSON Schema patterns, so the OpenAPI document states it; the validators
+# above answer (Cc is U+0000–U+001F and U+007F–U+009F, Zl U+2028, Zp U+2029).
+NAME_PATTERN = r"^[^\u0000-\u001f\u007f-\u009f\u2028\u2029]*$"
+DESCRIPTION_PATTERN = r"^[^\u0000-\u0008\u000b\u000c\u000e-\u001f\u007f-\u009f\u2028\u2029]*$"
+
+Name = Annotated[
+    str,
+    Field(min_length=1, max_length=255, json_schema_extra={"pattern": NAME_PATTERN}),
+    _refuse_control(""),
+]
 """A name: one line of printable text."""
 
-Description = Annotated[str, Field(max_length=10_000), _refuse_control("\t\n\r")]
+Description = Annotated[
+    str,
+    Field(max_length=10_000, json_schema_extra={"pattern": DESCRIPTION_PATTERN}),
+    _refuse_control("\t\n\r"),
+]
 """Free text: printable, with tabs and line breaks."""

@@ -25,6 +25,7 @@ class ImageRepository:
         data: ReferenceData,
     ) -> ReferenceImage:
         """Insert the image row and all its arrays (flushed, not committed)."""
+        self._lock_map(map_id)
         qw, qx, qy, qz = (float(v) for v in cam_from_world.quaternion)
         tx, ty, tz = (float(v) for v in cam_from_world.translation)
         row = ReferenceImage(
@@ -103,6 +104,7 @@ class ImageRepository:
         """Delete an image and its feature arrays. True when it existed."""
         if not (is_stored_id(map_id) and is_stored_id(image_id)):
             return False
+        self._lock_map(map_id)
         result = self.session.execute(
             delete(ReferenceImage).where(
                 ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
@@ -112,6 +114,12 @@ class ImageRepository:
         if deleted:
             self._bump_revision(map_id)
         return deleted
+
+    def _lock_map(self, map_id: str) -> None:
+        """Lock the map row first: every writer of a map's images takes the map row, then
+        the images, then their arrays (as a vocabulary publish does), so two writers wait
+        for each other instead of deadlocking."""
+        self.session.execute(select(Map.id).where(Map.id == map_id).with_for_update(key_share=True))
 
     def _bump_revision(self, map_id: str) -> None:
         self.session.execute(update(Map).where(Map.id == map_id).values(revision=Map.revision + 1))

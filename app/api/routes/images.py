@@ -38,7 +38,7 @@ METADATA_HELP = (
     status_code=201,
     operation_id="add_image",
     dependencies=[AdminKey],
-    responses=problem_responses(401, 403, 404, 409, 413, 422, 503),
+    responses=problem_responses(400, 401, 403, 404, 409, 413, 422, 503),
 )
 def add_image(
     map_id: str,

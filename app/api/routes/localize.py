@@ -36,7 +36,7 @@ PARAMS_HELP = (
     "/localize",
     operation_id="localize",
     dependencies=[ClientKey],
-    responses=problem_responses(401, 404, 413, 422, 503),
+    responses=problem_responses(400, 401, 404, 413, 422, 503),
 )
 def localize(
     map_id: str,

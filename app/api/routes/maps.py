@@ -26,7 +26,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
     status_code=201,
     operation_id="create_map",
     dependencies=[AdminKey],
-    responses=problem_responses(401, 403, 409, 413, 422),
+    responses=problem_responses(400, 401, 403, 409, 413, 422),
 )
 def create_map(
     body: MapCreate, sessions: SessionsDep, localizer: LocalizerDep, settings: SettingsDep
