@@ -27,17 +27,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from tools.evaluation.server import LocalServer, peak_rss_mb
-
-
-def _rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
+from tools.evaluation.server import LocalServer, memory_mb
 
 
 def _percentile(values: list[float], q: float) -> float:
@@ -134,7 +124,7 @@ def main() -> int:
                     start = time.perf_counter()
                     own.get("/v1/health").raise_for_status()
                     health_ms.append((time.perf_counter() - start) * 1000)
-                    rss = _rss_mb(server.pid)
+                    rss = memory_mb(server.pid, "VmRSS")
                     if rss is not None:
                         memory.append(rss)
                     time.sleep(0.2)
@@ -147,7 +137,7 @@ def main() -> int:
             thread.join()
         stored = client.get(f"/v1/maps/{map_id}").raise_for_status().json()["image_count"]
         expected = len(references) + acknowledged["adds"] - acknowledged["deletes"]
-        peak = peak_rss_mb(server.pid)
+        peak = memory_mb(server.pid)
         client.delete(f"/v1/maps/{map_id}")
 
     print("answers:", dict(sorted(statuses.items())))

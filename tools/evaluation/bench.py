@@ -23,7 +23,7 @@ from services.estimators.registry import DEPTH_ESTIMATORS
 from tools.evaluation.datasets import PosedImage, open_dataset
 from tools.evaluation.evaluate import localize_params
 from tools.evaluation.runner import HttpRunner, QueryOutcome
-from tools.evaluation.server import LocalServer, is_loopback, peak_rss_mb
+from tools.evaluation.server import LocalServer, is_loopback, memory_mb
 from tools.evaluation.split import split_dataset
 from tools.synthetic.scene import SyntheticScene, encode_depth_png, encode_png
 
@@ -214,7 +214,7 @@ def bench_main(args: argparse.Namespace) -> int:
                 flush=True,
             )
             levels.append(level)
-        peak = peak_rss_mb(pid) if pid is not None else None
+        peak = memory_mb(pid) if pid is not None else None
     table = markdown(levels, peak)
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)

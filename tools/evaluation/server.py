@@ -27,12 +27,13 @@ def is_loopback(url: str) -> bool:
     return urlparse(url).hostname in LOOPBACK_HOSTS
 
 
-def peak_rss_mb(pid: int) -> float | None:
-    """Peak resident set size (``VmHWM``) of process ``pid`` in MiB; None where ``/proc`` has
-    no such process (not Linux, or it ended)."""
+def memory_mb(pid: int, field: str = "VmHWM") -> float | None:
+    """A memory figure of process ``pid`` from ``/proc/<pid>/status`` in MiB: ``VmHWM`` (peak
+    resident set size) or ``VmRSS`` (current); None where ``/proc`` has no such process (not
+    Linux, or it ended)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         return None
