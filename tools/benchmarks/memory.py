@@ -58,7 +58,10 @@ def measure(
     query_images = [images[i] for i in range(500, 1000, 500 // queries)][:queries]
 
     def load(path: Path) -> np.ndarray:
-        return np.ascontiguousarray(cv2.imread(str(path))[:, :, ::-1])
+        bgr = cv2.imread(str(path))
+        if bgr is None:
+            raise OSError(f"cannot read {path}")
+        return np.ascontiguousarray(bgr[:, :, ::-1])
 
     ref_features = [extractor.extract(load(r.image_path)) for r in refs]
     out["references extracted"] = _rss()

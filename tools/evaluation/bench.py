@@ -147,11 +147,13 @@ def run_level(
 
 @dataclass(frozen=True)
 class ConfigurationResult:
-    """One feature configuration's levels and its server's peak memory (MiB, None unknown)."""
+    """One feature configuration's levels and its server's peak memory (MiB, None unknown):
+    once the references were added, and at the end."""
 
     features: str
     peak_rss_mb: float | None
     levels: list[LevelResult]
+    loading_peak_rss_mb: float | None = None
 
 
 def markdown(levels: list[LevelResult], peak_mb: float | None) -> str:
@@ -249,6 +251,7 @@ def _bench_configuration(
             file=sys.stderr,
             flush=True,
         )
+        loading_peak = memory_mb(pid) if pid is not None else None
         loader.localize(*queries[0])  # warm-up, not counted
         levels = []
         for clients in levels_wanted:
@@ -263,7 +266,7 @@ def _bench_configuration(
             )
             levels.append(level)
         peak = memory_mb(pid) if pid is not None else None
-    return ConfigurationResult(label, peak, levels)
+    return ConfigurationResult(label, peak, levels, loading_peak)
 
 
 def bench_main(args: argparse.Namespace) -> int:
@@ -300,6 +303,9 @@ def bench_main(args: argparse.Namespace) -> int:
         ]
     for result in results:
         print(f"## {result.features}\n\n{markdown(result.levels, result.peak_rss_mb)}")
+        if result.loading_peak_rss_mb is not None:
+            loading = result.loading_peak_rss_mb
+            print(f"Server peak once the references were added: {loading:.0f} MiB\n")
     if len(results) > 1:
         print(side_by_side(results))
     args.out.parent.mkdir(parents=True, exist_ok=True)
