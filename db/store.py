@@ -116,7 +116,8 @@ class SqlReferenceStore:
         database; features from the cache when it holds them, else decoded (and kept)."""
         if not image_ids:
             return []
-        generation = self.features_cache.generation() if self.features_cache else 0
+        cache = self.features_cache
+        generation = cache.generation() if cache is not None else 0
         with self.sessions() as session:
             images = {
                 row.id: row
