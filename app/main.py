@@ -16,7 +16,7 @@ from app.api.routes import health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
-from app.localizer_factory import build_localizer
+from app.localizer_factory import build_localizer, thread_plan
 from app.logs import install_request_id_records
 from app.openapi import install_openapi
 from app.request_context import RequestContext
@@ -24,8 +24,10 @@ from app.settings import Settings, get_settings
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.pipeline import Localizer
+from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.threads import apply_thread_plan
 
 logger = logging.getLogger(__name__)
 
@@ -41,12 +43,15 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         if settings.auto_migrate:
             upgrade(engine)
         app.state.settings = settings
+        app.state.thread_plan = plan = thread_plan(settings)
+        apply_thread_plan(plan)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.localizer = localizer or build_localizer(settings)
         app.state.retrieval_cache = RetrievalIndexCache()
+        app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
-        app.state.admission = Admission(settings.localize_workers, settings.max_queued)
+        app.state.admission = Admission(plan.workers, settings.max_queued)
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:

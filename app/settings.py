@@ -53,7 +53,18 @@ class Settings(BaseSettings):
         description="ONNX global-descriptor model for retrieval (contract in "
         "services/retrieval/onnx_global.py); default: weight-free thumbnails",
     )
-    onnx_threads: int = Field(0, ge=0, description="Threads per ONNX operator; 0 = all cores")
+    onnx_threads: int = Field(
+        0,
+        ge=0,
+        description="Threads one operation of a localize request may use: onnxruntime "
+        "intra-op, OpenCV and BLAS / OpenMP; 0 = the usable cores / localize workers",
+    )
+    onnx_memory_arena: bool = Field(
+        False,
+        description="Keep onnxruntime's CPU memory arena: a little faster, but it grows to the "
+        "largest tensors seen and never gives memory back (aliked: 1.9 GiB peak instead of "
+        "1.0 GiB for one worker, `python -m tools.benchmarks.memory`)",
+    )
     api_keys: str = Field(
         "",
         description="Comma-separated `key:role` pairs, role admin or client; empty = auth off",
@@ -62,7 +73,25 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(40_000_000, gt=0, description="Decoded pixel-count limit")
     max_top_k: int = Field(50, gt=0, description="Largest top_k a localize request may ask for")
     auto_migrate: bool = Field(True, description="Upgrade the schema to head at start-up")
-    localize_workers: int = Field(2, gt=0, description="Threads for CPU-bound engine work")
+    localize_workers: int = Field(
+        0,
+        ge=0,
+        description="Localize and add requests that compute at once; 0 = the usable cores "
+        "(at most 4, fewer when SLLOC_ONNX_THREADS is set); workers × threads per operation "
+        "should not exceed the cores",
+    )
+    cpu_cores: int = Field(
+        0,
+        ge=0,
+        description="Cores the thread policy divides; 0 = the cores this process may run on "
+        "(its CPU affinity); set it under a container CPU quota",
+    )
+    reference_cache_mib: int = Field(
+        256,
+        ge=0,
+        description="Decoded reference features (and depth) kept in memory between "
+        "requests, MiB; 0 = off",
+    )
     max_queued: int = Field(
         8,
         ge=0,

@@ -15,6 +15,7 @@ from db.vocabulary import VLAD_KIND
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from services.reference_cache import CachedFeatures, ReferenceFeatureCache
 from services.references import ReferenceView
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.contracts import RetrievalIndex, VocabularyState, empty_index
@@ -33,7 +34,8 @@ def pose_of(row: ReferenceImage) -> Rigid3d:
 class SqlReferenceStore:
     """Reads the references of ``map_id`` whose features were made by ``feature_model`` and
     ``descriptor_model``; each call runs in its own short read transaction. With a ``cache``,
-    the retrieval index is kept in memory between requests and caught up incrementally."""
+    the retrieval index is kept in memory between requests and caught up incrementally; with
+    a ``features_cache``, the decoded features of the references read."""
 
     def __init__(
         self,
@@ -43,11 +45,14 @@ class SqlReferenceStore:
         descriptor_model: str,
         cache: RetrievalIndexCache | None = None,
         vocabulary: Callable[[], VocabularyState | None] | None = None,
+        features_cache: ReferenceFeatureCache | None = None,
     ) -> None:
         """``vocabulary``: the map's VLAD vocabulary to search with (None from it, or no
-        callable: the localizer's global descriptors)."""
+        callable: the localizer's global descriptors). ``features_cache``: keeps decoded
+        reference features between requests."""
         self.sessions = sessions
         self.cache = cache
+        self.features_cache = features_cache
         self.map_id = map_id
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
@@ -107,8 +112,12 @@ class SqlReferenceStore:
             return list(session.scalars(select(ReferenceImage.id).where(*self._references())))
 
     def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
+        """The references with these ids, in that order, their existence checked in the
+        database; features from the cache when it holds them, else decoded (and kept)."""
         if not image_ids:
             return []
+        cache = self.features_cache
+        generation = cache.generation() if cache is not None else 0
         with self.sessions() as session:
             images = {
                 row.id: row
@@ -118,35 +127,63 @@ class SqlReferenceStore:
                     )
                 )
             }
+            cached = {i: self._cached(i) for i in images}
+            missing = [i for i, entry in cached.items() if entry is None]
             arrays: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
-            for row in session.scalars(
-                select(FeatureArray).where(
-                    FeatureArray.image_id.in_(list(images)),
-                    FeatureArray.kind.in_(["keypoints", "descriptors", "scores", "depth"]),
-                )
-            ):
-                arrays[row.image_id][row.kind] = from_row(row)
+            if missing:
+                for row in session.scalars(
+                    select(FeatureArray).where(
+                        FeatureArray.image_id.in_(missing),
+                        FeatureArray.kind.in_(["keypoints", "descriptors", "scores", "depth"]),
+                    )
+                ):
+                    arrays[row.image_id][row.kind] = from_row(row)
         views = []
         for image_id in image_ids:
             image = images.get(image_id)
-            stored = arrays.get(image_id, {})
-            if image is None or "keypoints" not in stored:  # deleted since retrieval
+            if image is None:  # deleted since retrieval
                 continue
-            depth = stored.get("depth")
             camera = camera_of(image)
+            entry = cached[image_id] or self._decoded(image_id, camera, arrays, generation)
+            if entry is None:  # deleted while its rows were read
+                continue
             views.append(
                 ReferenceView(
                     image_id=image.id,
                     name=image.name,
                     camera=camera,
                     cam_from_world=pose_of(image),
-                    features=LocalFeatures(
-                        stored["keypoints"].astype(np.float32),
-                        stored["descriptors"].astype(np.float32),
-                        stored["scores"].astype(np.float32),
-                        (camera.width, camera.height),
-                    ),
-                    depth=depth.astype(np.float32) if depth is not None else None,
+                    features=entry.features,
+                    depth=entry.depth,
                 )
             )
         return views
+
+    def _cached(self, image_id: str) -> CachedFeatures | None:
+        if self.features_cache is None:
+            return None
+        return self.features_cache.get(self.map_id, image_id)
+
+    def _decoded(
+        self,
+        image_id: str,
+        camera: Camera,
+        arrays: dict[str, dict[str, np.ndarray]],
+        generation: int,
+    ) -> CachedFeatures | None:
+        stored = arrays.get(image_id, {})
+        if "keypoints" not in stored:
+            return None
+        depth = stored.get("depth")
+        entry = CachedFeatures(
+            LocalFeatures(
+                stored["keypoints"].astype(np.float32),
+                stored["descriptors"].astype(np.float32),
+                stored["scores"].astype(np.float32),
+                (camera.width, camera.height),
+            ),
+            depth.astype(np.float32) if depth is not None else None,
+        )
+        if self.features_cache is not None:
+            self.features_cache.put(self.map_id, image_id, entry, generation)
+        return entry

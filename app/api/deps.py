@@ -13,6 +13,7 @@ from app.auth import RoleCheck
 from app.errors import ProblemError, invalid, too_large
 from app.settings import Settings
 from services.pipeline import Localizer
+from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
 
@@ -37,6 +38,12 @@ async def get_retrieval_cache(request: Request) -> RetrievalIndexCache:
     return cache
 
 
+async def get_reference_cache(request: Request) -> ReferenceFeatureCache:
+    """Decoded reference features kept between requests (``SLLOC_REFERENCE_CACHE_MIB``)."""
+    cache: ReferenceFeatureCache = request.app.state.reference_cache
+    return cache
+
+
 async def get_vocabulary_trainer(request: Request) -> BackgroundTrainer:
     """Trains retrieval vocabularies off the request path."""
     trainer: BackgroundTrainer = request.app.state.vocabulary_trainer
@@ -54,6 +61,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
 RetrievalCacheDep = Annotated[RetrievalIndexCache, Depends(get_retrieval_cache)]
+ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache)]
 AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 

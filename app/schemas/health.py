@@ -1,6 +1,6 @@
 from __future__ import annotations
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from app.schemas.estimators import EstimatorName
 
@@ -12,7 +12,21 @@ class ModelsOut(BaseModel):
     estimators: list[EstimatorName]
 
 
+class RuntimeOut(BaseModel):
+    """The thread policy and the reference-feature cache (``SLLOC_LOCALIZE_WORKERS``,
+    ``SLLOC_ONNX_THREADS``, ``SLLOC_CPU_CORES``, ``SLLOC_REFERENCE_CACHE_MIB``)."""
+
+    cores: int = Field(description="Cores the thread policy divides")
+    localize_workers: int = Field(description="Localize and add requests computing at once")
+    threads_per_worker: int = Field(
+        description="Threads one operation may use (onnxruntime intra-op, OpenCV, BLAS)"
+    )
+    reference_cache_mib: float = Field(description="Bound of the reference-feature cache")
+    reference_cache_used_mib: float = Field(description="Decoded features it holds now")
+
+
 class HealthOut(BaseModel):
     status: str
     version: str
     models: ModelsOut
+    runtime: RuntimeOut

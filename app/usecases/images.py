@@ -20,6 +20,7 @@ from db.vocabulary import SqlVocabularyStore
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import Localizer
+from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer
 
@@ -132,8 +133,13 @@ def get_image(sessions: sessionmaker[Session], map_id: str, image_id: str) -> St
         return _stored(row)
 
 
-def delete_image(sessions: sessionmaker[Session], map_id: str, image_id: str) -> None:
-    """Delete an image and its features.
+def delete_image(
+    sessions: sessionmaker[Session],
+    map_id: str,
+    image_id: str,
+    features_cache: ReferenceFeatureCache | None = None,
+) -> None:
+    """Delete an image and its features (and its entry in ``features_cache``).
 
     Raises:
         NotFoundError: unknown map or image.
@@ -142,6 +148,8 @@ def delete_image(sessions: sessionmaker[Session], map_id: str, image_id: str) ->
         if not ImageRepository(session).delete(map_id, image_id):
             require_map(session, map_id)
             raise NotFoundError("image", image_id)
+    if features_cache is not None:
+        features_cache.discard(map_id, [image_id])
 
 
 def _stored(row: ReferenceImage) -> StoredImage:

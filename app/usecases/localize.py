@@ -16,6 +16,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
 from services.pipeline import LocalizationResult, LocalizeParams, Localizer
+from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer
@@ -92,6 +93,7 @@ def localize(
     vlad: bool = True,
     slots: AbstractContextManager[object] = nullcontext(),
     trainer: BackgroundTrainer | None = None,
+    features_cache: ReferenceFeatureCache | None = None,
 ) -> LocalizationResult:
     """Localize the query against the map's references. A query that cannot be localized is
     a result with ``localized`` False and a reason, not an error.
@@ -105,6 +107,7 @@ def localize(
             global descriptor).
         slots: held while the engine runs (bounds concurrent engine work).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
+        features_cache: keeps the decoded features of references between calls.
 
     Raises:
         NotFoundError: unknown map.
@@ -120,7 +123,7 @@ def localize(
             f"depth: estimator {params.estimator} needs the query's depth map (the depth "
             "upload); the references need depth too"
         )
-    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer)
+    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer, features_cache)
     with slots:
         return localizer.localize(image_bytes, params, store, depth_bytes)
 
@@ -132,6 +135,7 @@ def reference_store(
     cache: RetrievalIndexCache | None = None,
     vlad: bool = True,
     trainer: BackgroundTrainer | None = None,
+    features_cache: ReferenceFeatureCache | None = None,
 ) -> SqlReferenceStore:
     """The map's references as ``localizer`` (already set up for the map) searches them: by
     the map's VLAD vocabulary once it has one (``vlad``), else by global descriptor."""
@@ -146,4 +150,5 @@ def reference_store(
         localizer.global_descriptor.name,
         cache,
         vocabulary,
+        features_cache,
     )

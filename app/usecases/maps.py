@@ -13,6 +13,7 @@ from db.models import Map
 from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
 from services.pipeline import Localizer
+from services.reference_cache import ReferenceFeatureCache
 
 
 @dataclass(frozen=True)
@@ -142,8 +143,13 @@ def get_map(sessions: sessionmaker[Session], map_id: str) -> MapRecord:
         return _record(row, MapRepository(session).image_counts([map_id]).get(map_id, 0))
 
 
-def delete_map(sessions: sessionmaker[Session], map_id: str) -> None:
-    """Delete a map with its images and their features.
+def delete_map(
+    sessions: sessionmaker[Session],
+    map_id: str,
+    features_cache: ReferenceFeatureCache | None = None,
+) -> None:
+    """Delete a map with its images and their features (and their entries in
+    ``features_cache``).
 
     Raises:
         NotFoundError: no such map.
@@ -151,6 +157,8 @@ def delete_map(sessions: sessionmaker[Session], map_id: str) -> None:
     with sessions.begin() as session:
         if not MapRepository(session).delete(map_id):
             raise NotFoundError("map", map_id)
+    if features_cache is not None:
+        features_cache.discard(map_id)
 
 
 def _record(row: Map, image_count: int) -> MapRecord:

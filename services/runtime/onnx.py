@@ -17,11 +17,20 @@ logger = logging.getLogger(__name__)
 class OnnxOptions:
     """providers: execution providers in order of preference; ones this onnxruntime build
     lacks are skipped with a warning (CPU is always appended).
-    intra_op_threads: threads inside one operator; 0 lets onnxruntime use every core.
+    intra_op_threads: threads inside one operator; 0 lets onnxruntime use every core
+        (``services/runtime/threads.py`` sizes it for the service).
+    memory_arena: keep freed CPU buffers in onnxruntime's arena for reuse. Off, each run
+        allocates from and returns to the system allocator: with the variable input sizes
+        of keypoint and LightGlue graphs the arena grows to the largest shapes seen and never
+        shrinks.
+    memory_pattern: plan each run's buffers from the previous run's shapes (pays off for
+        fixed input shapes only).
     """
 
     providers: tuple[str, ...] = ("CPUExecutionProvider",)
     intra_op_threads: int = 0
+    memory_arena: bool = True
+    memory_pattern: bool = True
 
 
 def create_session(
@@ -47,6 +56,10 @@ def create_session(
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.intra_op_num_threads = options.intra_op_threads
+    # idle pool threads would spin on cores that other requests' work needs
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.enable_cpu_mem_arena = options.memory_arena
+    so.enable_mem_pattern = options.memory_pattern
     so.add_session_config_entry("session.set_denormal_as_zero", "1")
     session = ort.InferenceSession(str(path), sess_options=so, providers=providers)
     inputs = {i.name for i in session.get_inputs()}

@@ -86,6 +86,12 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="without a dataset: render a synthetic scene with N references",
     )
+    parser.add_argument(
+        "--features",
+        help="comma-separated feature configurations to measure side by side, a server each "
+        "(e.g. aliked,sift; default: the server's own); with sift among them each p50 is "
+        "also printed as a ratio of sift's",
+    )
     parser.add_argument("--clients", default="1,2,4", help="concurrent clients per level")
     parser.add_argument("--requests", type=int, default=20, help="requests per level (at most)")
     parser.add_argument("--duration", type=float, default=120.0, help="seconds per level (at most)")

@@ -1,6 +1,8 @@
 """``slloc bench``: ``/localize`` latency percentiles and throughput with N concurrent clients
 on loopback, the server's peak memory, and the service overhead (latency minus the time
-inside feature extraction, matching and the estimator) as a share of the latency."""
+inside feature extraction, matching and the estimator) as a share of the latency; with
+``--features``, several feature configurations side by side in one run (a server each, one
+after the other) with each one's p50 as a ratio of ``sift``'s."""
 
 from __future__ import annotations
 
@@ -20,9 +22,10 @@ from typing import Any
 import numpy as np
 
 from services.estimators.registry import DEPTH_ESTIMATORS
+from services.features.configs import AUTO, FEATURE_CONFIGS, SIFT, feature_config_names
 from tools.evaluation.datasets import PosedImage, open_dataset
 from tools.evaluation.evaluate import localize_params
-from tools.evaluation.runner import HttpRunner, QueryOutcome
+from tools.evaluation.runner import HttpRunner, QueryOutcome, ServiceBusyError
 from tools.evaluation.server import LocalServer, is_loopback, memory_mb
 from tools.evaluation.split import split_dataset
 from tools.synthetic.scene import SyntheticScene, encode_depth_png, encode_png
@@ -33,16 +36,20 @@ COMPUTE_STAGES = ("extract", "match", "estimate")
 
 @dataclass(frozen=True)
 class LevelResult:
-    """One concurrency level. Latencies are client wall times in ms; ``overhead_ratio`` is
+    """One concurrency level. ``requests`` answered (200) and ``refused`` (503, the server's
+    admission control: the client waits its ``Retry-After`` and goes on); latencies are
+    client wall times in ms of the answered ones; ``overhead_ratio`` is
     1 − Σ(extract + match + estimate) / Σ latency (queueing behind busy workers counts as
     overhead); ``server_overhead_ratio`` the same against the server's own ``total``."""
 
     clients: int
     requests: int
     localized: int
+    refused: int
     seconds: float
     throughput_rps: float
     latency_p50_ms: float
+    latency_p90_ms: float
     latency_p95_ms: float
     latency_p99_ms: float
     overhead_ratio: float
@@ -82,11 +89,11 @@ def run_level(
     params) round-robin until ``max_requests`` were sent or ``max_seconds`` passed."""
     outcomes: list[QueryOutcome] = []
     lock = threading.Lock()
-    issued = 0
+    issued = refused = 0
     deadline = time.monotonic() + max_seconds
 
     def client() -> None:
-        nonlocal issued
+        nonlocal issued, refused
         runner = HttpRunner(url, api_key, map_id=map_id)
         try:
             while True:
@@ -95,7 +102,13 @@ def run_level(
                         return
                     image, depth, params = queries[issued % len(queries)]
                     issued += 1
-                outcome = runner.localize(image, depth, params)
+                try:
+                    outcome = runner.localize(image, depth, params)
+                except ServiceBusyError as busy:
+                    with lock:
+                        refused += 1
+                    time.sleep(min(busy.retry_after_s, max(0.0, deadline - time.monotonic())))
+                    continue
                 with lock:
                     outcomes.append(outcome)
         finally:
@@ -111,14 +124,16 @@ def run_level(
     latency = np.array([o.timings_ms["client"] for o in outcomes])
     compute = np.array([sum(o.timings_ms[s] for s in COMPUTE_STAGES) for o in outcomes])
     total = np.array([o.timings_ms["total"] for o in outcomes])
-    p50, p95, p99 = np.percentile(latency, [50, 95, 99]) if len(latency) else (np.nan,) * 3
+    p50, p90, p95, p99 = np.percentile(latency, [50, 90, 95, 99]) if len(latency) else (np.nan,) * 4
     return LevelResult(
         clients=clients,
         requests=len(outcomes),
         localized=sum(o.localized for o in outcomes),
+        refused=refused,
         seconds=seconds,
         throughput_rps=len(outcomes) / seconds,
         latency_p50_ms=float(p50),
+        latency_p90_ms=float(p90),
         latency_p95_ms=float(p95),
         latency_p99_ms=float(p99),
         overhead_ratio=float(1.0 - compute.sum() / latency.sum()) if len(latency) else np.nan,
@@ -130,16 +145,28 @@ def run_level(
     )
 
 
+@dataclass(frozen=True)
+class ConfigurationResult:
+    """One feature configuration's levels and its server's peak memory (MiB, None unknown):
+    once the references were added, and at the end."""
+
+    features: str
+    peak_rss_mb: float | None
+    levels: list[LevelResult]
+    loading_peak_rss_mb: float | None = None
+
+
 def markdown(levels: list[LevelResult], peak_mb: float | None) -> str:
     lines = [
-        "| clients | requests | throughput (req/s) | p50 ms | p95 ms | p99 ms "
-        "| overhead / latency | overhead / server total |",
-        "|---|---|---|---|---|---|---|---|",
+        "| clients | requests | refused (503) | throughput (req/s) | p50 ms | p90 ms | p95 ms "
+        "| p99 ms | overhead / latency | overhead / server total |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in levels:
         lines.append(
-            f"| {r.clients} | {r.requests} | {r.throughput_rps:.2f} | {r.latency_p50_ms:.0f} "
-            f"| {r.latency_p95_ms:.0f} | {r.latency_p99_ms:.0f} | {r.overhead_ratio * 100:.1f} % "
+            f"| {r.clients} | {r.requests} | {r.refused} | {r.throughput_rps:.2f} "
+            f"| {r.latency_p50_ms:.0f} | {r.latency_p90_ms:.0f} | {r.latency_p95_ms:.0f} "
+            f"| {r.latency_p99_ms:.0f} | {r.overhead_ratio * 100:.1f} % "
             f"| {r.server_overhead_ratio * 100:.1f} % |"
         )
     memory = f"{peak_mb:.0f} MiB" if peak_mb is not None else "unknown (give --server-pid)"
@@ -147,27 +174,109 @@ def markdown(levels: list[LevelResult], peak_mb: float | None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def side_by_side(results: list[ConfigurationResult]) -> str:
+    """The configurations' levels in one table, each p50 as a ratio of ``sift``'s p50 at the
+    same client count (— without a ``sift`` run)."""
+    sift = {r.features: r for r in results}.get(SIFT)
+    sift_p50 = {level.clients: level.latency_p50_ms for level in sift.levels} if sift else {}
+    lines = [
+        "| features | clients | p50 ms | p90 ms | throughput (req/s) | refused (503) "
+        "| server peak MiB | p50 / sift p50 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for result in results:
+        peak = f"{result.peak_rss_mb:.0f}" if result.peak_rss_mb is not None else "unknown"
+        for r in result.levels:
+            base = sift_p50.get(r.clients)
+            ratio = f"{r.latency_p50_ms / base:.2f}" if base else "—"
+            lines.append(
+                f"| {result.features} | {r.clients} | {r.latency_p50_ms:.0f} "
+                f"| {r.latency_p90_ms:.0f} | {r.throughput_rps:.2f} | {r.refused} | {peak} "
+                f"| {ratio} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 @contextmanager
-def _server(args: argparse.Namespace) -> Iterator[tuple[str, int | None]]:
+def _server(args: argparse.Namespace, features: str | None) -> Iterator[tuple[str, int | None]]:
     if args.url:
         yield args.url, args.server_pid
         return
-    with LocalServer() as server:
+    env = {"SLLOC_FEATURES": features} if features else None
+    with LocalServer(env) as server:
         yield server.url, server.pid
+
+
+def _parse(args: argparse.Namespace) -> tuple[list[int], list[str | None]] | str:
+    """The client counts and feature configurations (None: the server's), or an error."""
+    if args.url and not is_loopback(args.url):
+        return "--url must be a loopback address"
+    try:
+        levels = [int(v) for v in args.clients.split(",")]
+    except ValueError:
+        return f"bad --clients {args.clients!r}"
+    if not args.features:
+        return levels, [None]
+    if args.url:
+        return "--features starts a server per configuration; leave out --url"
+    features = [f.strip() for f in args.features.split(",") if f.strip()]
+    unknown = [f for f in features if f not in FEATURE_CONFIGS and f != AUTO]
+    if unknown or len(set(features)) != len(features):
+        return (
+            f"--features {args.features!r}: give distinct names of "
+            f"{', '.join([AUTO, *feature_config_names()])}"
+        )
+    return levels, list(features)
+
+
+def _bench_configuration(
+    args: argparse.Namespace,
+    features: str | None,
+    references: list[PosedImage],
+    queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
+    levels_wanted: list[int],
+) -> ConfigurationResult:
+    with ExitStack() as stack:
+        url, pid = stack.enter_context(_server(args, features))
+        loader = HttpRunner(url, args.api_key, "slloc-bench")
+        stack.callback(loader.close)
+        label = features or loader.features
+        start = time.perf_counter()
+        for image in references:
+            depth = image.depth_path.read_bytes() if image.depth_path else None
+            loader.add_reference(image, depth)
+        print(
+            f"{label}: loaded {len(references)} references into map {loader.map_id} on {url} "
+            f"in {time.perf_counter() - start:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+        loading_peak = memory_mb(pid) if pid is not None else None
+        loader.localize(*queries[0])  # warm-up, not counted
+        levels = []
+        for clients in levels_wanted:
+            level = run_level(
+                url, args.api_key, loader.map_id, queries, clients, args.requests, args.duration
+            )
+            print(
+                f"{label}, {clients} client(s): {level.requests} answered, {level.refused} "
+                f"refused, p50 {level.latency_p50_ms:.0f} ms",
+                file=sys.stderr,
+                flush=True,
+            )
+            levels.append(level)
+        peak = memory_mb(pid) if pid is not None else None
+    return ConfigurationResult(label, peak, levels, loading_peak)
 
 
 def bench_main(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(logging.WARNING)  # no INFO line per request
-    if args.url and not is_loopback(args.url):
-        print("slloc bench: --url must be a loopback address", file=sys.stderr)
+    parsed = _parse(args)
+    if isinstance(parsed, str):
+        print(f"slloc bench: {parsed}", file=sys.stderr)
         return 2
-    try:
-        levels_wanted = [int(v) for v in args.clients.split(",")]
-    except ValueError:
-        print(f"slloc bench: bad --clients {args.clients!r}", file=sys.stderr)
-        return 2
-    with ExitStack() as stack:
-        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="slloc-bench-")))
+    levels_wanted, configurations = parsed
+    with tempfile.TemporaryDirectory(prefix="slloc-bench-") as tmp:
         if args.dataset is not None:
             try:
                 split = split_dataset(
@@ -178,20 +287,7 @@ def bench_main(args: argparse.Namespace) -> int:
                 return 2
             references, query_images = split.references, split.queries
         else:
-            references, query_images = _synthetic(tmp, args.synthetic_references)
-        url, pid = stack.enter_context(_server(args))
-        loader = HttpRunner(url, args.api_key, "slloc-bench")
-        stack.callback(loader.close)
-        start = time.perf_counter()
-        for image in references:
-            depth = image.depth_path.read_bytes() if image.depth_path else None
-            loader.add_reference(image, depth)
-        print(
-            f"loaded {len(references)} references into map {loader.map_id} on {url} "
-            f"in {time.perf_counter() - start:.0f} s",
-            file=sys.stderr,
-            flush=True,
-        )
+            references, query_images = _synthetic(Path(tmp), args.synthetic_references)
         with_depth = args.estimator in DEPTH_ESTIMATORS
         queries = [
             (
@@ -201,22 +297,17 @@ def bench_main(args: argparse.Namespace) -> int:
             )
             for q in query_images
         ]
-        loader.localize(*queries[0])  # warm-up, not counted
-        levels = []
-        for clients in levels_wanted:
-            level = run_level(
-                url, args.api_key, loader.map_id, queries, clients, args.requests, args.duration
-            )
-            print(
-                f"{clients} client(s): {level.requests} requests, "
-                f"p50 {level.latency_p50_ms:.0f} ms",
-                file=sys.stderr,
-                flush=True,
-            )
-            levels.append(level)
-        peak = memory_mb(pid) if pid is not None else None
-    table = markdown(levels, peak)
-    print(table)
+        results = [
+            _bench_configuration(args, features, references, queries, levels_wanted)
+            for features in configurations
+        ]
+    for result in results:
+        print(f"## {result.features}\n\n{markdown(result.levels, result.peak_rss_mb)}")
+        if result.loading_peak_rss_mb is not None:
+            loading = result.loading_peak_rss_mb
+            print(f"Server peak once the references were added: {loading:.0f} MiB\n")
+    if len(results) > 1:
+        print(side_by_side(results))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(
@@ -224,8 +315,7 @@ def bench_main(args: argparse.Namespace) -> int:
                 "url": args.url or "local server",
                 "estimator": args.estimator,
                 "references": len(references),
-                "peak_rss_mb": peak,
-                "levels": [asdict(level) for level in levels],
+                "configurations": [asdict(result) for result in results],
             },
             indent=1,
         )

@@ -35,6 +35,14 @@ from services.retrieval.policy import MIN_IMAGES
 from tools.evaluation.datasets import PosedImage
 
 
+class ServiceBusyError(RuntimeError):
+    """The server refused the request for now (503); ``retry_after_s`` from its header."""
+
+    def __init__(self, message: str, retry_after_s: float) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
 @dataclass(frozen=True)
 class QueryOutcome:
     """A localize answer as the evaluation needs it.
@@ -174,11 +182,17 @@ class HttpRunner:
         self.map_id = map_id
 
     def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
-        """The response; RuntimeError on a transport error or an error status."""
+        """The response; ServiceBusyError on a 503, RuntimeError on a transport error or
+        another error status."""
         try:
             response = self._client.request(method, url, **kwargs)
         except httpx.HTTPError as exc:
             raise RuntimeError(f"{method} {url}: {exc}") from exc
+        if response.status_code == 503:
+            raise ServiceBusyError(
+                f"{method} {url}: 503 {response.text[:200]}",
+                float(response.headers.get("Retry-After", "1")),
+            )
         if response.is_error:
             raise RuntimeError(
                 f"{response.request.method} {response.request.url}: {response.status_code} "

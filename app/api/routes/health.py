@@ -10,8 +10,10 @@ from sqlalchemy import text
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.api.deps import LocalizerDep, SessionsDep
-from app.schemas.health import HealthOut, ModelsOut
+from app.schemas.health import HealthOut, ModelsOut, RuntimeOut
 from services.estimators.registry import estimator_names
+from services.reference_cache import ReferenceFeatureCache
+from services.runtime.threads import ThreadPlan
 
 router = APIRouter(prefix="/v1", tags=["health"])
 
@@ -30,6 +32,18 @@ async def health(request: Request, sessions: SessionsDep, localizer: LocalizerDe
             global_descriptor=localizer.global_descriptor.name,
             estimators=estimator_names(),
         ),
+        runtime=_runtime(request.app.state.thread_plan, request.app.state.reference_cache),
+    )
+
+
+def _runtime(plan: ThreadPlan, cache: ReferenceFeatureCache) -> RuntimeOut:
+    stats = cache.stats()
+    return RuntimeOut(
+        cores=plan.cores,
+        localize_workers=plan.workers,
+        threads_per_worker=plan.threads_per_worker,
+        reference_cache_mib=stats.max_bytes / 2**20,
+        reference_cache_used_mib=round(stats.bytes / 2**20, 3),
     )
 
 

@@ -13,6 +13,7 @@ from app.api.deps import (
     Limit,
     LocalizerDep,
     Offset,
+    ReferenceCacheDep,
     SessionsDep,
     SettingsDep,
     TrainerDep,
@@ -107,6 +108,8 @@ def get_image(map_id: str, image_id: str, sessions: SessionsDep) -> ImageOut:
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 404),
 )
-def delete_image(map_id: str, image_id: str, sessions: SessionsDep) -> Response:
-    images.delete_image(sessions, map_id, image_id)
+def delete_image(
+    map_id: str, image_id: str, sessions: SessionsDep, features_cache: ReferenceCacheDep
+) -> Response:
+    images.delete_image(sessions, map_id, image_id, features_cache)
     return Response(status_code=204)

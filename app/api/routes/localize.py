@@ -10,6 +10,7 @@ from app.api.deps import (
     AdmissionDep,
     ClientKey,
     LocalizerDep,
+    ReferenceCacheDep,
     RetrievalCacheDep,
     SessionsDep,
     SettingsDep,
@@ -46,6 +47,7 @@ def localize(
     cache: RetrievalCacheDep,
     admission: AdmissionDep,
     trainer: TrainerDep,
+    features_cache: ReferenceCacheDep,
     image: Annotated[UploadFile, File(description="Query image, JPEG or PNG")],
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
@@ -75,5 +77,6 @@ def localize(
             vlad=settings.global_model is None,
             slots=admission.slots,
             trainer=trainer,
+            features_cache=features_cache,
         )
     return LocalizeResult.from_result(result, body.return_inliers)

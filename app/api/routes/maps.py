@@ -10,6 +10,7 @@ from app.api.deps import (
     Limit,
     LocalizerDep,
     Offset,
+    ReferenceCacheDep,
     SessionsDep,
     SettingsDep,
 )
@@ -79,8 +80,8 @@ def get_map(map_id: str, sessions: SessionsDep) -> MapOut:
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 404),
 )
-def delete_map(map_id: str, sessions: SessionsDep) -> Response:
-    maps.delete_map(sessions, map_id)
+def delete_map(map_id: str, sessions: SessionsDep, features_cache: ReferenceCacheDep) -> Response:
+    maps.delete_map(sessions, map_id, features_cache)
     return Response(status_code=204)
 
 
