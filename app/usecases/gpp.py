@@ -33,13 +33,13 @@ def image_bytes(reading: CameraReading, max_pixels: int) -> bytes:
     try:
         data = base64.b64decode(reading.image_bytes, validate=True)
     except (binascii.Error, ValueError):
-        raise InvalidInputError("cameraReadings[0].image_bytes is not valid base64") from None
+        raise InvalidInputError("cameraReadings[0].imageBytes is not valid base64") from None
     fmt = reading.image_format.upper()
     if fmt in ENCODED_FORMATS:
         return data
     if fmt not in RAW_FORMATS:
         known = ", ".join(sorted(ENCODED_FORMATS | set(RAW_FORMATS)))
-        raise InvalidInputError(f"cameraReadings[0].image_format {fmt!r}: known are {known}")
+        raise InvalidInputError(f"cameraReadings[0].imageFormat {fmt!r}: known are {known}")
     width, height = reading.size
     if width <= 0 or height <= 0 or width * height > max_pixels:
         raise InvalidInputError(f"cameraReadings[0].size {width}×{height} is not acceptable")

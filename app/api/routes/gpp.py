@@ -48,7 +48,7 @@ def geopose(
     an image that cannot be localized is 404 ``not-localized`` with the reason, since the
     protocol's answer has no way to say it."""
     reading = body.sensor_readings.camera_readings[0]
-    image_bytes = gpp.image_bytes(reading, settings.max_pixels)
+    image_bytes = gpp.image_bytes(reading, settings.max_image_pixels)
     request, gps = gpp.localize_request(body)
     if geo.map_registration(sessions, map_id) is None:
         raise ProblemError(
