@@ -614,18 +614,14 @@ def test_csv_gps_columns(
     dataset: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    table = full_csv(dataset, views)
-    with table.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    for row, view in zip(rows, views, strict=True):
-        lat, lon, h = GEO_TRUTH.geodetic_from_map(view.cam_from_world.center[None])[0]
-        row.update(latitude=f"{lat:.10f}", longitude=f"{lon:.10f}", height=f"{h:.4f}")
-        row["gps_accuracy_m"] = "2.5"
+    table = dataset / "gps.csv"
     with table.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+        writer = csv.writer(f)
+        writer.writerow([*CSV_HEADER, "latitude", "longitude", "gps_height", "gps_accuracy_m"])
+        for i, view in enumerate(views):
+            lat, lon, h = GEO_TRUTH.geodetic_from_map(view.cam_from_world.center[None])[0]
+            writer.writerow([*csv_row(_name(i, view), view), f"{lat:.10f}", f"{lon:.10f}", h, 2.5])
     run = run_import(capsys, "--map", "scene", "--csv", table)
-    assert run.rc == 0, run.out
+    assert run.rc == 0, run.out + run.err
     for row in stored(slloc_env).images:
         assert row.gps_accuracy_m == 2.5 and row.gps_latitude == pytest.approx(48.8584, abs=1e-3)

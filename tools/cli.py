@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         "--csv",
         type=Path,
         help="CSV of image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz[,depth]"
-        "[,latitude,longitude,height,gps_accuracy_m]",
+        "[,latitude,longitude,gps_height,gps_accuracy_m]",
     )
     src.add_argument(
         "--kapture", type=Path, help="kapture dataset folder (with GNSS records as GPS)"

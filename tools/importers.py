@@ -31,7 +31,7 @@ CSV_COLUMNS = (
     "tz",
 )
 # optional CSV columns of a GPS position (WGS84 degrees, metres)
-CSV_GPS_COLUMNS = ("latitude", "longitude", "height", "gps_accuracy_m")
+CSV_GPS_COLUMNS = ("latitude", "longitude", "gps_height", "gps_accuracy_m")
 # kapture's GNSS sensors in WGS84 geographic coordinates (x = longitude, y = latitude)
 KAPTURE_WGS84 = {"EPSG:4326", "EPSG:4979"}
 
@@ -87,6 +87,8 @@ def read_kapture(root: Path) -> list[ImportItem]:
     from kapture.io.csv import kapture_from_dir
     from kapture.io.records import get_image_fullpath
 
+    if not (root / "sensors" / "sensors.txt").is_file():
+        raise ValueError(f"{root} is not a kapture dataset: sensors/sensors.txt is missing")
     data = kapture_from_dir(str(root))
     trajectories = data.trajectories
     if trajectories is None or data.records_camera is None or data.sensors is None:
@@ -136,7 +138,7 @@ def read_kapture(root: Path) -> list[ImportItem]:
 
 def read_csv(path: Path) -> list[ImportItem]:
     """Rows of ``image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz`` and optionally
-    ``depth`` and a GPS position ``latitude,longitude[,height][,gps_accuracy_m]``.
+    ``depth`` and a GPS position ``latitude,longitude[,gps_height][,gps_accuracy_m]``.
 
     ``params`` are space-separated in COLMAP order; the pose is cam_from_world; ``image`` and
     ``depth`` paths are relative to the CSV's folder; the image name in the map is ``image``.

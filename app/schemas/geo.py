@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, Field
 
 from app.schemas.geometry import FiniteFloat
@@ -71,8 +72,8 @@ class GeoRegistrationIn(BaseModel):
         o = self.origin
         return GeoRegistration.from_quaternion(
             Geodetic(o.latitude, o.longitude, o.height),
-            self.enu_from_map.rotation,
-            self.enu_from_map.translation,
+            np.array(self.enu_from_map.rotation, np.float64),
+            np.array(self.enu_from_map.translation, np.float64),
             self.scale,
         )
 

@@ -70,4 +70,4 @@ def ecef_from_enu_rotation(origin: Geodetic) -> FloatArray:
         ),
         np.float64,
     )
-    return (ecef[1:] - ecef[0]).T
+    return np.asarray((ecef[1:] - ecef[0]).T, np.float64)

@@ -98,7 +98,7 @@ class GeoRegistration:
 
     def map_up(self) -> FloatArray:
         """The local vertical (ENU up) as a unit direction in the map frame."""
-        return self.rotation.T @ np.array([0.0, 0.0, 1.0])
+        return np.asarray(self.rotation[2], np.float64)  # Rᵀ·(0, 0, 1)
 
 
 @dataclass(frozen=True)
@@ -151,15 +151,17 @@ def estimate_registration(
     origin = Geodetic(*np.mean(gps, axis=0))
     enu = enu_from_geodetic(gps, origin)
     options = pycolmap.RANSACOptions(max_error=max_error_m, random_seed=seed)
-    robust = pycolmap.estimate_sim3d_robust(centers, enu, options)
+    # a dict (tgt_from_src, num_inliers, inlier_mask) at run time, whatever the stubs say
+    robust: Any = pycolmap.estimate_sim3d_robust(centers, enu, options)
     if robust is None:
         raise InvalidInputError("no similarity maps the camera centres onto their GPS positions")
-    inliers = np.asarray(robust["inlier_mask"], bool)
+    inliers: BoolArray = np.asarray(robust["inlier_mask"], np.bool_)
     if inliers.sum() < MIN_GPS_REFERENCES:
         raise InvalidInputError(
             f"fewer than {MIN_GPS_REFERENCES} GPS positions agree within {max_error_m} m"
         )
-    refined = pycolmap.estimate_sim3d(centers[inliers], enu[inliers]) or robust["tgt_from_src"]
+    refined: Any = pycolmap.estimate_sim3d(centers[inliers], enu[inliers])
+    refined = refined or robust["tgt_from_src"]
     residuals = _residuals(refined, centers, enu)
     rms = float(np.sqrt(np.mean(residuals[inliers] ** 2)))
     count = int(inliers.sum())
