@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
 from app.admission import Admission
-from app.api.routes import health, images, localize, maps
+from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
@@ -72,14 +72,13 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.add_middleware(BodySizeLimit, max_bytes=2 * settings.max_upload_bytes + 1024 * 1024)
     # outside the body limit: a missing or unknown key is answered before anything reads the
     # body
-    routes = [
-        route for module in (maps, images, localize, health) for route in module.router.routes
-    ]
+    routers = [m.router for m in (maps, images, geo, localize, gpp, health)]
+    routes = [route for router in routers for route in router.routes]
     app.add_middleware(ApiKeyGate, routes=routes)
     # around the others: every answer, their 401 and 413 included, carries the request id
     app.add_middleware(RequestContext)
     install_error_handlers(app, routes)
-    for module in (maps, images, localize, health):
-        app.include_router(module.router)
+    for router in routers:
+        app.include_router(router)
     install_openapi(app)
     return app

@@ -13,6 +13,7 @@ from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
 from db.vocabulary import VLAD_KIND
 from services.features.base import LocalFeatures
+from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.reference_cache import CachedFeatures, ReferenceFeatureCache
@@ -29,6 +30,12 @@ def pose_of(row: ReferenceImage) -> Rigid3d:
     return Rigid3d.from_quaternion(
         np.array([row.qw, row.qx, row.qy, row.qz]), np.array([row.tx, row.ty, row.tz])
     )
+
+
+def gps_of(row: ReferenceImage) -> GpsFix | None:
+    if row.gps_latitude is None or row.gps_longitude is None:
+        return None
+    return GpsFix(row.gps_latitude, row.gps_longitude, row.gps_height, row.gps_accuracy_m)
 
 
 class SqlReferenceStore:

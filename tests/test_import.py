@@ -1,6 +1,6 @@
-"""``slloc import``: COLMAP (text, binary, pre-4.0 text) and CSV sources, resuming after an
-interrupt, and per-image failures — run through the real CLI entry point on SQLite and
-PostgreSQL, checked in the database and through the HTTP API."""
+"""``slloc import``: COLMAP (text, binary, pre-4.0 text), kapture and CSV sources (GPS
+included), resuming after an interrupt, and per-image failures — run through the real CLI
+entry point on SQLite and PostgreSQL, checked in the database and through the HTTP API."""
 
 from __future__ import annotations
 
@@ -13,10 +13,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import kapture
 import numpy as np
 import pycolmap
 import pytest
 from fastapi.testclient import TestClient
+from kapture.io.csv import kapture_to_dir
+from kapture.io.records import get_image_fullpath
 from sqlalchemy import inspect, select
 from sqlalchemy.orm import Session
 
@@ -28,6 +31,8 @@ from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine
+from services.geo.geodesy import Geodetic
+from services.geo.registration import GeoRegistration
 from services.pipeline import Localizer
 from tools import cli
 from tools.importers import read_colmap
@@ -536,3 +541,87 @@ def test_unreadable_source_is_a_clean_error(
             assert not inspect(conn).has_table("maps") or not conn.scalar(select(Map.id))
     finally:
         engine.dispose()
+
+
+# ---------------------------------------------------------------------------------------------
+# kapture, and GPS positions (CSV columns, kapture GNSS records)
+
+GEO_ORIGIN = Geodetic(48.8584, 2.2945, 35.0)
+GEO_ENU_FROM_SCENE = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+GEO_TRUTH = GeoRegistration(GEO_ORIGIN, GEO_ENU_FROM_SCENE, np.zeros(3), 1.0)
+
+
+def write_kapture(views: list[SyntheticView], root: Path) -> None:
+    fx, fy, cx, cy = views[0].camera.params
+    sensors = kapture.Sensors()
+    sensors["cam"] = kapture.Camera(kapture.CameraType.PINHOLE, [640, 480, fx, fy, cx, cy])
+    sensors["gps"] = kapture.create_sensor("gnss", ["EPSG:4326"])
+    trajectories = kapture.Trajectories()
+    records = kapture.RecordsCamera()
+    gnss = kapture.RecordsGnss()
+    for timestamp, view in enumerate(views):
+        name = _name(timestamp, view)
+        pose = view.cam_from_world
+        trajectories[timestamp, "cam"] = kapture.PoseTransform(pose.quaternion, pose.translation)
+        records[timestamp, "cam"] = name
+        lat, lon, h = GEO_TRUTH.geodetic_from_map(pose.center[None])[0]
+        if timestamp != 0:  # the first record has no fix
+            gnss[timestamp, "gps"] = kapture.RecordGnss(lon, lat, h, timestamp, 1.0)
+        path = Path(get_image_fullpath(str(root), name))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(encode_png(view.image))
+    data = kapture.Kapture(
+        sensors=sensors, trajectories=trajectories, records_camera=records, records_gnss=gnss
+    )
+    kapture_to_dir(str(root), data)
+
+
+def test_kapture_import_keeps_poses_and_gps(
+    slloc_env: str,
+    views: list[SyntheticView],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    write_kapture(views, tmp_path / "kapture")
+    run = run_import(capsys, "--map", "scene", "--kapture", tmp_path / "kapture")
+    assert run.rc == 0, run.out + run.err
+    assert run.summary() == (len(views), 0, len(views))
+    rows = stored(slloc_env).by_name()
+    for i, view in enumerate(views):
+        row = rows[_name(i, view)]
+        assert row.camera_params == list(view.camera.params)
+        assert_pose([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz], view)
+        if i == 0:
+            assert row.gps_latitude is None
+            continue
+        expected = GEO_TRUTH.geodetic_from_map(view.cam_from_world.center[None])[0]
+        np.testing.assert_allclose(
+            [row.gps_latitude, row.gps_longitude, row.gps_height], expected, atol=1e-9
+        )
+
+
+def test_kapture_without_poses_is_a_clean_error(
+    slloc_env: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "empty" / "sensors").mkdir(parents=True)
+    run = run_import(capsys, "--map", "scene", "--kapture", tmp_path / "empty")
+    assert run.rc == 2 and "cannot read" in run.err
+
+
+def test_csv_gps_columns(
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    table = dataset / "gps.csv"
+    with table.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow([*CSV_HEADER, "latitude", "longitude", "gps_height", "gps_accuracy_m"])
+        for i, view in enumerate(views):
+            lat, lon, h = GEO_TRUTH.geodetic_from_map(view.cam_from_world.center[None])[0]
+            writer.writerow([*csv_row(_name(i, view), view), f"{lat:.10f}", f"{lon:.10f}", h, 2.5])
+    run = run_import(capsys, "--map", "scene", "--csv", table)
+    assert run.rc == 0, run.out + run.err
+    for row in stored(slloc_env).images:
+        assert row.gps_accuracy_m == 2.5 and row.gps_latitude == pytest.approx(48.8584, abs=1e-3)

@@ -38,7 +38,11 @@ def main(argv: list[str] | None = None) -> int:
     src.add_argument(
         "--csv",
         type=Path,
-        help="CSV of image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz[,depth]",
+        help="CSV of image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz[,depth]"
+        "[,latitude,longitude,gps_height,gps_accuracy_m]",
+    )
+    src.add_argument(
+        "--kapture", type=Path, help="kapture dataset folder (with GNSS records as GPS)"
     )
     imp.add_argument("--images", type=Path, help="image folder (with --colmap)")
 
@@ -245,18 +249,29 @@ def _import(args: argparse.Namespace) -> int:
     from services.errors import InvalidInputError
     from services.retrieval.contracts import VocabularyError
     from services.retrieval.vlad_index import VladIndexer
-    from tools.importers import ImportItem, iter_pending, read_colmap, read_csv
+    from tools.importers import ImportItem, iter_pending, read_colmap, read_csv, read_kapture
 
     settings = get_settings()
     if args.colmap is not None and args.images is None:
         print("--colmap needs --images", file=sys.stderr)
         return 2
-    try:  # a malformed source is reported before the map is touched
-        items: list[ImportItem] = (
-            read_colmap(args.colmap, args.images) if args.colmap is not None else read_csv(args.csv)
+    if args.kapture is not None and _missing_modules("kapture"):
+        print(
+            "slloc import --kapture needs the kapture reader: pip install '.[kapture]'",
+            file=sys.stderr,
         )
+        return 2
+    source = args.colmap or args.kapture or args.csv
+    try:  # a malformed source is reported before the map is touched
+        items: list[ImportItem]
+        if args.colmap is not None:
+            items = read_colmap(args.colmap, args.images)
+        elif args.kapture is not None:
+            items = read_kapture(args.kapture)
+        else:
+            items = read_csv(args.csv)
     except (OSError, ValueError) as exc:
-        print(f"cannot read {args.colmap or args.csv}: {exc}", file=sys.stderr)
+        print(f"cannot read {source}: {exc}", file=sys.stderr)
         return 2
     engine = make_engine(settings.database_url)
     upgrade(engine)

@@ -1,4 +1,5 @@
-"""Readers of posed image collections for ``slloc import``: COLMAP sparse models and CSV."""
+"""Readers of posed image collections for ``slloc import``: COLMAP sparse models, kapture
+datasets and CSV."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from app.schemas.geo import GpsSchema
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from services.geometry.rigid import Rigid3d
@@ -28,6 +30,10 @@ CSV_COLUMNS = (
     "ty",
     "tz",
 )
+# optional CSV columns of a GPS position (WGS84 degrees, metres)
+CSV_GPS_COLUMNS = ("latitude", "longitude", "gps_height", "gps_accuracy_m")
+# kapture's GNSS sensors in WGS84 geographic coordinates (x = longitude, y = latitude)
+KAPTURE_WGS84 = {"EPSG:4326", "EPSG:4979"}
 
 
 @dataclass(frozen=True)
@@ -68,8 +74,71 @@ def read_colmap(model_dir: Path, image_dir: Path) -> list[ImportItem]:
     return items
 
 
+def read_kapture(root: Path) -> list[ImportItem]:
+    """Posed camera records of a kapture dataset (read with the ``kapture`` package: rigs
+    resolved, trajectories are cam_from_world), with the GPS position of a WGS84 GNSS record
+    of the same timestamp when there is one. Image names are the records' paths (relative to
+    ``sensors/records_data``).
+
+    Raises:
+        ValueError: no posed camera record, or a camera model slloc does not know.
+    """
+    import kapture  # optional: the `kapture` extra
+    from kapture.io.csv import kapture_from_dir
+    from kapture.io.records import get_image_fullpath
+
+    if not (root / "sensors" / "sensors.txt").is_file():
+        raise ValueError(f"{root} is not a kapture dataset: sensors/sensors.txt is missing")
+    data = kapture_from_dir(str(root))
+    trajectories = data.trajectories
+    if trajectories is None or data.records_camera is None or data.sensors is None:
+        raise ValueError(f"{root}: a kapture dataset needs sensors, trajectories and records")
+    if data.rigs is not None:
+        trajectories = kapture.rigs_remove(trajectories, data.rigs)
+    gnss_ids = {
+        sensor_id
+        for sensor_id, sensor in data.sensors.items()
+        if sensor.sensor_type == "gnss" and set(sensor.sensor_params or ()) & KAPTURE_WGS84
+    }
+    items = []
+    for timestamp, sensor_id, name in kapture.flatten(data.records_camera, is_sorted=True):
+        if (timestamp, sensor_id) not in trajectories:
+            continue
+        sensor = data.sensors[sensor_id]
+        width, height, *params = (float(v) for v in sensor.camera_params)
+        pose = trajectories[timestamp, sensor_id]
+        gps = None
+        for gnss_id in gnss_ids:
+            record = (data.records_gnss or {}).get(timestamp, {}).get(gnss_id)
+            if record is not None:
+                gps = GpsSchema(latitude=record.y, longitude=record.x, height=record.z)
+                break
+        try:
+            metadata = ImageMetadata(
+                name=name,
+                camera=CameraSchema(
+                    model=sensor.camera_type.name,
+                    width=int(width),
+                    height=int(height),
+                    params=params,
+                ),
+                cam_from_world=PoseSchema(
+                    rotation=[float(v) for v in pose.r_raw],
+                    translation=[float(v) for v in pose.t_raw],
+                ),
+                gps=gps,
+            )
+        except ValueError as exc:
+            raise ValueError(f"{root}: record {name!r}: {exc}") from exc
+        items.append(ImportItem(metadata, Path(get_image_fullpath(str(root), name))))
+    if not items:
+        raise ValueError(f"{root}: no camera record has a pose")
+    return items
+
+
 def read_csv(path: Path) -> list[ImportItem]:
-    """Rows of ``image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz[,depth]``.
+    """Rows of ``image,camera_model,width,height,params,qw,qx,qy,qz,tx,ty,tz`` and optionally
+    ``depth`` and a GPS position ``latitude,longitude[,gps_height][,gps_accuracy_m]``.
 
     ``params`` are space-separated in COLMAP order; the pose is cam_from_world; ``image`` and
     ``depth`` paths are relative to the CSV's folder; the image name in the map is ``image``.
@@ -96,11 +165,26 @@ def _csv_item(root: Path, row: dict[str, str], line: int) -> ImportItem:
                 rotation=[float(row[k]) for k in ("qw", "qx", "qy", "qz")],
                 translation=[float(row[k]) for k in ("tx", "ty", "tz")],
             ),
+            gps=_csv_gps(row),
         )
     except ValueError as exc:
         raise ValueError(f"line {line}: {exc}") from exc
     depth = row.get("depth") or None
     return ImportItem(metadata, root / row["image"], root / depth if depth else None)
+
+
+def _csv_gps(row: dict[str, str]) -> GpsSchema | None:
+    latitude, longitude, height, accuracy = (row.get(k) or None for k in CSV_GPS_COLUMNS)
+    if latitude is None and longitude is None:
+        return None
+    if latitude is None or longitude is None:
+        raise ValueError("a GPS position needs both latitude and longitude")
+    return GpsSchema(
+        latitude=float(latitude),
+        longitude=float(longitude),
+        height=float(height) if height else None,
+        accuracy_m=float(accuracy) if accuracy else None,
+    )
 
 
 def iter_pending(items: list[ImportItem], existing: set[str]) -> Iterator[ImportItem]:

@@ -2,8 +2,9 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
+from app.schemas.geo import GpsSchema
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.text import Name
 from app.usecases.images import NewImage, StoredImage
@@ -15,9 +16,17 @@ class ImageMetadata(BaseModel):
     name: Name
     camera: CameraSchema
     cam_from_world: PoseSchema
+    gps: GpsSchema | None = Field(
+        None, description="Where it was taken; when absent, the image's EXIF GPS if any"
+    )
 
     def to_new_image(self) -> NewImage:
-        return NewImage(self.name, self.camera.to_camera(), self.cam_from_world.to_rigid())
+        return NewImage(
+            self.name,
+            self.camera.to_camera(),
+            self.cam_from_world.to_rigid(),
+            self.gps.to_fix() if self.gps else None,
+        )
 
 
 class ImageOut(BaseModel):
@@ -28,6 +37,7 @@ class ImageOut(BaseModel):
     num_keypoints: int
     has_depth: bool
     created_at: datetime
+    gps: GpsSchema | None = None
 
     @classmethod
     def from_stored(cls, image: StoredImage) -> ImageOut:
@@ -39,6 +49,7 @@ class ImageOut(BaseModel):
             num_keypoints=image.num_keypoints,
             has_depth=image.has_depth,
             created_at=image.created_at,
+            gps=GpsSchema.from_fix(image.gps) if image.gps else None,
         )
 
 

@@ -4,9 +4,11 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from app.schemas.estimators import EstimatorName
+from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
 from app.usecases.localize import LocalizeRequest
 from services.estimators.base import FailureReason
+from services.geo.geopose import GeoPose, GeoPoseAccuracy
 from services.pipeline import LocalizationResult
 from services.retrieval.search import PositionPrior
 
@@ -36,6 +38,12 @@ class LocalizeParamsIn(BaseModel):
         le=100,
         allow_inf_nan=False,
         description="Inlier threshold in pixels (default 12)",
+    )
+    gps: GpsSchema | None = Field(
+        None,
+        description="The device's GPS fix. On a geo-registered map, retrieval keeps the "
+        "references within 3 × accuracy_m (default 10 m, at least 10 m) of it horizontally; "
+        "422 on a map without a registration",
     )
     time_budget_s: float | None = Field(
         None,
@@ -92,10 +100,20 @@ class LocalizeResult(BaseModel):
     retrieved: list[RetrievedOut]
     inliers: list[InliersOut] | None = None
     timings_ms: Timings
+    geopose: GeoPoseSchema | None = Field(
+        None, description="OGC GeoPose of the camera, on a geo-registered map when localized"
+    )
+    geopose_accuracy: GeoPoseAccuracySchema | None = None
 
     @classmethod
-    def from_result(cls, result: LocalizationResult, return_inliers: bool) -> LocalizeResult:
-        """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``."""
+    def from_result(
+        cls,
+        result: LocalizationResult,
+        return_inliers: bool,
+        geopose: tuple[GeoPose, GeoPoseAccuracy] | None = None,
+    ) -> LocalizeResult:
+        """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``;
+        the GeoPose when given."""
         pose = result.cam_from_world
         return cls(
             localized=result.localized,
@@ -127,4 +145,6 @@ class LocalizeResult(BaseModel):
             if return_inliers
             else None,
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
+            geopose=GeoPoseSchema.from_geopose(geopose[0]) if geopose else None,
+            geopose_accuracy=GeoPoseAccuracySchema.from_accuracy(geopose[1]) if geopose else None,
         )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 
 from sqlalchemy.exc import IntegrityError
@@ -15,8 +15,9 @@ from app.usecases.maps import require_map
 from db.models import ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
-from db.store import camera_of, pose_of
+from db.store import camera_of, gps_of, pose_of
 from db.vocabulary import SqlVocabularyStore
+from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.pipeline import Localizer
@@ -30,11 +31,12 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class NewImage:
     """What is known of a reference image before it is described: its name in the map, its
-    camera and its pose ``cam_from_world``."""
+    camera, its pose ``cam_from_world`` and optionally its GPS position."""
 
     name: str
     camera: Camera
     cam_from_world: Rigid3d
+    gps: GpsFix | None = None
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,7 @@ class StoredImage:
     num_keypoints: int
     has_depth: bool
     created_at: datetime
+    gps: GpsFix | None = None
 
 
 def add_reference_image(
@@ -61,9 +64,10 @@ def add_reference_image(
     slots: AbstractContextManager[object] = nullcontext(),
 ) -> StoredImage:
     """Describe and store a posed reference image: the row and all its features in one
-    transaction, or nothing. With a ``trainer``, a retrieval vocabulary that the add makes due
-    is trained in the background, so no request waits for it. ``slots`` is held while the
-    image is described (bounds concurrent engine work).
+    transaction, or nothing. Without a GPS position, the one in the image's EXIF is kept.
+    With a ``trainer``, a retrieval vocabulary that the add makes due is trained in the
+    background, so no request waits for it. ``slots`` is held while the image is described
+    (bounds concurrent engine work).
 
     Raises:
         NotFoundError: unknown map.
@@ -72,6 +76,8 @@ def add_reference_image(
         InvalidInputError: the image, depth or camera is unusable.
     """
     taken = f"map already has an image named {image.name!r}"
+    if image.gps is None:
+        image = replace(image, gps=gps_from_exif(image_bytes))
     with sessions() as session:
         map_row = require_map(session, map_id)
         if ImageRepository(session).name_exists(map_id, image.name):
@@ -83,7 +89,7 @@ def add_reference_image(
         with sessions.begin() as session:
             require_map(session, map_id)  # deleted while we extracted
             row = ImageRepository(session).add(
-                map_id, image.name, image.camera, image.cam_from_world, data
+                map_id, image.name, image.camera, image.cam_from_world, data, image.gps
             )
             stored = _stored(row)
     except IntegrityError as exc:
@@ -161,4 +167,5 @@ def _stored(row: ReferenceImage) -> StoredImage:
         num_keypoints=row.num_keypoints,
         has_depth=row.has_depth,
         created_at=row.created_at,
+        gps=gps_of(row),
     )

@@ -7,6 +7,7 @@ from sqlalchemy.orm import Session
 
 from db.arrays import to_row
 from db.models import FeatureArray, Map, ReferenceImage, is_stored_id
+from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.references import ReferenceData
@@ -23,6 +24,7 @@ class ImageRepository:
         camera: Camera,
         cam_from_world: Rigid3d,
         data: ReferenceData,
+        gps: GpsFix | None = None,
     ) -> ReferenceImage:
         """Insert the image row and all its arrays (flushed, not committed)."""
         self._lock_map(map_id)
@@ -46,6 +48,10 @@ class ImageRepository:
             has_depth=data.depth is not None,
             feature_model=data.feature_model,
             descriptor_model=data.descriptor_model,
+            gps_latitude=gps.latitude if gps else None,
+            gps_longitude=gps.longitude if gps else None,
+            gps_height=gps.height if gps else None,
+            gps_accuracy_m=gps.accuracy_m if gps else None,
         )
         self.session.add(row)
         self.session.flush()
@@ -61,6 +67,20 @@ class ImageRepository:
         self._bump_revision(map_id)
         self.session.flush()
         return row
+
+    def with_gps(self, map_id: str) -> list[ReferenceImage]:
+        """The map's images that carry a GPS position, oldest first."""
+        return list(
+            self.session.scalars(
+                select(ReferenceImage)
+                .where(
+                    ReferenceImage.map_id == map_id,
+                    ReferenceImage.gps_latitude.is_not(None),
+                    ReferenceImage.gps_longitude.is_not(None),
+                )
+                .order_by(ReferenceImage.created_at, ReferenceImage.id)
+            )
+        )
 
     def get(self, map_id: str, image_id: str) -> ReferenceImage | None:
         if not (is_stored_id(map_id) and is_stored_id(image_id)):

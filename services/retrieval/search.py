@@ -11,10 +11,20 @@ from services.types import Float32Array, FloatArray, IntArray
 
 @dataclass(frozen=True)
 class PositionPrior:
-    """Keep references whose camera centre lies within ``radius`` of ``position`` (world units)."""
+    """Keep references whose camera centre lies within ``radius`` of ``position`` (world
+    units); with ``up`` (a unit direction), the distance is measured across it only (a
+    horizontal disc of any height, for a GPS fix)."""
 
     position: FloatArray
     radius: float
+    up: FloatArray | None = None
+
+    def distances(self, centers: FloatArray) -> FloatArray:
+        """(N,) distance of each (N, 3) centre from ``position`` as the prior measures it."""
+        offsets = centers - self.position
+        if self.up is not None:
+            offsets = offsets - np.outer(offsets @ self.up, self.up)
+        return np.asarray(np.linalg.norm(offsets, axis=1), np.float64)
 
 
 def top_k(
@@ -42,7 +52,7 @@ def top_k(
     if prior is not None:
         if centers is None:
             raise ValueError("a position prior needs the reference camera centres")
-        inside = np.linalg.norm(centers - prior.position, axis=1) <= prior.radius
+        inside = prior.distances(centers) <= prior.radius
         candidates = candidates[inside]
     if candidates.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.float32)

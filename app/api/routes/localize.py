@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, UploadFile
@@ -21,6 +22,7 @@ from app.api.deps import (
 )
 from app.errors import problem_responses
 from app.schemas.localize import LocalizeParamsIn, LocalizeResult
+from app.usecases import geo
 from app.usecases.localize import localize as localize_image
 from services.estimators.registry import DEFAULT_ESTIMATOR
 
@@ -63,20 +65,22 @@ def localize(
     body = parse_json_form(LocalizeParamsIn, params, "params")
     image_bytes = read_upload(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
+    run = partial(
+        localize_image,
+        sessions,
+        localizer,
+        map_id,
+        image_bytes=image_bytes,
+        depth_bytes=depth_bytes,
+        max_top_k=settings.max_top_k,
+        max_time_budget_s=settings.localize_time_budget_s,
+        cache=cache,
+        vlad=settings.global_model is None,
+        slots=admission.slots,
+        trainer=trainer,
+        features_cache=features_cache,
+    )
+    gps = body.gps.to_fix() if body.gps else None
     with admission.admit():
-        result = localize_image(
-            sessions,
-            localizer,
-            map_id,
-            body.to_request(),
-            image_bytes,
-            depth_bytes,
-            max_top_k=settings.max_top_k,
-            max_time_budget_s=settings.localize_time_budget_s,
-            cache=cache,
-            vlad=settings.global_model is None,
-            slots=admission.slots,
-            trainer=trainer,
-            features_cache=features_cache,
-        )
-    return LocalizeResult.from_result(result, body.return_inliers)
+        result, geopose = geo.localize_on_globe(sessions, map_id, body.to_request(), gps, run)
+    return LocalizeResult.from_result(result, body.return_inliers, geopose)

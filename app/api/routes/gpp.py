@@ -1,0 +1,101 @@
+"""The Open AR Cloud GeoPose Protocol (OSCP GPP v1): existing GPP clients localize against a
+geo-registered map unchanged."""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+from fastapi import APIRouter
+
+from app.api.deps import (
+    AdmissionDep,
+    ClientKey,
+    LocalizerDep,
+    ReferenceCacheDep,
+    RetrievalCacheDep,
+    SessionsDep,
+    SettingsDep,
+    TrainerDep,
+)
+from app.errors import ProblemError, problem_responses
+from app.schemas.gpp import GeoPoseAccuracy, GeoPoseBQ, GeoPoseReq, GeoPoseResp
+from app.usecases import geo, gpp
+from app.usecases.localize import localize as localize_image
+
+router = APIRouter(prefix="/v1/maps/{map_id}", tags=["geo"])
+
+
+@router.post(
+    "/geopose",
+    operation_id="gpp_geopose",
+    dependencies=[ClientKey],
+    responses=problem_responses(400, 401, 404, 413, 422, 503),
+)
+def geopose(
+    map_id: str,
+    body: GeoPoseReq,
+    sessions: SessionsDep,
+    localizer: LocalizerDep,
+    settings: SettingsDep,
+    cache: RetrievalCacheDep,
+    admission: AdmissionDep,
+    trainer: TrainerDep,
+    features_cache: ReferenceCacheDep,
+) -> GeoPoseResp:
+    """A GeoPose Protocol request (``GeoPoseReq``: the first camera reading's image and
+    intrinsics, the first geolocation reading as a retrieval hint) answered with a
+    ``GeoPoseResp``: the camera's OGC GeoPose (OpenGL camera axes in East-North-Up) and its
+    mean position (m) and orientation (°) accuracy. The map must be geo-registered (else 422);
+    an image that cannot be localized is 404 ``not-localized`` with the reason, since the
+    protocol's answer has no way to say it."""
+    reading = body.sensor_readings.camera_readings[0]
+    image_bytes = gpp.image_bytes(reading, settings.max_image_pixels)
+    request, gps = gpp.localize_request(body)
+    if geo.map_registration(sessions, map_id) is None:
+        raise ProblemError(
+            422,
+            "not-geo-registered",
+            "Map not geo-registered",
+            "a GeoPose needs the map's geo-registration: PUT or POST "
+            f"/v1/maps/{map_id}/geo-registration…",
+        )
+    run = partial(
+        localize_image,
+        sessions,
+        localizer,
+        map_id,
+        image_bytes=image_bytes,
+        max_top_k=settings.max_top_k,
+        max_time_budget_s=settings.localize_time_budget_s,
+        cache=cache,
+        vlad=settings.global_model is None,
+        slots=admission.slots,
+        trainer=trainer,
+        features_cache=features_cache,
+    )
+    with admission.admit():
+        result, answer = geo.localize_on_globe(sessions, map_id, request, gps, run)
+    if answer is None:
+        raise ProblemError(
+            404, "not-localized", "Not localized", f"the image was not localized: {result.reason}"
+        )
+    pose, accuracy = answer
+    x, y, z, w = (float(v) for v in pose.quaternion_xyzw)
+    return GeoPoseResp(
+        id=body.id,
+        timestamp=time.time() * 1000.0,
+        accuracy=GeoPoseAccuracy(
+            position=(accuracy.horizontal_m + accuracy.vertical_m) / 2, orientation=accuracy.yaw_deg
+        ),
+        geopose=GeoPoseBQ.model_validate(
+            {
+                "position": {
+                    "lat": pose.position.latitude,
+                    "lon": pose.position.longitude,
+                    "h": pose.position.height,
+                },
+                "quaternion": {"x": x, "y": y, "z": z, "w": w},
+            }
+        ),
+    )
