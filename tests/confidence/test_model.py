@@ -17,16 +17,16 @@ from services.confidence.model import (
 )
 from services.estimators.registry import estimator_names
 
-STRONG = {  # a redkitchen-like correct answer
+STRONG = {  # a typical correct redkitchen answer (medians of the fit data)
     "num_inliers": 1500.0,
-    "num_matches": 2500.0,
-    "inlier_ratio": 0.6,
+    "num_matches": 1580.0,
+    "inlier_ratio": 0.95,
     "references_with_inliers": 10.0,
     "verified_points": 400.0,
-    "multi_reference_tracks": 450.0,
+    "multi_reference_tracks": 470.0,
     "inlier_area_fraction": 0.7,
-    "inlier_residual_ratio": 0.1,
-    "inlier_tight_fraction": 0.8,
+    "inlier_residual_ratio": 0.08,
+    "inlier_tight_fraction": 0.87,
     "radial_residual_ratio": 1.0,
 }
 WEAK = {  # what an unrelated image reaches

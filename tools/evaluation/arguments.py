@@ -131,6 +131,10 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         help="results.json of a run not used to fit, for the reported precision (repeatable)",
     )
-    parser.add_argument("--l2", type=float, default=1.0, help="L2 penalty of the weights")
+    parser.add_argument(
+        "--l2",
+        type=float,
+        help="L2 penalty of the weights (default: cross-validated on the fit runs)",
+    )
     parser.add_argument("--note", default="", help="what the runs were, for the file")
     parser.add_argument("--out", type=Path, help="write the coefficients file here")

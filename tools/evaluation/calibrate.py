@@ -4,7 +4,9 @@ report its precision/recall on held-out runs, and write the coefficients file.
 
 The model is an L2-regularised logistic regression fitted by Newton's method in numpy; the
 weights of ``MONOTONE_INCREASING`` features are kept >= 0 (a feature whose weight would turn
-negative is dropped and the rest refitted), so more evidence never lowers the confidence.
+negative is dropped and the rest refitted), so more evidence never lowers the confidence. The
+penalty is chosen by cross-validation on the fit runs (folds by query, so the answers of one
+query never sit on both sides), never on the held-out runs.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import zlib
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
@@ -39,22 +42,33 @@ class Samples:
         estimators: each answer's estimator name.
         localized: (N,) the answer has a pose.
         correct: (N,) its pose is within the target.
-        positives: answers to queries with ground truth.
+        unrelated: (N,) the query is an image of another scene (no ground truth).
+        wrong_intrinsics: (N,) the query was sent with a wrong focal length.
+        queries: each answer's query, as ``<results file>:<query name>``.
     """
 
     stats: list[dict[str, float]]
     estimators: list[str]
     localized: BoolArray
     correct: BoolArray
-    positives: int
+    unrelated: BoolArray
+    wrong_intrinsics: BoolArray
+    queries: list[str]
+
+    @property
+    def positives(self) -> int:
+        """Answers to queries with ground truth."""
+        return int((~self.unrelated).sum())
 
 
 def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Samples:
     """The answers in the ``results.json`` files of in-process ``slloc eval`` runs."""
-    stats, estimators, localized, correct, positives = [], [], [], [], 0
+    stats, estimators, localized, correct, unrelated, wrong = [], [], [], [], [], []
+    queries: list[str] = []
     max_m, max_deg = target
     for path in paths:
         for q in json.loads(path.read_text())["queries"]:
+            queries.append(f"{path}:{q['query']}")
             pos, rot = q["position_error_m"], q["rotation_error_deg"]
             stats.append({k: float(v) for k, v in q.get("stats", {}).items()})
             estimators.append(q["config"].split("/")[-1])
@@ -66,8 +80,17 @@ def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Sam
                 and pos <= max_m
                 and rot <= max_deg
             )
-            positives += not q["unrelated"]
-    return Samples(stats, estimators, np.array(localized, bool), np.array(correct, bool), positives)
+            unrelated.append(bool(q["unrelated"]))
+            wrong.append(bool(q.get("wrong_intrinsics", False)))
+    return Samples(
+        stats,
+        estimators,
+        np.array(localized, bool),
+        np.array(correct, bool),
+        np.array(unrelated, bool),
+        np.array(wrong, bool),
+        queries,
+    )
 
 
 def fit_logistic(
@@ -114,6 +137,52 @@ def _newton(x: FloatArray, y: FloatArray, l2: float, iterations: int) -> FloatAr
         if float(np.abs(step).max()) < 1e-10:
             break
     return w
+
+
+L2_GRID = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+
+
+def subset(samples: Samples, keep: BoolArray) -> Samples:
+    """The answers where (N,) ``keep`` holds."""
+    index = np.flatnonzero(keep)
+    return Samples(
+        [samples.stats[i] for i in index],
+        [samples.estimators[i] for i in index],
+        samples.localized[index],
+        samples.correct[index],
+        samples.unrelated[index],
+        samples.wrong_intrinsics[index],
+        [samples.queries[i] for i in index],
+    )
+
+
+def cross_validated_l2(
+    samples: Samples, folds: int = 5, grid: tuple[float, ...] = L2_GRID
+) -> float:
+    """The penalty of ``grid`` with the best mean log-likelihood of the localized answers of
+    held-in folds; folds by query (a hash of its name, so the choice is reproducible)."""
+    fold = np.array([zlib.crc32(q.encode()) % folds for q in samples.queries])
+    best, best_score = grid[0], -np.inf
+    for l2 in grid:
+        total = 0.0
+        for k in range(folds):
+            train, test = subset(samples, fold != k), subset(samples, fold == k)
+            if not test.localized.any() or train.correct.all() or not train.correct.any():
+                continue
+            model = fit_model(train, l2)
+            p = np.array(
+                [
+                    model.confidence(s, e)
+                    for s, e, ok in zip(test.stats, test.estimators, test.localized, strict=True)
+                    if ok
+                ]
+            )
+            y = test.correct[test.localized]
+            p = np.clip(p, 1e-9, 1 - 1e-9)
+            total += float(np.sum(np.where(y, np.log(p), np.log(1 - p))))
+        if total > best_score:
+            best, best_score = l2, total
+    return best
 
 
 def fit_model(samples: Samples, l2: float = 1.0, description: str = "") -> ConfidenceModel:
@@ -192,11 +261,16 @@ def calibrate_main(args: argparse.Namespace) -> int:
         f"{int(samples.localized.sum())} localized answers"
         + (f" ({args.note})" if args.note else "")
     )
-    model = fit_model(samples, args.l2, description)
+    l2 = cross_validated_l2(samples) if args.l2 is None else args.l2
+    print(f"L2 penalty {l2:g}" + (" (cross-validated on the fit runs)" if args.l2 is None else ""))
+    model = fit_model(samples, l2, f"{description}, L2 penalty {l2:g}")
     print(json.dumps(model.to_json(), indent=1))
     _report("fit", model, samples)
     if held_out is not None:
         _report("held out", model, held_out)
+        if held_out.wrong_intrinsics.any():
+            right = subset(held_out, ~held_out.wrong_intrinsics)
+            _report("held out, right intrinsics", model, right)
     if args.out is not None:
         model.save(args.out)
         print(f"wrote {args.out}")
