@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
+from services.confidence.model import ConfidenceModel, default_confidence_model
+from services.confidence.rescoring import rescore
 from services.errors import InvalidInputError
 from services.estimators.base import FailureReason, PoseEstimator, ReferenceObservation
 from services.estimators.options import EstimatorOptions
@@ -95,11 +99,15 @@ class Localizer:
         matcher: Matcher,
         global_descriptor: GlobalDescriptor,
         max_pixels: int,
+        confidence_model: ConfidenceModel | None = None,
     ) -> None:
+        """``confidence_model``: turns a verified pose's stats into its confidence (None: the
+        calibration shipped with the service)."""
         self.extractor = extractor
         self.matcher = matcher
         self.global_descriptor = global_descriptor
         self.max_pixels = max_pixels
+        self.confidence_model = confidence_model or default_confidence_model()
 
     def for_map(self, max_keypoints: int | None, max_side: int | None) -> Localizer:
         """This localizer with a map's keypoint budget and image size (None = the default).
@@ -113,7 +121,9 @@ class Localizer:
             extractor = self.extractor.with_budget(max_keypoints, max_side)
         except ValueError as exc:
             raise InvalidInputError(f"map feature options: {exc}") from None
-        return Localizer(extractor, self.matcher, self.global_descriptor, self.max_pixels)
+        return Localizer(
+            extractor, self.matcher, self.global_descriptor, self.max_pixels, self.confidence_model
+        )
 
     def describe_reference(
         self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None
@@ -142,32 +152,38 @@ class Localizer:
         store: ReferenceStore,
         depth_bytes: bytes | None = None,
     ) -> LocalizationResult:
-        estimator = get_estimator(params.estimator)
+        return self.localize_each(image_bytes, params, [params.estimator], store, depth_bytes)[0]
+
+    def localize_each(
+        self,
+        image_bytes: bytes,
+        params: LocalizeParams,
+        estimators: Sequence[str],
+        store: ReferenceStore,
+        depth_bytes: bytes | None = None,
+    ) -> list[LocalizationResult]:
+        """Describe, retrieve and match the query once, then run each of ``estimators`` (names;
+        ``params.estimator`` is not used) on the same matches: one result per estimator, as
+        ``localize`` with that estimator answers. Each result has the shared stage timings and
+        its own ``estimate`` time (``total`` leaves the other estimators out), and each
+        estimator gets what is left of the time budget after matching."""
+        chosen = [get_estimator(name) for name in estimators]
         clock = _StageClock(params.time_budget_s)
         try:
-            return self._localize(image_bytes, params, store, depth_bytes, estimator, clock)
+            matched = self._match(image_bytes, params, store, depth_bytes, clock)
         except _OutOfTimeError:
-            return LocalizationResult(
-                localized=False,
-                reason=FailureReason.TIME_BUDGET_EXCEEDED.value,
-                estimator=estimator.name,
-                cam_from_world=None,
-                num_inliers=0,
-                confidence=0.0,
-                retrieved=[],
-                timings_ms=clock.finish(),
-                stats={},
-            )
+            timings = clock.finish()
+            return [_out_of_time(estimator.name, timings) for estimator in chosen]
+        return [self._estimate(matched, params, e, clock.branch()) for e in chosen]
 
-    def _localize(
+    def _match(
         self,
         image_bytes: bytes,
         params: LocalizeParams,
         store: ReferenceStore,
         depth_bytes: bytes | None,
-        estimator: PoseEstimator,
         clock: _StageClock,
-    ) -> LocalizationResult:
+    ) -> _MatchedQuery:
         lap = clock.lap
         image = decode_image(image_bytes, self.max_pixels)
         camera = params.camera or default_camera(image.shape[1], image.shape[0])
@@ -200,19 +216,36 @@ class Localizer:
             _observe(query, query_depth, ref, score_of[ref.image_id], ref_pairs)
             for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
+        return _MatchedQuery(camera, references, observations)
+
+    def _estimate(
+        self,
+        matched: _MatchedQuery,
+        params: LocalizeParams,
+        estimator: PoseEstimator,
+        clock: _StageClock,
+    ) -> LocalizationResult:
+        camera, references, observations = matched
         if not observations:
             outcome = None
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
             options = clock.bound(params.options)
-            outcome = verify_pose(
-                estimator.estimate(camera, observations, options),
+            outcome = rescore(
+                verify_pose(
+                    estimator.estimate(camera, observations, options),
+                    camera,
+                    observations,
+                    options,
+                ),
                 camera,
                 observations,
                 options,
+                estimator.name,
+                self.confidence_model,
             )
             reason = outcome.failure_reason.value if outcome.failure_reason else None
-        lap("estimate", check=False)  # the work is done: its answer is kept
+        clock.lap("estimate", check=False)  # the work is done: its answer is kept
         timings = clock.finish()
 
         retrieved = []
@@ -243,6 +276,28 @@ class Localizer:
         )
 
 
+class _MatchedQuery(NamedTuple):
+    """A query described, its references retrieved and matched: what every estimator takes."""
+
+    camera: Camera
+    references: list[ReferenceView]
+    observations: list[ReferenceObservation]
+
+
+def _out_of_time(estimator: str, timings: dict[str, float]) -> LocalizationResult:
+    return LocalizationResult(
+        localized=False,
+        reason=FailureReason.TIME_BUDGET_EXCEEDED.value,
+        estimator=estimator,
+        cam_from_world=None,
+        num_inliers=0,
+        confidence=0.0,
+        retrieved=[],
+        timings_ms=dict(timings),
+        stats={},
+    )
+
+
 STAGES = ("decode", "extract", "retrieve", "match", "estimate")
 
 
@@ -255,6 +310,8 @@ class _StageClock:
 
     def __init__(self, budget_s: float | None) -> None:
         self.deadline = Deadline(budget_s)
+        self._budgeted = budget_s is not None
+        self._left_at_lap = budget_s
         self._timings: dict[str, float] = {}
         self._start = self._lap_start = time.perf_counter()
 
@@ -267,8 +324,20 @@ class _StageClock:
         now = time.perf_counter()
         self._timings[stage] = (now - self._lap_start) * 1000.0
         self._lap_start = now
+        self._left_at_lap = self.deadline.remaining_s() if self._budgeted else None
         if check and self.deadline.expired():
             raise _OutOfTimeError
+
+    def branch(self) -> _StageClock:
+        """A clock that goes on from now as this one would, with the stages timed so far and
+        what is left of the budget, as though the time since the last lap had not passed."""
+        now = time.perf_counter()
+        clone = _StageClock(None)
+        clone.deadline = Deadline(self._left_at_lap)
+        clone._timings = dict(self._timings)
+        clone._start = now - (self._lap_start - self._start)
+        clone._lap_start = now
+        return clone
 
     def bound(self, options: EstimatorOptions) -> EstimatorOptions:
         """``options`` with an estimator budget no longer than what is left of this one."""

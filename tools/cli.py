@@ -60,6 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     synth.add_argument("--references", type=int, default=24)
     synth.add_argument("--queries", type=int, default=3)
     synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument(
+        "--forward",
+        action="store_true",
+        help="a forward-motion scene as an import CSV with depth instead (for slloc eval)",
+    )
 
     models = sub.add_parser("models", help="exported ONNX models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
@@ -83,12 +88,19 @@ def main(argv: list[str] | None = None) -> int:
     api = sub.add_parser("openapi", help="write the OpenAPI document")
     api.add_argument("--out", type=Path, default=Path("openapi/openapi.json"))
 
-    from tools.evaluation.arguments import add_bench_arguments, add_eval_arguments
+    from tools.evaluation.arguments import (
+        add_bench_arguments,
+        add_calibrate_arguments,
+        add_eval_arguments,
+    )
 
     add_eval_arguments(
         sub.add_parser("eval", help="accuracy and timings of configurations on a posed dataset")
     )
     add_bench_arguments(sub.add_parser("bench", help="latency and throughput of /localize"))
+    add_calibrate_arguments(
+        sub.add_parser("calibrate", help="fit the confidence model on slloc eval results")
+    )
 
     args = parser.parse_args(argv)
     if args.command == "serve":
@@ -118,10 +130,20 @@ def main(argv: list[str] | None = None) -> int:
         from tools.evaluation.bench import bench_main
 
         return bench_main(args)
+    if args.command == "calibrate":
+        from tools.evaluation.calibrate import calibrate_main
+
+        return calibrate_main(args)
     if args.command == "features":
         from tools.feature_table import feature_table
 
         print(feature_table(), end="")
+        return 0
+    if args.command == "synth" and args.forward:
+        from tools.synthetic.forward_dataset import split_args, write_forward_dataset
+
+        csv_path = write_forward_dataset(args.out, args.seed)
+        print(f"wrote {csv_path}; evaluate with: slloc eval {csv_path} {' '.join(split_args())}")
         return 0
     if args.command == "synth":
         from tools.synthetic.dataset import write_synthetic_dataset

@@ -74,7 +74,7 @@ def test_outputs_written(
 def test_ctrl_c_leaves_partial_results(
     synthetic_csv: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    original = InProcessRunner.localize
+    original = InProcessRunner.localize_each
     calls = 0
 
     def interrupting(self: InProcessRunner, *args: Any) -> Any:
@@ -84,7 +84,7 @@ def test_ctrl_c_leaves_partial_results(
             raise KeyboardInterrupt
         return original(self, *args)
 
-    monkeypatch.setattr(InProcessRunner, "localize", interrupting)
+    monkeypatch.setattr(InProcessRunner, "localize_each", interrupting)
     code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "e5p1")
     assert code == 130
     assert results["meta"]["interrupted"] is True
@@ -100,7 +100,7 @@ def test_a_query_that_raises_is_its_failure_and_the_run_goes_on(
     synthetic_csv: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Regression: a singular matrix in one query's pose verification aborted the run."""
-    original = InProcessRunner.localize
+    original = InProcessRunner.localize_each
     calls = 0
 
     def singular_once(self: InProcessRunner, *args: Any) -> Any:
@@ -110,7 +110,7 @@ def test_a_query_that_raises_is_its_failure_and_the_run_goes_on(
             raise np.linalg.LinAlgError("Singular matrix")
         return original(self, *args)
 
-    monkeypatch.setattr(InProcessRunner, "localize", singular_once)
+    monkeypatch.setattr(InProcessRunner, "localize_each", singular_once)
     code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "pose_approx")
     assert code == 0
     assert results["meta"]["error"] is None

@@ -1,5 +1,5 @@
-"""Arguments of ``slloc eval`` and ``slloc bench`` (light imports: the CLI builds them for
-every command)."""
+"""Arguments of ``slloc eval``, ``slloc calibrate`` and ``slloc bench`` (light imports: the
+CLI builds them for every command)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,33 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="also localize N unrelated images (false accepts)",
     )
+    parser.add_argument(
+        "--unrelated-seed",
+        type=int,
+        default=0,
+        metavar="S",
+        help="the unrelated images are those of seeds S, S+1, ...",
+    )
+    parser.add_argument(
+        "--unrelated-images",
+        type=Path,
+        metavar="DIR",
+        help="also localize every JPEG/PNG in DIR, images of another scene (false accepts)",
+    )
     parser.add_argument("--max-queries", type=int, metavar="N", help="only the first N queries")
+    parser.add_argument(
+        "--wrong-focal",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also localize the first N queries with a wrong focal length (×1.5, ×0.67 in turn)",
+    )
+    parser.add_argument(
+        "--max-keypoints", type=int, metavar="N", help="the map's keypoint budget per image"
+    )
+    parser.add_argument(
+        "--max-side", type=int, metavar="PX", help="the map's longer image side for features"
+    )
     parser.add_argument("--out", type=Path, default=Path("out/eval"), help="output folder")
 
 
@@ -98,3 +124,23 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", default=DEFAULT_ESTIMATOR, choices=estimator_names())
     parser.add_argument("--top-k", type=int, default=10)
     parser.add_argument("--out", type=Path, default=Path("out/bench.json"), help="JSON output")
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "fit", type=Path, nargs="+", help="results.json of in-process slloc eval runs to fit on"
+    )
+    parser.add_argument(
+        "--held-out",
+        type=Path,
+        action="append",
+        default=[],
+        help="results.json of a run not used to fit, for the reported precision (repeatable)",
+    )
+    parser.add_argument(
+        "--l2",
+        type=float,
+        help="L2 penalty of the weights (default: cross-validated on the fit runs)",
+    )
+    parser.add_argument("--note", default="", help="what the runs were, for the file")
+    parser.add_argument("--out", type=Path, help="write the coefficients file here")

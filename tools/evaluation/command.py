@@ -8,6 +8,7 @@ import sys
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 
 from app.settings import get_settings
 from services.components import resolve_features
@@ -38,6 +39,20 @@ def _thresholds(values: list[str] | None) -> tuple[tuple[float, float], ...]:
     return tuple(pairs)
 
 
+def _images_in(folder: Path | None) -> list[Path]:
+    """The JPEG and PNG files of ``folder``, sorted (none without a folder).
+
+    Raises:
+        ValueError: ``folder`` holds none.
+    """
+    if folder is None:
+        return []
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    if not images:
+        raise ValueError(f"no JPEG or PNG images in {folder}")
+    return images
+
+
 def _log(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
@@ -59,6 +74,9 @@ def eval_main(args: argparse.Namespace) -> int:
         thresholds = _thresholds(args.threshold)
         if args.max_queries is not None and args.max_queries < 1:
             raise ValueError("--max-queries must be at least 1")
+        if args.wrong_focal < 0:
+            raise ValueError("--wrong-focal must not be negative")
+        unrelated_images = _images_in(args.unrelated_images)
     except (OSError, ValueError) as exc:
         print(f"slloc eval: {exc}", file=sys.stderr)
         return 2
@@ -69,14 +87,31 @@ def eval_main(args: argparse.Namespace) -> int:
         use_depth=not args.no_depth,
         unrelated=args.unrelated,
         max_queries=args.max_queries,
+        wrong_focal=args.wrong_focal,
+        unrelated_seed=args.unrelated_seed,
+        unrelated_images=unrelated_images,
     )
+    map_features = {
+        key: value
+        for key, value in (("max_keypoints", args.max_keypoints), ("max_side", args.max_side))
+        if value is not None
+    }
     factories: list[Callable[[], Runner]]
     if args.url:
         factories = [
-            partial(HttpRunner, args.url, args.api_key, f"slloc-eval-{dataset.name}", args.keep_map)
+            partial(
+                HttpRunner,
+                args.url,
+                args.api_key,
+                f"slloc-eval-{dataset.name}",
+                args.keep_map,
+                features=map_features,
+            )
         ]
     else:
-        factories = [partial(InProcessRunner, name, settings.models_dir) for name in features]
+        factories = [
+            partial(InProcessRunner, name, settings.models_dir, **map_features) for name in features
+        ]
     _log(
         f"{dataset.name}: {len(split.references)} references, {len(split.queries)} queries, "
         f"estimators {', '.join(estimators)}, "
@@ -92,6 +127,7 @@ def eval_main(args: argparse.Namespace) -> int:
         "estimators": estimators,
         "features": None if args.url else features,
         "top_k": args.top_k,
+        "map_features": map_features,
         "max_error_px": args.max_error_px,
         "thresholds": thresholds,
         "seconds": time.perf_counter() - start,

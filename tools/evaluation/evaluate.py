@@ -1,19 +1,21 @@
 """The evaluation loop: per feature configuration, load the references into a fresh map once,
-then localize every query with every estimator; summarize and write the outputs, also when
-interrupted (Ctrl-C leaves the results so far)."""
+then localize every query with every estimator (in process, on one description and matching
+of the query); summarize and write the outputs, also when interrupted (Ctrl-C leaves the
+results so far)."""
 
 from __future__ import annotations
 
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from app.schemas.geometry import CameraSchema
-from services.estimators.registry import DEPTH_ESTIMATORS
-from services.geometry.camera import Camera
+from services.geometry.camera import CAMERA_MODELS, Camera
+from services.imaging import decode_image
+from tools.evaluation.confidence_curve import curve_of, curve_summary
 from tools.evaluation.datasets import PosedImage
 from tools.evaluation.metrics import (
     QueryRecord,
@@ -37,6 +39,11 @@ class EvalOptions:
             the estimators that use depth).
         unrelated: also localize this many images of nothing in the map (false accepts).
         max_queries: localize only the first N queries of the split.
+        wrong_focal: also localize the first N queries with a wrong focal length (×1.5 and
+            ×0.67 in turn), as a client with wrong intrinsics does.
+        unrelated_seed: the unrelated images are those of seeds ``unrelated_seed`` onwards.
+        unrelated_images: also localize these images of another scene (with the first query's
+            camera, its focal scaled to the image's width, principal point at the centre).
     """
 
     estimators: Sequence[str]
@@ -45,6 +52,12 @@ class EvalOptions:
     use_depth: bool = True
     unrelated: int = 0
     max_queries: int | None = None
+    wrong_focal: int = 0
+    unrelated_seed: int = 0
+    unrelated_images: Sequence[Path] = ()
+
+
+WRONG_FOCAL_SCALES = (1.5, 1 / 1.5)
 
 
 @dataclass
@@ -83,18 +96,42 @@ class _Query:
     camera: Camera
     posed: PosedImage | None
     unrelated_png: bytes = b""
+    wrong_intrinsics: bool = False
 
     def image(self) -> bytes:
         return self.posed.image_path.read_bytes() if self.posed is not None else self.unrelated_png
 
 
+def scale_focal(camera: Camera, scale: float) -> Camera:
+    """``camera`` with its focal length(s) multiplied by ``scale``."""
+    focal = 1 if CAMERA_MODELS[camera.model][0] == "f" else 2
+    params = tuple(v * scale for v in camera.params[:focal]) + camera.params[focal:]
+    return replace(camera, params=params)
+
+
+def _resized(camera: Camera, width: int, height: int) -> Camera:
+    """A pinhole camera for a ``width`` × ``height`` image with ``camera``'s field of view."""
+    f = camera.focal_lengths[0] * width / camera.width
+    return Camera("PINHOLE", width, height, (f, f, width / 2.0, height / 2.0))
+
+
 def _queries(split: Split, options: EvalOptions) -> list[_Query]:
     chosen = split.queries[: options.max_queries]
     queries = [_Query(q.name, q.camera, q) for q in chosen]
+    for i, q in enumerate(chosen[: options.wrong_focal]):
+        scale = WRONG_FOCAL_SCALES[i % len(WRONG_FOCAL_SCALES)]
+        name = f"{q.name} (focal ×{scale:.2f})"
+        queries.append(_Query(name, scale_focal(q.camera, scale), q, wrong_intrinsics=True))
     camera = chosen[0].camera
-    for seed in range(options.unrelated):
+    for seed in range(options.unrelated_seed, options.unrelated_seed + options.unrelated):
         png = encode_png(unrelated_image(seed, camera.width, camera.height))
         queries.append(_Query(f"unrelated-{seed}", camera, None, png))
+    for path in options.unrelated_images:
+        data = path.read_bytes()
+        height, width = decode_image(data, 100_000_000).shape[:2]
+        queries.append(
+            _Query(f"unrelated {path.name}", _resized(camera, width, height), None, data)
+        )
     return queries
 
 
@@ -166,21 +203,18 @@ def _localize_all(
     on_record: Callable[[QueryRecord], None] | None,
 ) -> None:
     start = time.perf_counter()
+    estimators = list(options.estimators)
     for i, item in enumerate(queries, start=1):
         image, query = item.image(), item.posed
+        depth = _depth(query, options.use_depth) if query is not None else None
+        params = localize_params(item.camera, estimators[0], options.top_k, options.max_error_px)
+        try:
+            outcomes = runner.localize_each(image, depth, params, estimators)
+        except Exception as exc:  # this query's failure; the run goes on
+            log(traceback.format_exc())
+            outcomes = [failed_query(exc)] * len(estimators)
         cells = []
-        for estimator in options.estimators:
-            depth = (
-                _depth(query, options.use_depth)
-                if query is not None and estimator in DEPTH_ESTIMATORS
-                else None
-            )
-            params = localize_params(item.camera, estimator, options.top_k, options.max_error_px)
-            try:
-                outcome = runner.localize(image, depth, params)
-            except Exception as exc:  # this query's failure; the run goes on
-                log(traceback.format_exc())
-                outcome = failed_query(exc)
+        for estimator, outcome in zip(estimators, outcomes, strict=True):
             record = make_record(
                 f"{runner.features}/{estimator}",
                 item.name,
@@ -188,6 +222,7 @@ def _localize_all(
                 query.cam_from_world if query is not None else None,
                 references,
             )
+            record.wrong_intrinsics = item.wrong_intrinsics
             evaluation.records.append(record)
             if on_record is not None:
                 on_record(record)
@@ -213,9 +248,12 @@ def write_outputs(
     """Fill ``summaries`` and ``markdown``; write ``results.json``, ``report.md`` and the plots
     into ``out_dir``."""
     configs = list(dict.fromkeys(r.config for r in evaluation.records))
-    evaluation.summaries = {
-        c: summarize([r for r in evaluation.records if r.config == c], thresholds) for c in configs
-    }
+    evaluation.summaries = {}
+    for config in configs:
+        records = [r for r in evaluation.records if r.config == config]
+        summary = summarize(records, thresholds)
+        summary["confidence"] = curve_summary(curve_of(records))
+        evaluation.summaries[config] = summary
     evaluation.markdown = markdown_tables(evaluation.summaries, thresholds)
     out_dir.mkdir(parents=True, exist_ok=True)
     meta = {**meta, "interrupted": evaluation.interrupted, "error": evaluation.error}

@@ -5,7 +5,7 @@ that explain failures (was a reference close enough? did retrieval find one?).""
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -47,6 +47,8 @@ class QueryRecord:
     retrieval_covered: bool = False
     retrieval_hit: bool = False
     unrelated: bool = False
+    wrong_intrinsics: bool = False
+    stats: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,7 @@ def make_record(
         retrieved=outcome.retrieved,
         cam_from_world=pose.model_dump() if pose is not None else None,
         unrelated=truth is None,
+        stats=outcome.stats,
     )
     if truth is not None:
         record.localizable = bool(references.near(truth, *LOCALIZABLE).any())
@@ -136,9 +139,10 @@ def summarize(
     records: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
 ) -> dict[str, Any]:
     """Summary of one configuration's records (queries with ground truth; unrelated images
-    are counted apart)."""
-    posed = [r for r in records if not r.unrelated]
+    and queries sent with wrong intrinsics are counted apart)."""
+    posed = [r for r in records if not r.unrelated and not r.wrong_intrinsics]
     unrelated = [r for r in records if r.unrelated]
+    wrong_intrinsics = [r for r in records if r.wrong_intrinsics]
     pos = np.array([r.position_error_m for r in posed])
     rot = np.array([r.rotation_error_deg for r in posed])
     n = len(posed)
@@ -171,4 +175,6 @@ def summarize(
         else 0.0,
         "unrelated_queries": len(unrelated),
         "unrelated_accepted": sum(r.localized for r in unrelated),
+        "wrong_intrinsics_queries": len(wrong_intrinsics),
+        "wrong_intrinsics_accepted": sum(r.localized for r in wrong_intrinsics),
     }

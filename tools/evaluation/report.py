@@ -1,5 +1,5 @@
 """Evaluation outputs: Markdown tables, a JSON file, and PNG plots (cumulative error curves per
-configuration, per-stage median times)."""
+configuration, per-stage median times, the confidence's precision/recall curve)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from tools.evaluation.confidence_curve import REPORTED_THRESHOLDS, TARGET, curve_of
 from tools.evaluation.metrics import STAGES, QueryRecord, recall_key
 
 PLOT_STAGES = ("decode", "extract", "retrieve", "match", "estimate")
@@ -76,7 +77,35 @@ def markdown_tables(
         "|---|---|---|---|---|---|",
         *extra,
     ]
+    lines += ["", *confidence_table(summaries)]
     return "\n".join(lines) + "\n"
+
+
+def confidence_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
+    """Precision / recall / accepted answers of "confidence > t" per configuration (see
+    ``tools.evaluation.confidence_curve``); queries with wrong intrinsics and unrelated
+    images take part."""
+    heads = [f"conf > {t:g}" for t in REPORTED_THRESHOLDS]
+    lines = [
+        f"Confidence: precision / recall / accepted answers of confidence > t, correct = within "
+        f"({TARGET[0] * 100:g} cm, {TARGET[1]:g}°); wrong-intrinsics queries and unrelated "
+        "images included:",
+        "",
+        "| configuration | " + " | ".join(heads) + " | wrong intrinsics accepted |",
+        "|---|" + "---|" * (len(heads) + 1),
+    ]
+    for config, s in summaries.items():
+        cells = [
+            f"{c['precision'] * 100:.1f} % / {c['recall'] * 100:.1f} % / {c['accepted']}"
+            for c in (s["confidence"][f"> {t:g}"] for t in REPORTED_THRESHOLDS)
+        ]
+        wrong = (
+            f"{s['wrong_intrinsics_accepted']}/{s['wrong_intrinsics_queries']}"
+            if s["wrong_intrinsics_queries"]
+            else "–"
+        )
+        lines.append("| " + " | ".join([config, *cells, wrong]) + " |")
+    return lines
 
 
 def _json_safe(value: Any) -> Any:
@@ -153,4 +182,24 @@ def write_plots(
     timings_png = out_dir / "timings.png"
     fig.savefig(timings_png, dpi=100)
     plt.close(fig)
-    return [errors_png, timings_png]
+
+    fig, ax = plt.subplots(figsize=(6.5, 5))
+    for config in configs:
+        curve = curve_of([r for r in records if r.config == config])
+        line = ax.step(curve.recall, curve.precision, where="post", label=config)[0]
+        precision, recall, _ = curve.at(0.8)
+        ax.plot([recall], [precision], "o", color=line.get_color())
+    ax.set(
+        xlabel=f"recall (correct within {TARGET[0] * 100:g} cm, {TARGET[1]:g}°)",
+        ylabel="precision",
+        xlim=(0, 1),
+        ylim=(0, 1.02),
+        title="Accepting confidence > t for every t (dot: t = 0.8)",
+    )
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    confidence_png = out_dir / "confidence.png"
+    fig.savefig(confidence_png, dpi=100)
+    plt.close(fig)
+    return [errors_png, timings_png, confidence_png]

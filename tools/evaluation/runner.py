@@ -2,7 +2,9 @@
 (the server's own code path on a temporary SQLite database) or against a running server over
 HTTP exactly as a client does (multipart uploads with ``metadata`` / ``params`` JSON).
 
-Both take the localize ``params`` as the API's JSON object and answer ``QueryOutcome``.
+Both take the localize ``params`` as the API's JSON object and answer ``QueryOutcome``s.
+In process, a query is described and matched once for all the estimators compared on it;
+over HTTP it is sent once per estimator.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ import json
 import tempfile
 import time
 import uuid
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -21,6 +24,7 @@ import httpx
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from app.schemas.localize import LocalizeParamsIn
+from app.usecases.compare_estimators import localize_with_each
 from app.usecases.errors import ConflictError
 from app.usecases.images import add_reference_image
 from app.usecases.localize import localize
@@ -29,7 +33,8 @@ from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import build_localizer
-from services.estimators.registry import DEFAULT_ESTIMATOR
+from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_ESTIMATORS
+from services.pipeline import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES
 from tools.evaluation.datasets import PosedImage
@@ -51,6 +56,7 @@ class QueryOutcome:
         cam_from_world: the pose as the API's ``{"rotation": [w, x, y, z], "translation"}``.
         retrieved: names of the retrieved references, best first.
         timings_ms: the answer's stages plus ``client`` (wall time seen by the evaluator).
+        stats: the engine's numbers about the estimate (in process only; the API has none).
     """
 
     localized: bool
@@ -60,6 +66,7 @@ class QueryOutcome:
     confidence: float
     retrieved: list[str]
     timings_ms: dict[str, float]
+    stats: dict[str, float] = field(default_factory=dict)
 
 
 class Runner(Protocol):
@@ -79,6 +86,17 @@ class Runner(Protocol):
         """``params``: the API's localize ``params`` object."""
         ...
 
+    def localize_each(
+        self,
+        image: bytes,
+        depth: bytes | None,
+        params: dict[str, Any],
+        estimators: Sequence[str],
+    ) -> list[QueryOutcome]:
+        """One outcome per estimator (``params["estimator"]`` is not used); ``depth`` reaches
+        the estimators that need it."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -94,23 +112,31 @@ class InProcessRunner:
     """The server's use cases without HTTP: ``add_reference_image`` into a temporary SQLite
     database and ``localize`` against it."""
 
-    def __init__(self, features: str, models_dir: Path, max_pixels: int = 40_000_000) -> None:
+    def __init__(
+        self,
+        features: str,
+        models_dir: Path,
+        max_pixels: int = 40_000_000,
+        max_keypoints: int | None = None,
+        max_side: int | None = None,
+    ) -> None:
+        """``max_keypoints``, ``max_side``: the map's feature options (None: the default)."""
         self.localizer = build_localizer(models_dir, max_pixels, features)
         self.features = features
         self._tmp = tempfile.TemporaryDirectory(prefix="slloc-eval-")
         self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")
         upgrade(self._engine)
-        self._sessions = make_session_factory(self._engine)
-        self._map_id = create_map(
-            self._sessions, self.localizer, "eval", None, DEFAULT_ESTIMATOR, None, None
+        self.sessions = make_session_factory(self._engine)
+        self.map_id = create_map(
+            self.sessions, self.localizer, "eval", None, DEFAULT_ESTIMATOR, max_keypoints, max_side
         ).id
         self._cache = RetrievalIndexCache()
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
         add_reference_image(
-            self._sessions,
+            self.sessions,
             self.localizer,
-            self._map_id,
+            self.map_id,
             metadata_of(image).to_new_image(),
             image.image_path.read_bytes(),
             depth,
@@ -120,36 +146,64 @@ class InProcessRunner:
         if count < MIN_IMAGES:
             return
         with contextlib.suppress(ConflictError):  # too few descriptors: global descriptors
-            reindex_map(self._sessions, self.localizer, self._map_id, vlad=True)
+            reindex_map(self.sessions, self.localizer, self.map_id, vlad=True)
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
         result = localize(
-            self._sessions,
+            self.sessions,
             self.localizer,
-            self._map_id,
+            self.map_id,
             LocalizeParamsIn.model_validate(params).to_request(),
             image,
             depth,
             max_top_k=1_000_000,
             cache=self._cache,
         )
-        timings = dict(result.timings_ms)
-        timings["client"] = (time.perf_counter() - start) * 1000.0
-        pose = result.cam_from_world
-        return QueryOutcome(
-            localized=result.localized,
-            reason=result.reason,
-            cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
-            num_inliers=result.num_inliers,
-            confidence=result.confidence,
-            retrieved=[r.name for r in result.retrieved],
-            timings_ms=timings,
+        return _outcome(result, (time.perf_counter() - start) * 1000.0)
+
+    def localize_each(
+        self,
+        image: bytes,
+        depth: bytes | None,
+        params: dict[str, Any],
+        estimators: Sequence[str],
+    ) -> list[QueryOutcome]:
+        """The query described and matched once; ``client`` is that shared time plus the
+        estimator's own."""
+        start = time.perf_counter()
+        results = localize_with_each(
+            self.sessions,
+            self.localizer,
+            self.map_id,
+            LocalizeParamsIn.model_validate(params).to_request(),
+            estimators,
+            image,
+            depth if any(name in DEPTH_ESTIMATORS for name in estimators) else None,
+            max_top_k=1_000_000,
+            cache=self._cache,
         )
+        elapsed_ms = (time.perf_counter() - start) * 1000.0
+        estimates_ms = sum(r.timings_ms["estimate"] for r in results)
+        return [_outcome(r, elapsed_ms - estimates_ms + r.timings_ms["estimate"]) for r in results]
 
     def close(self) -> None:
         self._engine.dispose()
         self._tmp.cleanup()
+
+
+def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
+    pose = result.cam_from_world
+    return QueryOutcome(
+        localized=result.localized,
+        reason=result.reason,
+        cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
+        num_inliers=result.num_inliers,
+        confidence=result.confidence,
+        retrieved=[r.name for r in result.retrieved],
+        timings_ms={**result.timings_ms, "client": client_ms},
+        stats=dict(result.stats),
+    )
 
 
 def _media_type(name: str) -> str:
@@ -160,7 +214,8 @@ def _media_type(name: str) -> str:
 class HttpRunner:
     """A client of a running server: creates a map named ``map_name`` plus a random suffix (or
     uses ``map_id``), uploads references, localizes, and on ``close`` deletes the map it created
-    unless ``keep_map``."""
+    unless ``keep_map``. ``features``: the created map's ``features`` options (keypoint budget,
+    image size)."""
 
     def __init__(
         self,
@@ -169,6 +224,7 @@ class HttpRunner:
         map_name: str = "slloc-eval",
         keep_map: bool = False,
         map_id: str | None = None,
+        features: dict[str, int] | None = None,
     ) -> None:
         headers = {"X-API-Key": api_key} if api_key else {}
         self._client = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=600.0)
@@ -178,7 +234,8 @@ class HttpRunner:
         self.features = str(health["models"]["features"])
         if map_id is None:
             name = f"{map_name}-{uuid.uuid4().hex[:8]}"
-            map_id = str(self._request("POST", "/v1/maps", json={"name": name}).json()["id"])
+            body: dict[str, Any] = {"name": name, "features": features or {}}
+            map_id = str(self._request("POST", "/v1/maps", json=body).json()["id"])
         self.map_id = map_id
 
     def _request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
@@ -246,6 +303,23 @@ class HttpRunner:
             retrieved=[r["name"] for r in body["retrieved"]],
             timings_ms=timings,
         )
+
+    def localize_each(
+        self,
+        image: bytes,
+        depth: bytes | None,
+        params: dict[str, Any],
+        estimators: Sequence[str],
+    ) -> list[QueryOutcome]:
+        """One request per estimator: the API localizes with one estimator at a time."""
+        return [
+            self.localize(
+                image,
+                depth if name in DEPTH_ESTIMATORS else None,
+                {**params, "estimator": name},
+            )
+            for name in estimators
+        ]
 
     def close(self) -> None:
         try:
