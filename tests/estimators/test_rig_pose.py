@@ -81,10 +81,15 @@ def test_joint_is_more_accurate_than_each_frame_alone() -> None:
 
 
 def test_frames_too_weak_alone_localize_jointly() -> None:
-    # few matches per frame: local triangulation of one frame fails its acceptance
+    # 10 matches per reference, 3 references: a frame triangulates 0-4 points, too few to be
+    # localized alone; the five frames together have 10
     scenes = [
         make_correspondences(
-            seed=40 + i, num_references=3, matches_per_reference=8, outlier_ratio=0.1
+            seed=40 + i,
+            num_references=3,
+            matches_per_reference=10,
+            outlier_ratio=0.1,
+            num_points=600,
         )
         for i in range(5)
     ]
