@@ -234,7 +234,8 @@ def test_frames_share_the_pixel_and_byte_limits(
     image = encode_png(session_views[0].image)
     params = {"frames": [{"session_pose": IDENTITY}] * 3}
     # three 640×480 frames: 921 600 pixels, each alone within the limit
-    with make_client(database_url, localizer, max_image_pixels=700_000) as client:
+    small = Localizer(localizer.extractor, localizer.matcher, localizer.global_descriptor, 700_000)
+    with make_client(database_url, small, max_image_pixels=700_000) as client:
         map_id = create_map(client)
         response = _post(client, map_id, [image] * 3, params)
         assert response.status_code == 413, response.text
