@@ -72,6 +72,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(25 * 1024 * 1024, gt=0, description="Per-file upload limit")
     max_image_pixels: int = Field(40_000_000, gt=0, description="Decoded pixel-count limit")
     max_top_k: int = Field(50, gt=0, description="Largest top_k a localize request may ask for")
+    max_frames: int = Field(
+        5, ge=1, le=32, description="Most frames (image parts) one localize request may carry"
+    )
     auto_migrate: bool = Field(True, description="Upgrade the schema to head at start-up")
     localize_workers: int = Field(
         0,

@@ -85,6 +85,18 @@ def read_upload(upload: UploadFile, limit: int, field: str) -> bytes:
     return data
 
 
+def read_uploads(parts: list[UploadFile], limit: int, field: str) -> list[bytes]:
+    """Read every part of a repeated upload field, refusing more than ``limit`` bytes in all
+    (the request body limit bounds what is read before the sum is checked)."""
+    out = [read_upload(part, limit, field) for part in parts]
+    total = sum(len(data) for data in out)
+    if total > limit:
+        raise too_large(
+            f"the {len(out)} {field} parts have {total} bytes together; the limit is {limit}"
+        )
+    return out
+
+
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 

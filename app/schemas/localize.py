@@ -6,11 +6,14 @@ from pydantic import BaseModel, Field
 from app.schemas.estimators import EstimatorName
 from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
+from app.schemas.session import MAX_FRAMES_SCHEMA, FrameIn, SessionAlignmentOut
 from app.usecases.localize import LocalizeRequest
+from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
-from services.pipeline import LocalizationResult
+from services.pipeline import LocalizationResult, RetrievedReference
 from services.retrieval.search import PositionPrior
+from services.rig_localizer import SessionLocalizationResult
 
 
 class PriorSchema(BaseModel):
@@ -53,6 +56,15 @@ class LocalizeParamsIn(BaseModel):
         "(SLLOC_LOCALIZE_TIME_BUDGET_S, its default); past it the answer is localized: false "
         "with reason time_budget_exceeded",
     )
+    frames: list[FrameIn] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_FRAMES_SCHEMA,
+        description="One entry per `image` part, in order: the frame's AR-session pose and "
+        "optional camera. With frames the answer adds map_from_session and per-frame poses; "
+        "two or more frames (at most SLLOC_MAX_FRAMES) are localized jointly. See README "
+        "'Several frames'",
+    )
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -64,6 +76,18 @@ class LocalizeParamsIn(BaseModel):
             max_error_px=self.max_error_px,
             time_budget_s=self.time_budget_s,
         )
+
+    def to_frames(self) -> list[SessionFrame] | None:
+        """The frames with their engine ``cam_from_session``; None without ``frames``."""
+        if self.frames is None:
+            return None
+        return [
+            SessionFrame(
+                camera=frame.camera.to_camera() if frame.camera else None,
+                cam_from_session=frame.session_pose.to_cam_from_session(),
+            )
+            for frame in self.frames
+        ]
 
 
 class RetrievedOut(BaseModel):
@@ -89,6 +113,44 @@ class Timings(BaseModel):
     total: float
 
 
+class FrameOut(BaseModel):
+    """One uploaded frame of a query with session poses."""
+
+    cam_from_world: PoseSchema | None
+    camera_center: list[float] | None
+    num_inliers: int = Field(description="Matches within the inlier threshold of its pose")
+    num_point_inliers: int = Field(
+        description="Its 2D–3D inliers in the joint estimate (0 for a single frame)"
+    )
+    retrieved: list[RetrievedOut]
+    inliers: list[InliersOut] | None = None
+
+
+def _retrieved_out(retrieved: list[RetrievedReference]) -> list[RetrievedOut]:
+    return [
+        RetrievedOut(
+            image_id=r.image_id,
+            name=r.name,
+            score=r.score,
+            num_matches=r.num_matches,
+            num_inliers=r.num_inliers,
+        )
+        for r in retrieved
+    ]
+
+
+def _inliers_out(retrieved: list[RetrievedReference]) -> list[InliersOut]:
+    return [
+        InliersOut(
+            image_id=r.image_id,
+            query_xy=r.query_xy.tolist(),
+            reference_xy=r.reference_xy.tolist(),
+        )
+        for r in retrieved
+        if r.num_inliers > 0
+    ]
+
+
 class LocalizeResult(BaseModel):
     localized: bool
     reason: FailureReason | None
@@ -104,6 +166,14 @@ class LocalizeResult(BaseModel):
         None, description="OGC GeoPose of the camera, on a geo-registered map when localized"
     )
     geopose_accuracy: GeoPoseAccuracySchema | None = None
+    map_from_session: SessionAlignmentOut | None = Field(
+        None,
+        description="With params.frames, once localized: the transform from the AR session "
+        "to the map (README 'Several frames')",
+    )
+    frames: list[FrameOut] | None = Field(
+        None, description="With params.frames: one per uploaded frame, in order"
+    )
 
     @classmethod
     def from_result(
@@ -123,28 +193,42 @@ class LocalizeResult(BaseModel):
             camera_center=[float(v) for v in pose.center] if pose is not None else None,
             num_inliers=result.num_inliers,
             confidence=result.confidence,
-            retrieved=[
-                RetrievedOut(
-                    image_id=r.image_id,
-                    name=r.name,
-                    score=r.score,
-                    num_matches=r.num_matches,
-                    num_inliers=r.num_inliers,
-                )
-                for r in result.retrieved
-            ],
-            inliers=[
-                InliersOut(
-                    image_id=r.image_id,
-                    query_xy=r.query_xy.tolist(),
-                    reference_xy=r.reference_xy.tolist(),
-                )
-                for r in result.retrieved
-                if r.num_inliers > 0
-            ]
-            if return_inliers
-            else None,
+            retrieved=_retrieved_out(result.retrieved),
+            inliers=_inliers_out(result.retrieved) if return_inliers else None,
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
             geopose=GeoPoseSchema.from_geopose(geopose[0]) if geopose else None,
             geopose_accuracy=GeoPoseAccuracySchema.from_accuracy(geopose[1]) if geopose else None,
+        )
+
+    @classmethod
+    def from_session_result(
+        cls,
+        result: SessionLocalizationResult,
+        return_inliers: bool,
+        geopose: tuple[GeoPose, GeoPoseAccuracy] | None = None,
+    ) -> LocalizeResult:
+        """The answer with ``map_from_session`` and ``frames``; the summary fields (and the
+        GeoPose, of frame 0) as in ``SessionLocalizationResult.result``."""
+        alignment = result.map_from_session
+        return cls.from_result(result.result, return_inliers, geopose).model_copy(
+            update={
+                "map_from_session": SessionAlignmentOut.from_rigid(alignment)
+                if alignment is not None
+                else None,
+                "frames": [
+                    FrameOut(
+                        cam_from_world=PoseSchema.from_rigid(f.cam_from_world)
+                        if f.cam_from_world is not None
+                        else None,
+                        camera_center=[float(v) for v in f.cam_from_world.center]
+                        if f.cam_from_world is not None
+                        else None,
+                        num_inliers=f.num_inliers,
+                        num_point_inliers=f.num_point_inliers,
+                        retrieved=_retrieved_out(f.retrieved),
+                        inliers=_inliers_out(f.retrieved) if return_inliers else None,
+                    )
+                    for f in result.frames
+                ],
+            }
         )

@@ -166,13 +166,28 @@ def localize_on_globe(
         InvalidInputError: a GPS hint on a map without a registration, or with a map-frame
             prior too.
     """
+    request, registration = with_gps_hint(sessions, map_id, request, gps)
+    result = run(request)
+    return result, geopose_answer(registration, result)
+
+
+def with_gps_hint(
+    sessions: sessionmaker[Session], map_id: str, request: LocalizeRequest, gps: GpsFix | None
+) -> tuple[LocalizeRequest, GeoRegistration | None]:
+    """``request`` narrowed by the GPS hint (unchanged without one), and the map's
+    registration (None when it has none).
+
+    Raises:
+        NotFoundError: unknown map.
+        InvalidInputError: a GPS hint on a map without a registration, or with a map-frame
+            prior too.
+    """
     registration = map_registration(sessions, map_id)
     if gps is not None:
         if request.prior is not None:
             raise InvalidInputError("give either prior (map frame) or gps, not both")
         request = replace(request, prior=gps_prior(registration, gps))
-    result = run(request)
-    return result, geopose_answer(registration, result)
+    return request, registration
 
 
 def geopose_answer(

@@ -206,3 +206,34 @@ def refine_absolute_pose(
     )
     out = from_poselib(pose)
     return out if np.all(np.isfinite(out.matrix)) else initial
+
+
+def estimate_generalized_absolute_pose(
+    points2d: list[FloatArray],
+    points3d: list[FloatArray],
+    cam_from_rig: list[Rigid3d],
+    cameras: list[Camera],
+    ransac: dict[str, Any],
+    loss_scale_px: float,
+) -> tuple[Rigid3d, list[BoolArray], int] | None:
+    """``rig_from_world`` of a rig of cameras (``cam_from_rig`` each) from the 2D–3D matches of
+    each camera: minimal generalized P3P (GP3P) in LO-RANSAC with non-linear refinement
+    (PoseLib). Returns the pose, one inlier mask per camera and the iteration count; None with
+    fewer than 4 correspondences in all or a non-finite result."""
+    if sum(int(p.shape[0]) for p in points2d) < 4:
+        return None
+    pose, info = poselib.estimate_generalized_absolute_pose(
+        [_points(p) for p in points2d],
+        [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3) for p in points3d],
+        [to_poselib(p) for p in cam_from_rig],
+        [camera.to_poselib() for camera in cameras],
+        ransac,
+        bundle_options(loss_scale_px),
+    )
+    rigid = from_poselib(pose)
+    inliers = [np.asarray(mask, dtype=bool).reshape(-1) for mask in info.get("inliers", [])]
+    if len(inliers) != len(points2d) or not np.all(np.isfinite(rigid.matrix)):
+        return None
+    if any(m.shape[0] != p.shape[0] for m, p in zip(inliers, points2d, strict=True)):
+        return None
+    return rigid, inliers, int(info.get("iterations", 0))

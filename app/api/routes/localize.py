@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, UploadFile
@@ -19,11 +18,14 @@ from app.api.deps import (
     json_form_schema,
     parse_json_form,
     read_upload,
+    read_uploads,
 )
 from app.errors import problem_responses
 from app.schemas.localize import LocalizeParamsIn, LocalizeResult
 from app.usecases import geo
 from app.usecases.localize import localize as localize_image
+from app.usecases.localize_frames import localize_with_session
+from services.errors import InvalidInputError
 from services.estimators.registry import DEFAULT_ESTIMATOR
 
 router = APIRouter(prefix="/v1/maps/{map_id}", tags=["localize"])
@@ -50,7 +52,13 @@ def localize(
     admission: AdmissionDep,
     trainer: TrainerDep,
     features_cache: ReferenceCacheDep,
-    image: Annotated[UploadFile, File(description="Query image, JPEG or PNG")],
+    image: Annotated[
+        list[UploadFile],
+        File(
+            description="Query image, JPEG or PNG; repeat the part for several frames (each "
+            "described by params.frames, in order; together within the upload limit)"
+        ),
+    ],
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
     ] = "{}",
@@ -63,24 +71,56 @@ def localize(
     localized (``time_budget_exceeded`` past the time budget); 4xx only for bad input; 503
     with ``Retry-After`` when every worker is busy and the queue is full."""
     body = parse_json_form(LocalizeParamsIn, params, "params")
-    image_bytes = read_upload(image, settings.max_upload_bytes, "image")
+    frames = body.to_frames()
+    if frames is None and len(image) > 1:
+        raise InvalidInputError(
+            f"{len(image)} image parts: several frames need params.frames (one session pose "
+            "per image)"
+        )
+    images = read_uploads(image, settings.max_upload_bytes, "image")
     depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    run = partial(
-        localize_image,
-        sessions,
-        localizer,
-        map_id,
-        image_bytes=image_bytes,
-        depth_bytes=depth_bytes,
-        max_top_k=settings.max_top_k,
-        max_time_budget_s=settings.localize_time_budget_s,
-        cache=cache,
-        vlad=settings.global_model is None,
-        slots=admission.slots,
-        trainer=trainer,
-        features_cache=features_cache,
+    request, registration = geo.with_gps_hint(
+        sessions, map_id, body.to_request(), body.gps.to_fix() if body.gps else None
     )
-    gps = body.gps.to_fix() if body.gps else None
+    if frames is not None:
+        with admission.admit():
+            session_result = localize_with_session(
+                sessions,
+                localizer,
+                map_id,
+                request,
+                frames,
+                images,
+                depth_bytes,
+                max_frames=settings.max_frames,
+                max_top_k=settings.max_top_k,
+                max_time_budget_s=settings.localize_time_budget_s,
+                cache=cache,
+                vlad=settings.global_model is None,
+                slots=admission.slots,
+                trainer=trainer,
+            )
+        return LocalizeResult.from_session_result(
+            session_result,
+            body.return_inliers,
+            geo.geopose_answer(registration, session_result.result),
+        )
     with admission.admit():
-        result, geopose = geo.localize_on_globe(sessions, map_id, body.to_request(), gps, run)
-    return LocalizeResult.from_result(result, body.return_inliers, geopose)
+        result = localize_image(
+            sessions,
+            localizer,
+            map_id,
+            request,
+            images[0],
+            depth_bytes,
+            max_top_k=settings.max_top_k,
+            max_time_budget_s=settings.localize_time_budget_s,
+            cache=cache,
+            vlad=settings.global_model is None,
+            slots=admission.slots,
+            trainer=trainer,
+            features_cache=features_cache,
+        )
+    return LocalizeResult.from_result(
+        result, body.return_inliers, geo.geopose_answer(registration, result)
+    )

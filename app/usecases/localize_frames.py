@@ -1,0 +1,100 @@
+"""Localize query frames that come with their AR-session poses, and answer
+``map_from_session``. One frame goes through the ordinary localization (any estimator); two or
+more are localized jointly as a rig (``services.rig_localizer``)."""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, replace
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.localize import LocalizeRequest, engine_params, localize, reference_store
+from app.usecases.maps import require_map
+from services.errors import InvalidInputError
+from services.estimators.rig_pose import RIG_METHOD
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.pipeline import Localizer
+from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.training import BackgroundTrainer
+from services.rig_localizer import (
+    QueryFrame,
+    SessionLocalizationResult,
+    align_single_frame,
+    localize_frames,
+)
+
+
+@dataclass(frozen=True)
+class SessionFrame:
+    """A frame's intrinsics (None: the request's camera) and its ``cam_from_session``
+    (COLMAP camera axes, metres)."""
+
+    camera: Camera | None
+    cam_from_session: Rigid3d
+
+
+def localize_with_session(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    map_id: str,
+    request: LocalizeRequest,
+    frames: list[SessionFrame],
+    images: list[bytes],
+    depth_bytes: bytes | None = None,
+    *,
+    max_frames: int,
+    max_top_k: int,
+    max_time_budget_s: float | None = None,
+    cache: RetrievalIndexCache | None = None,
+    vlad: bool = True,
+    slots: AbstractContextManager[object] = nullcontext(),
+    trainer: BackgroundTrainer | None = None,
+) -> SessionLocalizationResult:
+    """Localize ``images`` (frame ``i`` described by ``frames[i]``) against the map.
+
+    Args:
+        max_frames: the most frames a request may send.
+        The others: as for ``app.usecases.localize.localize``.
+
+    Raises:
+        NotFoundError: unknown map.
+        InvalidInputError: frame and image counts differ, too many frames, depth or an
+            estimator other than the joint one with several frames, or an unusable image,
+            camera or parameter.
+    """
+    if len(frames) != len(images):
+        raise InvalidInputError(
+            f"params.frames describes {len(frames)} frames but {len(images)} images were "
+            "uploaded: one frame per image part, in order"
+        )
+    if not 1 <= len(frames) <= max_frames:
+        raise InvalidInputError(f"a request carries 1 to {max_frames} frames, got {len(frames)}")
+    if len(frames) == 1:
+        frame = frames[0]
+        single = replace(request, camera=frame.camera or request.camera)
+        result = localize(
+            sessions, localizer, map_id, single, images[0], depth_bytes,
+            max_top_k=max_top_k, max_time_budget_s=max_time_budget_s, cache=cache,
+            vlad=vlad, slots=slots, trainer=trainer,
+        )  # fmt: skip
+        return align_single_frame(result, frame.cam_from_session)
+    if depth_bytes is not None:
+        raise InvalidInputError("depth: a query of several frames takes no depth upload")
+    if request.estimator not in (None, RIG_METHOD):
+        raise InvalidInputError(
+            f"estimator: several frames are localized jointly by {RIG_METHOD} (local "
+            f"triangulation, generalized absolute pose); {request.estimator} takes one frame"
+        )
+    with sessions() as session:
+        map_row = require_map(session, map_id)
+        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+        params = engine_params(request, RIG_METHOD, max_top_k, max_time_budget_s)
+    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer)
+    query_frames = [
+        QueryFrame(image, frame.camera, frame.cam_from_session)
+        for image, frame in zip(images, frames, strict=True)
+    ]
+    with slots:
+        return localize_frames(localizer, query_frames, params, store)

@@ -1,0 +1,239 @@
+"""Joint pose of several query frames whose relative poses are known (an AR session's device
+poses): the frames form a generalized camera (rig) whose frame is the session, and one rigid
+transform ``session_from_map`` places the whole rig in the map.
+
+Method (local triangulation, the most accurate family of Panek et al. 2025, "A Guide to
+Structureless Visual Localization", generalised to a rig):
+
+1. per frame, tracks through each query keypoint over that frame's retrieved references are
+   RANSAC-triangulated from the references alone (``tracks.triangulate_tracks``, threshold
+   ``TriangulationOptions.max_error_px``);
+2. all frames' query keypoints ↔ triangulated points go into one generalized absolute pose
+   problem: GP3P in LO-RANSAC with refinement (PoseLib ``estimate_generalized_absolute_pose``,
+   reprojection threshold ``RansacOptions.max_error_px``), camera ``i`` at ``cam_i_from_session``;
+3. each frame's pose ``cam_i_from_map = cam_i_from_session ∘ session_from_map``; its inliers are
+   its matches within ``max_error_px`` Sampson error, as for every single-frame estimator;
+4. acceptance pools the frames: inliers, references with inliers and verified 3D points
+   (``services.verification``) are summed over frames and checked against
+   ``VerificationOptions``.
+
+A frame with too few points to be localized alone (P3P needs four, the verification ten) still
+adds its points to the joint problem: the rig needs them only in total.
+
+Scale: the session is metric (ARKit, ARCore, WebXR) and the map is taken to be metric; a map in
+other units gives a wrong ``session_from_map`` (no scale is estimated).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.estimators.base import FailureReason, ReferenceObservation, confidence_from_inliers
+from services.estimators.correspondences import (
+    StackedMatches,
+    pose_sampson_errors_px,
+    stack_matches,
+)
+from services.estimators.options import EstimatorOptions
+from services.estimators.poselib_bridge import estimate_generalized_absolute_pose, ransac_options
+from services.estimators.ransac import Deadline
+from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d
+from services.types import BoolArray, FloatArray
+from services.verification import count_verified_points
+
+logger = logging.getLogger(__name__)
+
+# the method's name in results (the family of ``local_tri_all``)
+RIG_METHOD = "local_tri_all"
+
+
+@dataclass(frozen=True)
+class RigFrame:
+    """One query frame of the rig.
+
+    Attributes:
+        camera: its intrinsics.
+        cam_from_session: its pose in the session (COLMAP camera axes).
+        references: its retrieved references and matches (query pixels are this frame's).
+    """
+
+    camera: Camera
+    cam_from_session: Rigid3d
+    references: list[ReferenceObservation]
+
+
+@dataclass(frozen=True)
+class RigEstimate:
+    """The joint answer.
+
+    Attributes:
+        session_from_map: the rig's pose in the map, None on failure.
+        inliers: per frame, one (M,) mask per reference: matches within ``max_error_px``
+            Sampson error of the frame's pose (all False on failure).
+        point_inliers: per frame, its 2D–3D inliers of the generalized absolute pose.
+        confidence: ``confidence_from_inliers`` of the pooled inliers, 0 on failure.
+        stats: numbers describing the run.
+        failure_reason: set exactly when ``session_from_map`` is None.
+    """
+
+    session_from_map: Rigid3d | None
+    inliers: list[list[BoolArray]]
+    point_inliers: list[int]
+    confidence: float = 0.0
+    stats: dict[str, float] = field(default_factory=dict)
+    failure_reason: FailureReason | None = None
+
+    @property
+    def num_inliers(self) -> int:
+        return int(sum(int(m.sum()) for masks in self.inliers for m in masks))
+
+    def cam_from_map(self, frame: RigFrame) -> Rigid3d | None:
+        """``frame``'s pose in the map (None on failure)."""
+        if self.session_from_map is None:
+            return None
+        return frame.cam_from_session.compose(self.session_from_map)
+
+
+@dataclass(frozen=True)
+class _FramePoints:
+    """A frame's query pixels (P, 2) and triangulated map points (P, 3)."""
+
+    stacked: StackedMatches
+    tracks: Tracks
+    pixels: FloatArray
+    points: FloatArray
+
+
+def _frame_points(frame: RigFrame, options: EstimatorOptions) -> _FramePoints:
+    stacked = stack_matches(frame.camera, frame.references)
+    tracks = build_tracks(stacked, options.triangulation.track_merge_px).multi_view()
+    if tracks.size == 0:
+        return _FramePoints(stacked, tracks, np.zeros((0, 2)), np.zeros((0, 3)))
+    tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px)
+    valid = np.flatnonzero(tri.valid)
+    return _FramePoints(
+        stacked, tracks, stacked.query_xy[tracks.query_match[valid]], tri.points[valid]
+    )
+
+
+def _no_masks(frames: list[RigFrame]) -> list[list[BoolArray]]:
+    return [[np.zeros(ref.num_matches, bool) for ref in frame.references] for frame in frames]
+
+
+def _failure(reason: FailureReason, frames: list[RigFrame], stats: dict[str, float]) -> RigEstimate:
+    return RigEstimate(None, _no_masks(frames), [0] * len(frames), 0.0, stats, reason)
+
+
+def estimate_rig_pose(frames: list[RigFrame], options: EstimatorOptions) -> RigEstimate:
+    """``session_from_map`` of the rig from all frames' matches jointly (see the module).
+
+    Failures: ``no_references`` (no frame retrieved any), ``too_few_matches`` (fewer than four
+    triangulated points over all frames), ``degenerate_geometry`` (many tracks, too few
+    triangulable, or a singular system), ``no_consensus`` (RANSAC found nothing, or the pooled
+    support is below ``options.verification``), ``time_budget_exceeded``.
+    """
+    stats: dict[str, float] = {"frames": float(len(frames))}
+    if not any(frame.references for frame in frames):
+        return _failure(FailureReason.NO_REFERENCES, frames, stats)
+    deadline = Deadline(options.time_budget_s)
+    try:
+        return _estimate(frames, options, deadline, stats)
+    except np.linalg.LinAlgError:  # a singular system the checks let through
+        logger.warning("rig pose: singular linear system", exc_info=True)
+        return _failure(FailureReason.DEGENERATE_GEOMETRY, frames, stats)
+
+
+def _estimate(
+    frames: list[RigFrame], options: EstimatorOptions, deadline: Deadline, stats: dict[str, float]
+) -> RigEstimate:
+    per_frame = [_frame_points(frame, options) for frame in frames]
+    counts = [int(p.pixels.shape[0]) for p in per_frame]
+    stats["tracks_multi_view"] = float(sum(p.tracks.size for p in per_frame))
+    stats["points_triangulated"] = float(sum(counts))
+    if deadline.expired():
+        return _failure(FailureReason.TIME_BUDGET_EXCEEDED, frames, stats)
+    if sum(counts) < 4:
+        reason = (
+            FailureReason.DEGENERATE_GEOMETRY
+            if stats["tracks_multi_view"] >= 20
+            else FailureReason.TOO_FEW_MATCHES
+        )
+        return _failure(reason, frames, stats)
+    used = [i for i, c in enumerate(counts) if c > 0]
+    threshold = options.ransac.max_error_px
+    found = estimate_generalized_absolute_pose(
+        [per_frame[i].pixels for i in used],
+        [per_frame[i].points for i in used],
+        [frames[i].cam_from_session for i in used],
+        [frames[i].camera for i in used],
+        ransac_options(
+            options.ransac, deadline, reprojection_px=threshold, num_matches=sum(counts)
+        ),
+        threshold / 4.0,
+    )
+    if found is None:
+        return _failure(FailureReason.NO_CONSENSUS, frames, stats)
+    session_from_map, point_masks, iterations = found
+    point_inliers = [0] * len(frames)
+    for i, mask in zip(used, point_masks, strict=True):
+        point_inliers[i] = int(mask.sum())
+    stats["iterations"] = float(iterations)
+    stats["points_inliers"] = float(sum(point_inliers))
+    stats["frames_with_points"] = float(sum(c > 0 for c in point_inliers))
+
+    inliers: list[list[BoolArray]] = []
+    verified = 0
+    for frame, points in zip(frames, per_frame, strict=True):
+        pose = frame.cam_from_session.compose(session_from_map)
+        if not frame.references:
+            inliers.append([])
+            continue
+        errors = pose_sampson_errors_px(points.stacked, pose.rotation[None], pose.center[None])[0]
+        masks = points.stacked.split(errors < threshold)
+        inliers.append(masks)
+        verified += count_verified_points(frame.camera, pose, frame.references, masks, threshold)[0]
+    return _accept(session_from_map, frames, inliers, point_inliers, verified, options, stats)
+
+
+def _accept(
+    session_from_map: Rigid3d,
+    frames: list[RigFrame],
+    inliers: list[list[BoolArray]],
+    point_inliers: list[int],
+    verified: int,
+    options: EstimatorOptions,
+    stats: dict[str, float],
+) -> RigEstimate:
+    """The pooled acceptance of ``VerificationOptions`` over all frames."""
+    num_inliers = int(sum(int(m.sum()) for masks in inliers for m in masks))
+    references_with_inliers = len(
+        {
+            ref.image_id
+            for frame, masks in zip(frames, inliers, strict=True)
+            for ref, m in zip(frame.references, masks, strict=True)
+            if int(m.sum()) >= 3
+        }
+    )
+    total = sum(ref.num_matches for frame in frames for ref in frame.references)
+    stats.update(
+        num_matches=float(total),
+        num_inliers=float(num_inliers),
+        inlier_ratio=num_inliers / max(total, 1),
+        references_with_inliers=float(references_with_inliers),
+        verified_points=float(verified),
+    )
+    acceptance = options.verification
+    if (
+        num_inliers < acceptance.min_inliers
+        or references_with_inliers < acceptance.min_references
+        or verified < acceptance.min_verified_points
+        or sum(point_inliers) < 4
+    ):
+        return RigEstimate(None, inliers, point_inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
+    confidence = confidence_from_inliers(num_inliers, references_with_inliers)
+    return RigEstimate(session_from_map, inliers, point_inliers, confidence, stats)

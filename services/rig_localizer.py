@@ -1,0 +1,252 @@
+"""Localize several query frames with their AR-session poses jointly, and answer
+``map_from_session``: the transform that places map content in the client's AR session.
+
+Every frame goes through the single-image stages (decode, extract, retrieve its own top-k,
+match); the estimate is joint (``services.estimators.rig_pose``). Limits apply to all frames
+together: one time budget, and the pixel limit on the sum of the frames' pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from services.errors import ImageTooLargeError
+from services.estimators.base import FailureReason
+from services.estimators.rig_pose import RIG_METHOD, RigEstimate, RigFrame, estimate_rig_pose
+from services.features.base import LocalFeatures
+from services.geometry.camera import Camera, default_camera
+from services.geometry.rigid import Rigid3d
+from services.imaging import decode_image, image_size_from_header
+from services.pipeline import (
+    LocalizationResult,
+    LocalizeParams,
+    Localizer,
+    RetrievedReference,
+    _check_camera_matches,
+    _observe,
+    _OutOfTimeError,
+    _StageClock,
+)
+from services.references import ReferenceStore
+from services.retrieval.search import top_k
+from services.retrieval.vlad import encode
+from services.types import BoolArray, UInt8Array
+
+
+@dataclass(frozen=True)
+class QueryFrame:
+    """One uploaded frame.
+
+    Attributes:
+        image_bytes: JPEG or PNG.
+        camera: its intrinsics (None: ``LocalizeParams.camera``, else the default camera).
+        cam_from_session: its pose in the AR session, COLMAP camera axes
+            (``services.geometry.session_pose.cam_from_session`` converts ARKit's).
+    """
+
+    image_bytes: bytes
+    camera: Camera | None
+    cam_from_session: Rigid3d
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame of the answer: its pose in the map (None when not localized), its inliers
+    (Sampson, over its references), its 2D–3D inliers in the joint estimate (0 for a single
+    frame), and its retrieved references."""
+
+    cam_from_world: Rigid3d | None
+    num_inliers: int
+    num_point_inliers: int
+    retrieved: list[RetrievedReference]
+
+
+@dataclass(frozen=True)
+class SessionLocalizationResult:
+    """A localization with session poses.
+
+    Attributes:
+        result: the summary: ``localized``, ``reason``, ``num_inliers`` and ``confidence`` of
+            the joint estimate; ``cam_from_world`` and ``retrieved`` of the first frame.
+        map_from_session: maps session coordinates to map coordinates (None when not
+            localized).
+        frames: one per uploaded frame, in upload order.
+    """
+
+    result: LocalizationResult
+    map_from_session: Rigid3d | None
+    frames: list[FrameResult]
+
+
+def align_single_frame(
+    result: LocalizationResult, cam_from_session: Rigid3d
+) -> SessionLocalizationResult:
+    """``map_from_session`` of one frame localized alone: ``map_from_cam ∘ cam_from_session``."""
+    pose = result.cam_from_world
+    map_from_session = pose.inverse().compose(cam_from_session) if pose is not None else None
+    frame = FrameResult(pose, result.num_inliers, 0, result.retrieved)
+    return SessionLocalizationResult(result, map_from_session, [frame])
+
+
+def localize_frames(
+    localizer: Localizer,
+    frames: list[QueryFrame],
+    params: LocalizeParams,
+    store: ReferenceStore,
+) -> SessionLocalizationResult:
+    """Localize ``frames`` (two or more) jointly. ``params.estimator`` is not used: the joint
+    method is ``rig_pose`` (reported as ``RIG_METHOD``). A query that cannot be localized is a
+    result with ``localized`` False and a reason.
+
+    Raises:
+        InvalidInputError: an image is unusable or does not fit its camera.
+        ImageTooLargeError: the frames together exceed the localizer's pixel limit.
+    """
+    clock = _StageClock(params.time_budget_s)
+    try:
+        return _localize_frames(localizer, frames, params, store, clock)
+    except _OutOfTimeError:
+        empty = LocalizationResult(
+            localized=False,
+            reason=FailureReason.TIME_BUDGET_EXCEEDED.value,
+            estimator=RIG_METHOD,
+            cam_from_world=None,
+            num_inliers=0,
+            confidence=0.0,
+            retrieved=[],
+            timings_ms=clock.finish(),
+            stats={},
+        )
+        return SessionLocalizationResult(empty, None, [FrameResult(None, 0, 0, []) for _ in frames])
+
+
+def decode_frames(images: list[bytes], max_pixels: int) -> list[UInt8Array]:
+    """Decode every frame, refusing more than ``max_pixels`` pixels in all (from the headers,
+    before any decoding).
+
+    Raises:
+        ImageTooLargeError: the frames together are too large.
+        ImageDecodeError: a frame is not a decodable JPEG or PNG.
+    """
+    sizes = [image_size_from_header(data) for data in images]
+    total = sum(w * h for w, h in sizes)
+    if total > max_pixels:
+        raise ImageTooLargeError(
+            f"the {len(images)} frames have {total} pixels together; the limit is {max_pixels}"
+        )
+    return [decode_image(data, max_pixels) for data in images]
+
+
+def _localize_frames(
+    localizer: Localizer,
+    frames: list[QueryFrame],
+    params: LocalizeParams,
+    store: ReferenceStore,
+    clock: _StageClock,
+) -> SessionLocalizationResult:
+    lap = clock.lap
+    images = decode_frames([frame.image_bytes for frame in frames], localizer.max_pixels)
+    cameras = []
+    for frame, image in zip(frames, images, strict=True):
+        camera = frame.camera or params.camera or default_camera(image.shape[1], image.shape[0])
+        _check_camera_matches(camera, image)
+        cameras.append(camera)
+    lap("decode")
+    features = [localizer.extractor.extract(image) for image in images]
+    lap("extract")
+    retrieved_rows = _retrieve(localizer, images, features, params, store)
+    all_ids = list(dict.fromkeys(image_id for rows in retrieved_rows for image_id, _ in rows))
+    loaded = {ref.image_id: ref for ref in store.load_references(all_ids)}
+    lap("retrieve")
+    rig_frames = []
+    for query, camera, frame, rows in zip(features, cameras, frames, retrieved_rows, strict=True):
+        kept = [(loaded[image_id], score) for image_id, score in rows if image_id in loaded]
+        pairs = localizer.matcher.match_many(
+            query, [ref.features for ref, _ in kept], stop=clock.deadline.expired
+        )
+        # a stopped matcher returns fewer pairs: the references it did not reach drop out
+        observations = [
+            _observe(query, None, ref, score, ref_pairs)
+            for (ref, score), ref_pairs in zip(kept, pairs, strict=False)
+        ]
+        rig_frames.append(RigFrame(camera, frame.cam_from_session, observations))
+    lap("match")
+    estimate = estimate_rig_pose(rig_frames, clock.bound(params.options))
+    lap("estimate", check=False)  # the work is done: its answer is kept
+    names = {image_id: ref.name for image_id, ref in loaded.items()}
+    return _answer(estimate, rig_frames, names, clock.finish())
+
+
+def _retrieve(
+    localizer: Localizer,
+    images: list[UInt8Array],
+    features: list[LocalFeatures],
+    params: LocalizeParams,
+    store: ReferenceStore,
+) -> list[list[tuple[str, float]]]:
+    """Per frame, its top-k reference ids with their retrieval scores."""
+    index = store.retrieval_index()
+    out = []
+    for image, query in zip(images, features, strict=True):
+        query_global = (
+            encode(query.descriptors, index.vocabulary)
+            if index.vocabulary is not None
+            else localizer.global_descriptor.compute(image, query)
+        )
+        rows, scores = top_k(
+            query_global, index.descriptors, params.top_k, index.centers, params.prior
+        )
+        out.append([(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)])
+    return out
+
+
+def _retrieved(
+    frame: RigFrame, masks: list[BoolArray], names: dict[str, str]
+) -> list[RetrievedReference]:
+    return [
+        RetrievedReference(
+            image_id=obs.image_id,
+            name=names[obs.image_id],
+            score=obs.retrieval_score,
+            num_matches=obs.num_matches,
+            num_inliers=int(mask.sum()),
+            query_xy=obs.query_xy[mask],
+            reference_xy=obs.reference_xy[mask],
+        )
+        for obs, mask in zip(frame.references, masks, strict=True)
+    ]
+
+
+def _answer(
+    estimate: RigEstimate,
+    frames: list[RigFrame],
+    names: dict[str, str],
+    timings: dict[str, float],
+) -> SessionLocalizationResult:
+    frame_results = []
+    for i, frame in enumerate(frames):
+        masks = estimate.inliers[i]
+        frame_results.append(
+            FrameResult(
+                cam_from_world=estimate.cam_from_map(frame),
+                num_inliers=int(sum(int(m.sum()) for m in masks)),
+                num_point_inliers=estimate.point_inliers[i],
+                retrieved=_retrieved(frame, masks, names),
+            )
+        )
+    localized = estimate.session_from_map is not None
+    summary = LocalizationResult(
+        localized=localized,
+        reason=estimate.failure_reason.value if estimate.failure_reason else None,
+        estimator=RIG_METHOD,
+        cam_from_world=frame_results[0].cam_from_world,
+        num_inliers=estimate.num_inliers if localized else 0,
+        confidence=estimate.confidence,
+        retrieved=frame_results[0].retrieved,
+        timings_ms=timings,
+        stats=estimate.stats,
+    )
+    map_from_session = (
+        estimate.session_from_map.inverse() if estimate.session_from_map is not None else None
+    )
+    return SessionLocalizationResult(summary, map_from_session, frame_results)

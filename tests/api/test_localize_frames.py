@@ -1,0 +1,248 @@
+"""/localize with several frames and their AR-session poses (issue #12): map_from_session on a
+rendered synthetic scene with exact ground truth, and the validation of the request."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
+from services.geometry.session_pose import homogeneous, session_from_camera_opengl
+from services.pipeline import Localizer
+from tests.conftest import create_map, make_client, upload_view
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
+
+PROBLEM = "application/problem+json"
+# the session's placement in the map (scene units are metres)
+MAP_FROM_SESSION = Rigid3d(cv2.Rodrigues(np.array([0.1, 0.5, -0.2]))[0], np.array([1.0, -0.5, 0.8]))
+
+
+@pytest.fixture(scope="module")
+def session_views(scene: SyntheticScene) -> list[SyntheticView]:
+    return scene.views(5, stream=7, prefix="frame")
+
+
+@pytest.fixture
+def scene_map(client: TestClient, reference_views: list[SyntheticView]) -> str:
+    map_id = create_map(client)
+    for view in reference_views:
+        assert upload_view(client, map_id, view).status_code == 201
+    return map_id
+
+
+def _camera(view: SyntheticView) -> dict[str, Any]:
+    cam = view.camera
+    return {
+        "model": cam.model,
+        "width": cam.width,
+        "height": cam.height,
+        "params": list(cam.params),
+    }
+
+
+def _session_pose(view: SyntheticView, as_matrix: bool = True) -> dict[str, Any]:
+    """The frame's ARKit ``camera.transform`` in a session placed by ``MAP_FROM_SESSION``."""
+    device = session_from_camera_opengl(view.cam_from_world.compose(MAP_FROM_SESSION))
+    if as_matrix:
+        return {"matrix": homogeneous(device).tolist()}
+    return {"position": device.translation.tolist(), "orientation": device.quaternion.tolist()}
+
+
+def _post(client: TestClient, map_id: str, images: list[bytes], params: dict[str, Any]) -> Any:
+    return client.post(
+        f"/v1/maps/{map_id}/localize",
+        files=[("image", (f"f{i}.png", data, "image/png")) for i, data in enumerate(images)],
+        data={"params": json.dumps(params)},
+    )
+
+
+def _localize(
+    client: TestClient, map_id: str, views: list[SyntheticView], images: list[bytes], **extra: Any
+) -> dict[str, Any]:
+    params = {
+        "camera": _camera(views[0]),
+        "frames": [{"session_pose": _session_pose(v, i % 2 == 0)} for i, v in enumerate(views)],
+        **extra,
+    }
+    response = _post(client, map_id, images, params)
+    assert response.status_code == 200, response.text
+    out: dict[str, Any] = response.json()
+    return out
+
+
+def _alignment(result: dict[str, Any]) -> Rigid3d:
+    out = result["map_from_session"]
+    pose = Rigid3d.from_quaternion(np.array(out["rotation"]), np.array(out["translation"]))
+    np.testing.assert_allclose(out["matrix"], homogeneous(pose), atol=1e-9)
+    return pose
+
+
+def _alignment_error(result: dict[str, Any]) -> tuple[float, float]:
+    pose = _alignment(result)
+    return (
+        float(np.linalg.norm(pose.translation - MAP_FROM_SESSION.translation)),
+        rotation_error_deg(pose.rotation, MAP_FROM_SESSION.rotation),
+    )
+
+
+def _window(image: np.ndarray, size: int) -> np.ndarray:
+    """Only a ``size``×``size`` centre window of texture, the rest flat grey: few features."""
+    out = np.full_like(image, 128)
+    h, w = image.shape[:2]
+    y, x = (h - size) // 2, (w - size) // 2
+    out[y : y + size, x : x + size] = image[y : y + size, x : x + size]
+    return out
+
+
+def test_frames_recover_map_from_session(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    for count in (5, 2):
+        views = session_views[:count]
+        result = _localize(
+            client, scene_map, views, [encode_png(v.image) for v in views], return_inliers=True
+        )
+        assert result["localized"] is True, result["reason"]
+        assert result["estimator"] == "local_tri_all"
+        dt, dr = _alignment_error(result)
+        assert dt < 0.01 and dr < 0.2, (count, dt, dr)
+        assert len(result["frames"]) == count
+        for frame, view in zip(result["frames"], views, strict=True):
+            pose = Rigid3d.from_quaternion(
+                np.array(frame["cam_from_world"]["rotation"]),
+                np.array(frame["cam_from_world"]["translation"]),
+            )
+            ft, fr = pose_error(pose, view.cam_from_world)
+            assert ft < 0.01 and fr < 0.2
+            assert frame["num_point_inliers"] > 0
+            assert frame["num_inliers"] == sum(len(i["query_xy"]) for i in frame["inliers"])
+        assert result["cam_from_world"] == result["frames"][0]["cam_from_world"]
+        assert result["num_inliers"] == sum(f["num_inliers"] for f in result["frames"])
+        assert 0.0 < result["confidence"] <= 1.0
+
+
+def test_one_frame_with_session_pose(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    view = session_views[0]
+    result = _localize(client, scene_map, [view], [encode_png(view.image)])
+    assert result["localized"] is True and result["estimator"] == "e5p1"
+    dt, dr = _alignment_error(result)
+    assert dt < 0.01 and dr < 0.2
+    assert len(result["frames"]) == 1 and result["frames"][0]["num_point_inliers"] == 0
+    # without a session pose: the answer of today, without the new fields
+    plain = _post(client, scene_map, [encode_png(view.image)], {"camera": _camera(view)}).json()
+    assert plain["map_from_session"] is None and plain["frames"] is None
+    assert plain["cam_from_world"] == result["cam_from_world"]
+
+
+def test_frames_too_weak_alone_localize_jointly(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    images = [encode_png(_window(v.image, 44)) for v in session_views]
+    for view, image in zip(session_views, images, strict=True):
+        alone = _localize(client, scene_map, [view], [image])
+        assert alone["localized"] is False and alone["map_from_session"] is None
+    result = _localize(client, scene_map, session_views, images)
+    assert result["localized"] is True, result["reason"]
+    dt, dr = _alignment_error(result)
+    assert dt < 0.02 and dr < 0.2, (dt, dr)
+
+
+def test_unrelated_frames_are_not_localized(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    from tools.synthetic.scene import unrelated_image
+
+    images = [encode_png(unrelated_image(seed)) for seed in range(3)]
+    result = _localize(client, scene_map, session_views[:3], images)
+    assert result["localized"] is False
+    assert result["map_from_session"] is None and result["cam_from_world"] is None
+    assert [f["cam_from_world"] for f in result["frames"]] == [None] * 3
+
+
+NOT_ROTATION = [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]
+MIRROR = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]]
+BAD_LAST_ROW = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [1, 0, 0, 1]]
+IDENTITY = {"matrix": np.eye(4).tolist()}
+
+
+@pytest.mark.parametrize(
+    ("images", "frames", "extra", "fragment"),
+    [
+        (2, [IDENTITY], {}, "describes 1 frames but 2 images"),
+        (1, [IDENTITY, IDENTITY], {}, "describes 2 frames but 1 images"),
+        (2, None, {}, "several frames need params.frames"),
+        (6, [IDENTITY] * 6, {}, "1 to 5 frames, got 6"),
+        (1, [], {}, "at least 1 item"),
+        (1, [{"matrix": NOT_ROTATION}], {}, "not a rotation"),
+        (1, [{"matrix": MIRROR}], {}, "not a rotation"),
+        (1, [{"matrix": BAD_LAST_ROW}], {}, "last row"),
+        (1, [{"matrix": [[1, 0, 0, 0]] * 3}], {}, "at least 4 items"),
+        (1, [{"matrix": [[1, 0, 0]] * 4}], {}, "four rows of four"),
+        (1, [{"position": [0, 0, 0]}], {}, "position and orientation go together"),
+        (1, [{**IDENTITY, "position": [0, 0, 0]}], {}, "either matrix or position"),
+        (1, [{}], {}, "either matrix or position"),
+        (1, [{"position": [0, 0, 0], "orientation": [2, 0, 0, 0]}], {}, "unit quaternion"),
+        (2, [IDENTITY] * 2, {"estimator": "e5p1"}, "localized jointly by local_tri_all"),
+    ],
+)
+def test_invalid_frames_are_422(
+    client: TestClient,
+    session_views: list[SyntheticView],
+    images: int,
+    frames: list[dict[str, Any]] | None,
+    extra: dict[str, Any],
+    fragment: str,
+) -> None:
+    map_id = create_map(client, "validation")
+    params: dict[str, Any] = {**extra}
+    if frames is not None:
+        params["frames"] = [{"session_pose": pose} for pose in frames]
+    image = encode_png(session_views[0].image)
+    response = _post(client, map_id, [image] * images, params)
+    assert response.status_code == 422, response.text
+    assert response.headers["content-type"] == PROBLEM
+    assert fragment in response.json()["detail"]
+
+
+def test_depth_with_several_frames_is_422(
+    client: TestClient, session_views: list[SyntheticView]
+) -> None:
+    map_id = create_map(client, "depth")
+    image = encode_png(session_views[0].image)
+    response = client.post(
+        f"/v1/maps/{map_id}/localize",
+        files=[
+            ("image", ("a.png", image, "image/png")),
+            ("image", ("b.png", image, "image/png")),
+            ("depth", ("d.npy", b"\x93NUMPY", "application/octet-stream")),
+        ],
+        data={"params": json.dumps({"frames": [{"session_pose": IDENTITY}] * 2})},
+    )
+    assert response.status_code == 422 and "takes no depth upload" in response.json()["detail"]
+
+
+def test_frames_share_the_pixel_and_byte_limits(
+    database_url: str, localizer: Localizer, session_views: list[SyntheticView]
+) -> None:
+    image = encode_png(session_views[0].image)
+    params = {"frames": [{"session_pose": IDENTITY}] * 3}
+    # three 640×480 frames: 921 600 pixels, each alone within the limit
+    small = Localizer(localizer.extractor, localizer.matcher, localizer.global_descriptor, 700_000)
+    with make_client(database_url, small, max_image_pixels=700_000) as client:
+        map_id = create_map(client)
+        response = _post(client, map_id, [image] * 3, params)
+        assert response.status_code == 413, response.text
+        assert response.headers["content-type"] == PROBLEM
+        assert "pixels together" in response.json()["detail"]
+    with make_client(database_url, localizer, max_upload_bytes=int(len(image) * 2.5)) as client:
+        map_id = create_map(client, "bytes")
+        response = _post(client, map_id, [image] * 3, params)
+        assert response.status_code == 413, response.text
+        assert "bytes together" in response.json()["detail"]

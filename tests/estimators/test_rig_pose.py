@@ -1,0 +1,146 @@
+"""Joint pose of several frames with known session poses (``rig_pose``) on synthetic
+correspondences with exact ground truth."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.estimators.base import FailureReason
+from services.estimators.options import EstimatorOptions, RansacOptions
+from services.estimators.registry import get_estimator
+from services.estimators.rig_pose import RigFrame, estimate_rig_pose
+from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
+from services.verification import verify_pose
+from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
+
+OPTIONS = EstimatorOptions(ransac=RansacOptions(min_iterations=100, max_iterations=2000))
+MAP_FROM_SESSION = Rigid3d(cv2.Rodrigues(np.array([0.1, 0.6, -0.2]))[0], np.array([0.8, -0.4, 1.2]))
+
+
+def _rig(scenes: list[SyntheticCorrespondences]) -> list[RigFrame]:
+    """Each scene's query as one frame of a session placed by ``MAP_FROM_SESSION``."""
+    return [
+        RigFrame(s.query_camera, s.query_pose.compose(MAP_FROM_SESSION), s.references)
+        for s in scenes
+    ]
+
+
+def _alignment_error(session_from_map: Rigid3d | None) -> tuple[float, float]:
+    assert session_from_map is not None
+    estimate = session_from_map.inverse()
+    return (
+        float(np.linalg.norm(estimate.translation - MAP_FROM_SESSION.translation)),
+        rotation_error_deg(estimate.rotation, MAP_FROM_SESSION.rotation),
+    )
+
+
+def _scenes(first_seed: int, count: int) -> list[SyntheticCorrespondences]:
+    """``count`` queries, 4 references each, 150 matches per reference (1 px noise, 30 %
+    outliers) on 3000 room points, so that references share query keypoints (tracks)."""
+    return [
+        make_correspondences(
+            seed=first_seed + i, num_references=4, matches_per_reference=150, num_points=3000
+        )
+        for i in range(count)
+    ]
+
+
+def test_frames_recover_map_from_session() -> None:
+    scenes = _scenes(20, 3)
+    frames = _rig(scenes)
+    out = estimate_rig_pose(frames, OPTIONS)
+    assert out.failure_reason is None, out.stats
+    dt, dr = _alignment_error(out.session_from_map)
+    assert dt < 0.01 and dr < 0.2
+    for frame, scene in zip(frames, scenes, strict=True):
+        pose = out.cam_from_map(frame)
+        assert pose is not None
+        ft, fr = pose_error(pose, scene.query_pose)
+        assert ft < 0.01 and fr < 0.2
+    # the inliers are mostly the true correspondences (30 % outliers in the input)
+    for masks, scene in zip(out.inliers, scenes, strict=True):
+        truth = np.concatenate(scene.inlier_masks)
+        found = np.concatenate(masks)
+        assert (found & truth).sum() >= 0.9 * truth.sum()
+        assert (found & ~truth).sum() <= 0.1 * (~truth).sum()
+    assert all(n > 0 for n in out.point_inliers)
+    assert 0.0 < out.confidence < 1.0
+
+
+def test_joint_is_more_accurate_than_each_frame_alone() -> None:
+    scenes = _scenes(20, 3)
+    frames = _rig(scenes)
+    joint = estimate_rig_pose(frames, OPTIONS)
+    single = get_estimator("local_tri_all")
+    for frame, scene in zip(frames, scenes, strict=True):
+        alone = single.estimate(scene.query_camera, scene.references, OPTIONS).cam_from_world
+        pose = joint.cam_from_map(frame)
+        assert alone is not None and pose is not None
+        assert pose_error(pose, scene.query_pose)[0] < pose_error(alone, scene.query_pose)[0]
+
+
+def test_frames_too_weak_alone_localize_jointly() -> None:
+    # 10 matches per reference, 3 references: a frame triangulates 0-4 points, too few to be
+    # localized alone; the five frames together have 10
+    scenes = [
+        make_correspondences(
+            seed=40 + i,
+            num_references=3,
+            matches_per_reference=10,
+            outlier_ratio=0.1,
+            num_points=600,
+        )
+        for i in range(5)
+    ]
+    single = get_estimator("local_tri_all")
+    for scene in scenes:
+        alone = verify_pose(
+            single.estimate(scene.query_camera, scene.references, OPTIONS),
+            scene.query_camera,
+            scene.references,
+            OPTIONS,
+        )
+        assert alone.cam_from_world is None
+    out = estimate_rig_pose(_rig(scenes), OPTIONS)
+    assert out.failure_reason is None, out.stats
+    dt, dr = _alignment_error(out.session_from_map)
+    assert dt < 0.05 and dr < 0.5
+
+
+def test_inconsistent_session_poses_are_refused() -> None:
+    # session poses that belong to a different trajectory: no rigid transform explains them
+    scenes = _scenes(60, 3)
+    frames = _rig(scenes)
+    rng = np.random.default_rng(0)
+    scrambled = [
+        RigFrame(
+            f.camera,
+            Rigid3d(cv2.Rodrigues(rng.normal(size=3))[0], rng.normal(size=3) * 3.0).compose(
+                f.cam_from_session
+            ),
+            f.references,
+        )
+        for f in frames
+    ]
+    out = estimate_rig_pose(scrambled, OPTIONS)
+    if out.session_from_map is not None:  # one frame may carry a consistent answer alone
+        assert (
+            out.stats["frames_with_points"] < 3 or _alignment_error(out.session_from_map)[0] > 0.1
+        )
+    assert out.num_inliers < sum(int(np.concatenate(s.inlier_masks).sum()) for s in scenes)
+
+
+def test_no_references_and_too_few_matches() -> None:
+    scene = make_correspondences(seed=80, num_references=3, matches_per_reference=20)
+    empty = RigFrame(scene.query_camera, scene.query_pose, [])
+    assert estimate_rig_pose([empty, empty], OPTIONS).failure_reason == FailureReason.NO_REFERENCES
+    few = [
+        r.__class__(
+            **{**r.__dict__, "query_xy": r.query_xy[:1], "reference_xy": r.reference_xy[:1]}
+        )
+        for r in scene.references
+    ]
+    out = estimate_rig_pose([RigFrame(scene.query_camera, scene.query_pose, few)] * 2, OPTIONS)
+    assert out.failure_reason == FailureReason.TOO_FEW_MATCHES
+    assert out.session_from_map is None and out.num_inliers == 0
