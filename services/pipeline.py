@@ -65,6 +65,11 @@ class RetrievedReference:
 
 @dataclass(frozen=True)
 class LocalizationResult:
+    """Attributes:
+    estimator: the estimator asked for; ``estimator_used`` the one whose answer this is (the
+        same, unless ``auto`` chose it, ``estimator_reason`` saying why).
+    """
+
     localized: bool
     reason: str | None
     estimator: str
@@ -74,6 +79,8 @@ class LocalizationResult:
     retrieved: list[RetrievedReference]
     timings_ms: dict[str, float]
     stats: dict[str, float]
+    estimator_used: str | None = None
+    estimator_reason: str | None = None
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -240,6 +247,9 @@ class Localizer:
             retrieved=retrieved,
             timings_ms=timings,
             stats=outcome.stats if outcome is not None else {},
+            estimator_used=(outcome.estimator_used if outcome is not None else None)
+            or estimator.name,
+            estimator_reason=outcome.estimator_reason if outcome is not None else None,
         )
 
 
