@@ -86,8 +86,7 @@ class LocalizeResult(BaseModel):
     reason: FailureReason | None
     estimator: EstimatorName = Field(description="The estimator asked for")
     estimator_used: EstimatorName = Field(
-        description="The estimator whose answer this is: the one asked for, or the one "
-        "`auto` chose"
+        description="The estimator whose answer this is: the one asked for, or the one `auto` chose"
     )
     estimator_reason: str | None = Field(
         None, description="Why `auto` chose `estimator_used` (null for the other estimators)"

@@ -150,4 +150,3 @@ class AutoEstimator:
             estimator_reason=f"{plan.reason}; no estimator localized "
             f"({', '.join(plan.estimators)})",
         )
-

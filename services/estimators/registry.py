@@ -32,6 +32,8 @@ _ESTIMATORS[AutoEstimator.name] = AutoEstimator(_ESTIMATORS)
 
 # the estimators that need depth for the query and the references, as each declares
 DEPTH_ESTIMATORS = frozenset(name for name, e in _ESTIMATORS.items() if e.needs_depth)
+# the estimators that use the query's depth when it is sent: those that need it, and auto
+DEPTH_USING_ESTIMATORS = DEPTH_ESTIMATORS | {AutoEstimator.name}
 
 DEFAULT_ESTIMATOR = AutoEstimator.name
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from app.schemas.geometry import CameraSchema
-from services.estimators.registry import DEPTH_ESTIMATORS
+from services.estimators.registry import DEPTH_USING_ESTIMATORS
 from services.geometry.camera import Camera
 from tools.evaluation.datasets import PosedImage
 from tools.evaluation.metrics import (
@@ -172,7 +172,7 @@ def _localize_all(
         for estimator in options.estimators:
             depth = (
                 _depth(query, options.use_depth)
-                if query is not None and estimator in DEPTH_ESTIMATORS
+                if query is not None and estimator in DEPTH_USING_ESTIMATORS
                 else None
             )
             params = localize_params(item.camera, estimator, options.top_k, options.max_error_px)
@@ -197,6 +197,8 @@ def _localize_all(
                 if record.localized and query is not None
                 else f"{estimator} {'accepted' if record.localized else record.reason}"
             )
+            if outcome.estimator_used not in (None, estimator):
+                cells[-1] += f" ({outcome.estimator_used})"
         eta = (time.perf_counter() - start) / i * (len(queries) - i)
         log(
             f"[{runner.features} {i}/{len(queries)}, eta {eta:.0f} s] {item.name}: "

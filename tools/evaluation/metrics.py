@@ -47,6 +47,7 @@ class QueryRecord:
     retrieval_covered: bool = False
     retrieval_hit: bool = False
     unrelated: bool = False
+    estimator_used: str | None = None
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,7 @@ def make_record(
         confidence=outcome.confidence,
         timings_ms=outcome.timings_ms,
         retrieved=outcome.retrieved,
+        estimator_used=outcome.estimator_used,
         cam_from_world=pose.model_dump() if pose is not None else None,
         unrelated=truth is None,
     )

@@ -43,6 +43,7 @@ class QueryOutcome:
         cam_from_world: the pose as the API's ``{"rotation": [w, x, y, z], "translation"}``.
         retrieved: names of the retrieved references, best first.
         timings_ms: the answer's stages plus ``client`` (wall time seen by the evaluator).
+        estimator_used: the estimator whose answer it is (``auto`` names its choice).
     """
 
     localized: bool
@@ -52,6 +53,7 @@ class QueryOutcome:
     confidence: float
     retrieved: list[str]
     timings_ms: dict[str, float]
+    estimator_used: str | None = None
 
 
 class Runner(Protocol):
@@ -137,6 +139,7 @@ class InProcessRunner:
             confidence=result.confidence,
             retrieved=[r.name for r in result.retrieved],
             timings_ms=timings,
+            estimator_used=result.estimator_used,
         )
 
     def close(self) -> None:
@@ -231,6 +234,7 @@ class HttpRunner:
             confidence=float(body["confidence"]),
             retrieved=[r["name"] for r in body["retrieved"]],
             timings_ms=timings,
+            estimator_used=body.get("estimator_used"),
         )
 
     def close(self) -> None:

@@ -50,7 +50,9 @@ def sample_street_points(rng: np.random.Generator, count: int) -> FloatArray:
     z = rng.uniform(z0, z1, count)
     side = np.where(which == 0, -STREET_HALF_WIDTH, STREET_HALF_WIDTH)
     x = np.where(which == 2, rng.uniform(-STREET_HALF_WIDTH, STREET_HALF_WIDTH, count), side)
-    y = np.where(which == 2, CAMERA_HEIGHT, rng.uniform(CAMERA_HEIGHT - FACADE_HEIGHT, CAMERA_HEIGHT, count))
+    y = np.where(
+        which == 2, CAMERA_HEIGHT, rng.uniform(CAMERA_HEIGHT - FACADE_HEIGHT, CAMERA_HEIGHT, count)
+    )
     return np.stack([x, y, z], axis=1)
 
 
