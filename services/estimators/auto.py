@@ -1,26 +1,30 @@
-"""``auto``: chooses, per query, which estimators to run and in which order, from the geometry
-the request shows before any pose is estimated, and keeps the first pose that verifies in 3D.
+"""``auto``: chooses, per query, which estimators to run, from the geometry the request shows
+before any pose is estimated, and which of their verified poses to answer.
 
-The plan (``plan_estimators``):
+The plan (``plan_estimators``) has a first stage, whose estimators all run and whose verified
+poses are compared, and fallbacks tried in order when none of them verifies:
 
 - **forward motion** — the retrieved references lie on a line they look along (frames of a
   vehicle driving straight ahead, ``position_conditioning.ReferenceLayout``): the query's
   position along that line is unobservable for epipolar constraints, so E5+1 and the
-  essential-matrix family are skipped; local triangulation (``local_tri_all``) comes first,
-  motion averaging (whose final step is a 2D–3D refinement too) second. With depth for the
-  query and the references, ``e3p1`` (whose scale comes from depth, not from baselines) is the
-  last resort.
-- **depth present** (the query and some references) — ``e3p1`` first (its scale comes from
-  depth), then ``local_tri_all``.
-- **otherwise** — ``e5p1`` first (the best accuracy for its time in Panek et al. 2025, "A Guide
-  to Structureless Visual Localization"; it answers ``degenerate_geometry`` by itself when the
-  query turns out to lie on the line of the references), then ``local_tri_all``, then
-  ``motion_averaging``.
+  essential-matrix family are skipped. ``local_tri_all`` first; ``motion_averaging`` (whose last
+  step is a 2D–3D refinement too) and, with depth for the query, ``e3p1`` (scale from depth) as
+  fallbacks.
+- **otherwise** — ``e5p1`` and ``local_tri_all`` both (E5+1 has the best accuracy for its time
+  in Panek et al. 2025, "A Guide to Structureless Visual Localization", local triangulation the
+  best accuracy; ``local_tri_all`` adds ~20 ms); ``motion_averaging`` then, with depth,
+  ``e3p1`` as fallbacks. E5+1 answers ``degenerate_geometry`` by itself when the query turns
+  out to lie on the line of the references.
 
-Each candidate's pose goes through the 3D verification (``services.verification``) before the
-next is tried; every candidate gets what is left of the time budget. The answer names the
-estimator whose pose it is and why it was chosen (``EstimateResult.estimator_used`` and
-``estimator_reason``); when every candidate fails, the first one's failure is the answer.
+Choosing between verified poses (``choose``): the pose of local triangulation, which ends on a
+2D–3D refinement, is kept unless it has fewer than ``PREFER_RATIO`` times the epipolar inliers of
+the other — then its triangulated structure went wrong (on redkitchen: four queries where
+``local_tri_all`` was 0.4–1 m off with 11–16 % fewer inliers than ``e5p1``).
+
+Every pose goes through the 3D verification (``services.verification``); every estimator gets
+what is left of the time budget. The answer names the estimator whose pose it is and why
+(``EstimateResult.estimator_used`` and ``estimator_reason``); when every estimator fails, the
+first one's failure is the answer.
 """
 
 from __future__ import annotations
@@ -43,13 +47,23 @@ from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.verification import verify_pose
 
+# local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
+# the other verified pose's
+PREFER_RATIO = 0.97
+
 
 @dataclass(frozen=True)
 class Plan:
-    """The estimators to try, in order, and why (a short sentence for the answer)."""
+    """What to run: ``first`` all, their verified poses compared; then ``fallbacks`` in order
+    until one verifies; and why (a short sentence for the answer)."""
 
-    estimators: tuple[str, ...]
+    first: tuple[str, ...]
+    fallbacks: tuple[str, ...]
     reason: str
+
+    @property
+    def estimators(self) -> tuple[str, ...]:
+        return self.first + self.fallbacks
 
 
 def has_depth(references: list[ReferenceObservation]) -> bool:
@@ -73,28 +87,39 @@ def layout_of(references: list[ReferenceObservation]) -> ReferenceLayout:
 
 
 def plan_estimators(layout: ReferenceLayout, depth: bool) -> Plan:
-    """The order of estimators for a request with this reference layout and depth."""
+    """What to run for a request with this reference layout, with or without depth."""
+    depth_fallback = ("e3p1",) if depth else ()
     if layout.forward_motion:
-        shape = (
+        return Plan(
+            ("local_tri_all",),
+            ("motion_averaging", *depth_fallback),
             f"forward motion: reference centres on a line (collinearity "
             f"{layout.collinearity:.2f}) {layout.line_view_angle_deg:.0f}° from their viewing "
-            "direction, where epipolar constraints leave the position along it unobservable"
-        )
-        fallback = ("e3p1",) if depth else ()
-        return Plan(("local_tri_all", "motion_averaging", *fallback), shape)
-    if depth:
-        return Plan(
-            ("e3p1", "local_tri_all"),
-            "depth for the query and the references: scale from depth",
+            "direction, where epipolar constraints leave the position along it unobservable",
         )
     return Plan(
-        ("e5p1", "local_tri_all", "motion_averaging"),
+        ("e5p1", "local_tri_all"),
+        ("motion_averaging", *depth_fallback),
         f"references spread around the query (collinearity {layout.collinearity:.2f})",
     )
 
 
+def choose(verified: dict[str, EstimateResult]) -> tuple[str, str]:
+    """The name of the verified pose to answer (``verified`` non-empty) and why."""
+    if len(verified) == 1:
+        return next(iter(verified)), "the only verified pose"
+    others = {name: r for name, r in verified.items() if name != "local_tri_all"}
+    best = max(others, key=lambda name: others[name].num_inliers)
+    if "local_tri_all" not in verified:
+        return best, "the most inliers"
+    local, other = verified["local_tri_all"].num_inliers, others[best].num_inliers
+    if local >= PREFER_RATIO * other:
+        return "local_tri_all", f"2D–3D refined, {local} inliers vs {best}'s {other}"
+    return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
+
+
 class AutoEstimator:
-    """Runs the estimators of ``plan_estimators`` in order until one's pose verifies.
+    """Runs the estimators of ``plan_estimators`` and answers the pose ``choose`` keeps.
 
     Args:
         candidates: the estimators by name (the registry's), which the plans refer to.
@@ -121,32 +146,42 @@ class AutoEstimator:
             )
         deadline = Deadline(options.time_budget_s)
         plan = plan_estimators(layout_of(references), has_depth(references))
-        first = replace(
-            EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references),
-            estimator_used=plan.estimators[0],
-        )
-        for position, name in enumerate(plan.estimators):
-            if deadline.expired():
+        results: dict[str, EstimateResult] = {}
+        for name in plan.estimators:
+            if deadline.expired() or (name in plan.fallbacks and self._verified(results)):
                 break
             left = deadline.remaining_s()
             budget = replace(options, time_budget_s=None if left == float("inf") else left)
-            result = verify_pose(
+            results[name] = verify_pose(
                 self.candidates[name].estimate(query_camera, references, budget),
                 query_camera,
                 references,
                 budget,
             )
-            stats = {**result.stats, "auto_attempts": float(position + 1)}
-            if result.cam_from_world is not None:
-                why = plan.reason
-                if position > 0:
-                    tried = ", ".join(plan.estimators[:position])
-                    why = f"{why}; {tried} failed (first: {first.failure_reason})"
-                return replace(result, stats=stats, estimator_used=name, estimator_reason=why)
-            if position == 0:
-                first = replace(result, stats=stats, estimator_used=name)
+        attempts = {"auto_attempts": float(len(results))}
+        verified = self._verified(results)
+        if verified:
+            name, why = choose(verified)
+            failed = [f"{n} {r.failure_reason}" for n, r in results.items() if n not in verified]
+            tried = f"; failed: {', '.join(failed)}" if failed else ""
+            return replace(
+                verified[name],
+                stats=verified[name].stats | attempts,
+                estimator_used=name,
+                estimator_reason=f"{plan.reason}; {name}: {why}{tried}",
+            )
+        first_name = plan.estimators[0]
+        first = results.get(first_name) or EstimateResult.failure(
+            FailureReason.TIME_BUDGET_EXCEEDED, references
+        )
         return replace(
             first,
+            stats=first.stats | attempts,
+            estimator_used=first_name,
             estimator_reason=f"{plan.reason}; no estimator localized "
-            f"({', '.join(plan.estimators)})",
+            f"({', '.join(results) or 'none ran'})",
         )
+
+    @staticmethod
+    def _verified(results: dict[str, EstimateResult]) -> dict[str, EstimateResult]:
+        return {name: r for name, r in results.items() if r.cam_from_world is not None}

@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.estimators.auto import AutoEstimator, plan_estimators
+from services.estimators.auto import AutoEstimator, choose, plan_estimators
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import (
@@ -21,7 +21,7 @@ from services.estimators.position_conditioning import (
 )
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
-from services.geometry.rigid import pose_error
+from services.geometry.rigid import Rigid3d, pose_error
 from services.verification import verify_pose
 from tests.estimators.conftest import TEST_OPTIONS
 from tools.synthetic.configurations import narrow_baseline, pure_rotation, street
@@ -143,13 +143,27 @@ def test_reference_layout() -> None:
 def test_plans() -> None:
     forward = ReferenceLayout(extent_m=5.0, collinearity=0.01, line_view_angle_deg=3.0)
     spread = ReferenceLayout(extent_m=1.0, collinearity=0.6, line_view_angle_deg=60.0)
-    assert plan_estimators(forward, depth=False).estimators[0] == "local_tri_all"
+    assert plan_estimators(forward, depth=False).first == ("local_tri_all",)
     assert "e5p1" not in plan_estimators(forward, depth=True).estimators
-    assert plan_estimators(spread, depth=True).estimators[0] == "e3p1"
-    assert plan_estimators(spread, depth=False).estimators[0] == "e5p1"
-    for plan in (plan_estimators(forward, False), plan_estimators(spread, False)):
+    assert plan_estimators(spread, depth=False).first == ("e5p1", "local_tri_all")
+    assert plan_estimators(spread, depth=True).fallbacks[-1] == "e3p1"
+    for plan in (plan_estimators(forward, True), plan_estimators(spread, True)):
         for name in plan.estimators:
             get_estimator(name)  # every planned name is registered
+
+
+def _with_inliers(count: int) -> EstimateResult:
+    return EstimateResult(Rigid3d.identity(), [np.arange(4000) < count])
+
+
+def test_choose_prefers_local_triangulation_unless_it_lost_inliers() -> None:
+    near = {"e5p1": _with_inliers(3726), "local_tri_all": _with_inliers(3718)}
+    assert choose(near)[0] == "local_tri_all"
+    lost = {"e5p1": _with_inliers(384), "local_tri_all": _with_inliers(344)}
+    name, why = choose(lost)
+    assert name == "e5p1" and "384" in why and "344" in why
+    assert choose({"e5p1": _with_inliers(10)})[0] == "e5p1"
+    assert choose({"motion_averaging": _with_inliers(10), "e3p1": _with_inliers(20)})[0] == "e3p1"
 
 
 class _AlwaysDegenerate:
@@ -166,14 +180,14 @@ class _AlwaysDegenerate:
 
 
 def test_auto_falls_back_and_says_why(scene: SyntheticCorrespondences) -> None:
-    """The first planned estimator fails: the next one answers, and the reason says so."""
+    """E5+1 fails: local triangulation answers, the reason says so, and the fallbacks are not
+    run."""
     refs = [replace(ref, query_depth=None, reference_depth=None) for ref in scene.references]
     candidates = {name: get_estimator(name) for name in ("local_tri_all", "motion_averaging")}
     auto = AutoEstimator({**candidates, "e5p1": _AlwaysDegenerate()})
     result = auto.estimate(scene.query_camera, refs, TEST_OPTIONS)
     assert result.estimator_used == "local_tri_all"
-    assert result.estimator_reason and "e5p1 failed" in result.estimator_reason
-    assert "degenerate_geometry" in result.estimator_reason
+    assert result.estimator_reason and "failed: e5p1 degenerate_geometry" in result.estimator_reason
     assert result.stats["auto_attempts"] == 2.0
     assert result.cam_from_world is not None
     position, rotation = pose_error(result.cam_from_world, scene.query_pose)
