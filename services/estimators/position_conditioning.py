@@ -36,11 +36,9 @@ class ReferenceSpread:
     """Attributes:
     angle_deg: angular spread of the reference centres around their weakest direction, as seen
         from the query centre, in degrees (0 when fewer than two references give a direction).
-    weak_direction: (3,) unit world direction the position is least determined along.
     """
 
     angle_deg: float
-    weak_direction: FloatArray
 
 
 def reference_spread(
@@ -57,16 +55,15 @@ def reference_spread(
     distance = np.linalg.norm(offsets, axis=1)
     positive = weights > 0
     if positive.sum() < 2:
-        return ReferenceSpread(0.0, np.zeros(3))
+        return ReferenceSpread(0.0)
     usable = positive & (distance > _MIN_RELATIVE_DISTANCE * float(np.median(distance[positive])))
     if usable.sum() < 2:
-        return ReferenceSpread(0.0, np.zeros(3))
+        return ReferenceSpread(0.0)
     v = offsets[usable] / distance[usable, None]
     w = weights[usable] / weights[usable].sum()
     scatter = np.eye(3) - np.einsum("k,ki,kj->ij", w, v, v)
-    eigenvalues, eigenvectors = np.linalg.eigh(scatter)
-    sine = float(np.sqrt(np.clip(eigenvalues[0], 0.0, 1.0)))
-    return ReferenceSpread(float(np.degrees(np.arcsin(sine))), eigenvectors[:, 0])
+    sine = float(np.sqrt(np.clip(np.linalg.eigvalsh(scatter)[0], 0.0, 1.0)))
+    return ReferenceSpread(float(np.degrees(np.arcsin(sine))))
 
 
 # a reference layout counts as forward motion when its centres' second principal extent is
