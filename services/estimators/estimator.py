@@ -24,7 +24,7 @@ from services.estimators.correspondences import (
     stack_matches,
 )
 from services.estimators.options import EstimatorOptions
-from services.estimators.position_conditioning import reference_layout, reference_spread
+from services.estimators.position_conditioning import reference_layout, reference_spread_deg
 from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -210,12 +210,9 @@ class Estimator(ABC):
         ``reference_spread_deg`` and ``reference_collinearity`` in the stats."""
         stacked = request.stacked
         weights = np.array([float(mask.sum()) for mask in masks])
-        spread = reference_spread(pose.center, stacked.C_ref, weights)
+        spread = reference_spread_deg(pose.center, stacked.C_ref, weights)
         layout = reference_layout(stacked.C_ref, stacked.R_ref[:, 2, :], weights)
-        request.stats["reference_spread_deg"] = spread.angle_deg
+        request.stats["reference_spread_deg"] = spread
         request.stats["reference_collinearity"] = layout.collinearity
-        if (
-            layout.forward_motion
-            or spread.angle_deg < request.options.verification.min_reference_spread_deg
-        ):
+        if layout.forward_motion or spread < request.options.verification.min_reference_spread_deg:
             request.fail(FailureReason.DEGENERATE_GEOMETRY)

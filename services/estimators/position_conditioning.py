@@ -31,20 +31,12 @@ from services.types import FloatArray
 _MIN_RELATIVE_DISTANCE = 1e-3
 
 
-@dataclass(frozen=True)
-class ReferenceSpread:
-    """Attributes:
-    angle_deg: angular spread of the reference centres around their weakest direction, as seen
-        from the query centre, in degrees (0 when fewer than two references give a direction).
-    """
-
-    angle_deg: float
-
-
-def reference_spread(
+def reference_spread_deg(
     query_center: FloatArray, reference_centers: FloatArray, weights: FloatArray
-) -> ReferenceSpread:
-    """The angular spread of the references seen from the query.
+) -> float:
+    """The angular spread of the references seen from the query, in degrees: the arcsine of
+    the square root of the smallest eigenvalue above (0 when fewer than two references give a
+    direction).
 
     Args:
         query_center: (3,) the query's camera centre.
@@ -55,15 +47,15 @@ def reference_spread(
     distance = np.linalg.norm(offsets, axis=1)
     positive = weights > 0
     if positive.sum() < 2:
-        return ReferenceSpread(0.0)
+        return 0.0
     usable = positive & (distance > _MIN_RELATIVE_DISTANCE * float(np.median(distance[positive])))
     if usable.sum() < 2:
-        return ReferenceSpread(0.0)
+        return 0.0
     v = offsets[usable] / distance[usable, None]
     w = weights[usable] / weights[usable].sum()
     scatter = np.eye(3) - np.einsum("k,ki,kj->ij", w, v, v)
     sine = float(np.sqrt(np.clip(np.linalg.eigvalsh(scatter)[0], 0.0, 1.0)))
-    return ReferenceSpread(float(np.degrees(np.arcsin(sine))))
+    return float(np.degrees(np.arcsin(sine)))
 
 
 # a reference layout counts as forward motion when its centres' second principal extent is

@@ -17,7 +17,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import (
     ReferenceLayout,
     reference_layout,
-    reference_spread,
+    reference_spread_deg,
 )
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
@@ -110,19 +110,19 @@ def test_narrow_baseline(name: str, seed: int) -> None:
 
 
 def test_reference_spread_exact_values() -> None:
-    ones = np.ones(4)
+    origin, ones = np.zeros(3), np.ones(4)
     on_a_line = np.array([[0, 0, 1.0], [0, 0, 3.0], [0, 0, -2.0], [0, 0, 7.0]])
-    assert reference_spread(np.zeros(3), on_a_line, ones).angle_deg == pytest.approx(0.0, abs=1e-6)
-    spread = reference_spread(np.zeros(3), np.array([[2.0, 0, 0], [0, 5.0, 0]]), ones[:2])
-    assert spread.angle_deg == pytest.approx(45.0)
+    assert reference_spread_deg(origin, on_a_line, ones) == pytest.approx(0.0, abs=1e-6)
+    right_angle = np.array([[2.0, 0, 0], [0, 5.0, 0]])
+    assert reference_spread_deg(origin, right_angle, ones[:2]) == pytest.approx(45.0)
     # one reference 10° off the line of three, equal weights: sin² averaged over four
-    tilted = np.array([[0, 0, 1.0], [0, 0, 2.0], [0, 0, 3.0], [np.sin(0.1745), 0, np.cos(0.1745)]])
-    expected = np.degrees(np.arcsin(np.sqrt(np.sin(0.1745) ** 2 / 4)))
-    assert reference_spread(np.zeros(3), tilted, ones).angle_deg == pytest.approx(expected, 1e-2)
-    # a reference at the query's centre gives no direction; a zero weight does not count
-    assert reference_spread(np.zeros(3), on_a_line[:1], ones[:1]).angle_deg == 0.0
-    weights = np.array([1.0, 0.0])
-    assert reference_spread(np.zeros(3), np.eye(3)[:2], weights).angle_deg == 0.0
+    angle = np.radians(10.0)
+    tilted = np.array([[0, 0, 1.0], [0, 0, 2.0], [0, 0, 3.0], [np.sin(angle), 0, np.cos(angle)]])
+    expected = np.degrees(np.arcsin(np.sqrt(np.sin(angle) ** 2 / 4)))
+    assert reference_spread_deg(origin, tilted, ones) == pytest.approx(expected, rel=1e-2)
+    # a single reference gives no spread; a zero weight does not count
+    assert reference_spread_deg(origin, on_a_line[:1], ones[:1]) == 0.0
+    assert reference_spread_deg(origin, np.eye(3)[:2], np.array([1.0, 0.0])) == 0.0
 
 
 def test_reference_layout() -> None:
