@@ -115,10 +115,12 @@ def test_reference_spread_exact_values() -> None:
     assert reference_spread_deg(origin, on_a_line, ones) == pytest.approx(0.0, abs=1e-6)
     right_angle = np.array([[2.0, 0, 0], [0, 5.0, 0]])
     assert reference_spread_deg(origin, right_angle, ones[:2]) == pytest.approx(45.0)
-    # one reference 10° off the line of three, equal weights: sin² averaged over four
+    # one reference 10° off the line of three, equal weights: 1 − the largest eigenvalue of
+    # ¾·zzᵀ + ¼·vvᵀ is (1 − √(1 − ¾ sin²10°)) / 2
     angle = np.radians(10.0)
     tilted = np.array([[0, 0, 1.0], [0, 0, 2.0], [0, 0, 3.0], [np.sin(angle), 0, np.cos(angle)]])
-    expected = np.degrees(np.arcsin(np.sqrt(np.sin(angle) ** 2 / 4)))
+    smallest = (1.0 - np.sqrt(1.0 - 0.75 * np.sin(angle) ** 2)) / 2.0
+    expected = np.degrees(np.arcsin(np.sqrt(smallest)))
     assert reference_spread_deg(origin, tilted, ones) == pytest.approx(expected, rel=1e-2)
     # a single reference gives no spread; a zero weight does not count
     assert reference_spread_deg(origin, on_a_line[:1], ones[:1]) == 0.0
