@@ -69,6 +69,11 @@ class RetrievedReference:
 
 @dataclass(frozen=True)
 class LocalizationResult:
+    """Attributes:
+    estimator: the estimator asked for; ``estimator_used`` the one whose answer this is (the
+        same, unless ``auto`` chose it, ``estimator_reason`` saying why).
+    """
+
     localized: bool
     reason: str | None
     estimator: str
@@ -78,6 +83,8 @@ class LocalizationResult:
     retrieved: list[RetrievedReference]
     timings_ms: dict[str, float]
     stats: dict[str, float]
+    estimator_used: str | None = None
+    estimator_reason: str | None = None
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -231,17 +238,15 @@ class Localizer:
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
             options = clock.bound(params.options)
+            verified = verify_pose(
+                estimator.estimate(camera, observations, options), camera, observations, options
+            )
             outcome = rescore(
-                verify_pose(
-                    estimator.estimate(camera, observations, options),
-                    camera,
-                    observations,
-                    options,
-                ),
+                verified,
                 camera,
                 observations,
                 options,
-                estimator.name,
+                verified.estimator_used or estimator.name,  # auto: the model of its choice
                 self.confidence_model,
             )
             reason = outcome.failure_reason.value if outcome.failure_reason else None
@@ -273,6 +278,9 @@ class Localizer:
             retrieved=retrieved,
             timings_ms=timings,
             stats=outcome.stats if outcome is not None else {},
+            estimator_used=(outcome.estimator_used if outcome is not None else None)
+            or estimator.name,
+            estimator_reason=outcome.estimator_reason if outcome is not None else None,
         )
 
 

@@ -331,8 +331,11 @@ def verify_pose(
         )
     except np.linalg.LinAlgError:  # a system the conditioning checks let through
         logger.warning("pose verification met a singular system", exc_info=True)
-        return EstimateResult(
-            None, result.inliers, 0.0, result.stats, FailureReason.DEGENERATE_GEOMETRY
+        return replace(
+            result,
+            cam_from_world=None,
+            confidence=0.0,
+            failure_reason=FailureReason.DEGENERATE_GEOMETRY,
         )
     stats = {
         **result.stats,
@@ -340,5 +343,11 @@ def verify_pose(
         "multi_reference_tracks": float(tracks),
     }
     if verified < options.verification.min_verified_points:
-        return EstimateResult(None, result.inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
+        return replace(
+            result,
+            cam_from_world=None,
+            confidence=0.0,
+            stats=stats,
+            failure_reason=FailureReason.NO_CONSENSUS,
+        )
     return replace(result, stats=stats)

@@ -154,7 +154,13 @@ def _inliers_out(retrieved: list[RetrievedReference]) -> list[InliersOut]:
 class LocalizeResult(BaseModel):
     localized: bool
     reason: FailureReason | None
-    estimator: EstimatorName
+    estimator: EstimatorName = Field(description="The estimator asked for")
+    estimator_used: EstimatorName = Field(
+        description="The estimator whose answer this is: the one asked for, or the one `auto` chose"
+    )
+    estimator_reason: str | None = Field(
+        None, description="Why `auto` chose `estimator_used` (null for the other estimators)"
+    )
     cam_from_world: PoseSchema | None
     camera_center: list[float] | None
     num_inliers: int
@@ -189,6 +195,8 @@ class LocalizeResult(BaseModel):
             localized=result.localized,
             reason=FailureReason(result.reason) if result.reason is not None else None,
             estimator=result.estimator,
+            estimator_used=result.estimator_used or result.estimator,
+            estimator_reason=result.estimator_reason,
             cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
             camera_center=[float(v) for v in pose.center] if pose is not None else None,
             num_inliers=result.num_inliers,

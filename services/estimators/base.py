@@ -64,6 +64,9 @@ class EstimateResult:
         confidence: in [0, 1]; see ``confidence_from_inliers``.
         stats: numbers describing the run (iterations, inlier ratio, ...).
         failure_reason: set exactly when ``cam_from_world`` is None.
+        estimator_used: the estimator whose answer this is, when another one chose it
+            (``auto``); None when it is the estimator called.
+        estimator_reason: why ``estimator_used`` was chosen (a short sentence), or None.
     """
 
     cam_from_world: Rigid3d | None
@@ -71,6 +74,8 @@ class EstimateResult:
     confidence: float = 0.0
     stats: dict[str, float] = field(default_factory=dict)
     failure_reason: FailureReason | None = None
+    estimator_used: str | None = None
+    estimator_reason: str | None = None
 
     @property
     def num_inliers(self) -> int:

@@ -38,6 +38,7 @@ RANSAC_SAMPLE_PER_PAIR = 100  # matches per reference that RANSAC hypotheses are
 
 class E5p1Estimator(Estimator):
     name = "e5p1"
+    position_from_baselines = True
 
     def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
         # PoseLib 2.0.5 loops forever with fewer than two non-empty pairs or no pair of >= 5

@@ -11,6 +11,7 @@ from services.estimators.pose_triangulation import PoseTriangulationEstimator, s
 
 class Essential5ptEstimator(PoseTriangulationEstimator):
     name = "essential_5pt"
+    position_from_baselines = True
 
     def __init__(self) -> None:
         super().__init__(solve_5pt)

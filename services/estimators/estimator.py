@@ -24,6 +24,7 @@ from services.estimators.correspondences import (
     stack_matches,
 )
 from services.estimators.options import EstimatorOptions
+from services.estimators.position_conditioning import reference_layout, reference_spread_deg
 from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -143,11 +144,15 @@ class Estimator(ABC):
         name: the API name.
         needs_depth: the method needs depth for the query and the references.
         min_matches: ``precheck`` asks for two references with at least this many matches.
+        position_from_baselines: the method gets the query's position from the references'
+            baselines through epipolar constraints alone (E5+1, essential matrices), so its
+            answer is checked for an unobservable position (``position_conditioning``).
     """
 
     name: str
     needs_depth: bool = False
     min_matches: int = 5
+    position_from_baselines: bool = False
 
     def check(self, references: list[ReferenceObservation]) -> FailureReason | None:
         """Why the input cannot be solved, before any work; None when it can."""
@@ -182,15 +187,32 @@ class Estimator(ABC):
         """The answer: inliers within ``max_error_px`` Sampson error of the pose over the
         stacked matches, ``stats["score"]`` their count unless the method set it, and
         ``finish``."""
-        options, references = request.options, request.references
+        options, references, pose = request.options, request.references, solution.pose
         inliers = solution.inliers
         if inliers is None:
-            pose = solution.pose
             errors = pose_sampson_errors_px(
                 request.stacked, pose.rotation[None], pose.center[None]
             )[0]
             inliers = errors < options.ransac.max_error_px
         request.stats.setdefault("score", float(inliers.sum()))
-        return finish(
-            solution.pose, request.stacked.split(inliers), references, options, request.stats
-        )
+        masks = request.stacked.split(inliers)
+        if self.position_from_baselines:
+            self.check_position(request, pose, masks)
+        return finish(pose, masks, references, options, request.stats)
+
+    @staticmethod
+    def check_position(request: Request, pose: Rigid3d, masks: list[BoolArray]) -> None:
+        """Fails the request with ``degenerate_geometry`` when the query's position is not
+        observable from the references' baselines: the references with inliers lie on a line
+        they look along (forward motion), or, seen from the query, they spread less than
+        ``min_reference_spread_deg`` around some direction (the query on the line of their
+        centres; a reference set far narrower than its distance). Records
+        ``reference_spread_deg`` and ``reference_collinearity`` in the stats."""
+        stacked = request.stacked
+        weights = np.array([float(mask.sum()) for mask in masks])
+        spread = reference_spread_deg(pose.center, stacked.C_ref, weights)
+        layout = reference_layout(stacked.C_ref, stacked.R_ref[:, 2, :], weights)
+        request.stats["reference_spread_deg"] = spread
+        request.stats["reference_collinearity"] = layout.collinearity
+        if layout.forward_motion or spread < request.options.verification.min_reference_spread_deg:
+            request.fail(FailureReason.DEGENERATE_GEOMETRY)

@@ -57,11 +57,17 @@ class VerificationOptions:
             observations triangulate to a point that reprojects into the query within
             ``RansacOptions.max_error_px`` (see ``services.verification``). Epipolar inliers
             alone do not prove a pose: unrelated images reach 40-75 of them.
+        min_reference_spread_deg: estimators that take the position from the references'
+            baselines (``e5p1``, ``essential_5pt``) answer ``degenerate_geometry`` when the
+            references with inliers spread less than this many degrees around some direction
+            as seen from the query, or lie on a line they look along
+            (``services.estimators.position_conditioning``).
     """
 
     min_inliers: int = 30
     min_references: int = 2
     min_verified_points: int = 10
+    min_reference_spread_deg: float = 3.0
 
 
 class PoseApproxMode(StrEnum):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from services.errors import UnknownComponentError
+from services.estimators.auto import AutoEstimator
 from services.estimators.base import PoseEstimator
 from services.estimators.e3p1 import E3p1Estimator
 from services.estimators.e5p1 import E5p1Estimator
@@ -26,11 +27,15 @@ _ESTIMATORS: dict[str, PoseEstimator] = {
         LocalTriPairsEstimator(),
     )
 }
+# auto runs the others, chosen per query
+_ESTIMATORS[AutoEstimator.name] = AutoEstimator(_ESTIMATORS)
 
 # the estimators that need depth for the query and the references, as each declares
 DEPTH_ESTIMATORS = frozenset(name for name, e in _ESTIMATORS.items() if e.needs_depth)
+# the estimators that use the query's depth when it is sent: those that need it, and auto
+DEPTH_USING_ESTIMATORS = DEPTH_ESTIMATORS | {AutoEstimator.name}
 
-DEFAULT_ESTIMATOR = E5p1Estimator.name
+DEFAULT_ESTIMATOR = AutoEstimator.name
 
 
 def estimator_names() -> list[str]:

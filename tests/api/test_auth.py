@@ -69,7 +69,8 @@ def test_roles(secured: TestClient) -> None:
 def test_health_needs_no_key(secured: TestClient) -> None:
     body = secured.get("/v1/health").json()
     assert body["status"] == "ok"
-    assert "e5p1" in body["models"]["estimators"] and len(body["models"]["estimators"]) == 8
+    assert {"auto", "e5p1"} <= set(body["models"]["estimators"])
+    assert len(body["models"]["estimators"]) == 9
 
 
 def test_bad_key_setting_is_refused() -> None:

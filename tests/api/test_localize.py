@@ -75,7 +75,9 @@ def test_localizes_held_out_views(
 
 def test_result_shape(client: TestClient, scene_map: str, query_views: list[SyntheticView]) -> None:
     result = _localize(client, scene_map, encode_png(query_views[0].image), {"top_k": 5})
-    assert result["estimator"] == "e5p1"
+    assert result["estimator"] == "auto"  # the default
+    assert result["estimator_used"] in {"e5p1", "local_tri_all", "motion_averaging"}
+    assert isinstance(result["estimator_reason"], str) and result["estimator_reason"]
     assert len(result["retrieved"]) == 5
     scores = [r["score"] for r in result["retrieved"]]
     assert scores == sorted(scores, reverse=True)
@@ -173,7 +175,9 @@ def test_map_default_estimator(client: TestClient, query_views: list[SyntheticVi
     assert created.status_code == 201 and created.json()["default_estimator"] == "local_tri_all"
     image = encode_png(query_views[0].image)
     map_id = created.json()["id"]
-    assert _localize(client, map_id, image, {})["estimator"] == "local_tri_all"
+    answer = _localize(client, map_id, image, {})
+    assert answer["estimator"] == answer["estimator_used"] == "local_tri_all"
+    assert answer["estimator_reason"] is None
     assert _localize(client, map_id, image, {"estimator": "e5p1"})["estimator"] == "e5p1"
     bad = client.post("/v1/maps", json={"name": "x", "default_estimator": "magic"})
     assert bad.status_code == 422 and "unknown estimator 'magic'" in bad.json()["detail"]

@@ -26,6 +26,7 @@ GEOMETRIC = [name for name in ALL if name != "pose_approx"]
 
 def test_registry_has_the_whole_family() -> None:
     assert set(ALL) == {
+        "auto",
         "pose_approx",
         "essential_5pt",
         "essential_3pt_depth",

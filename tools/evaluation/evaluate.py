@@ -232,6 +232,8 @@ def _localize_all(
                 if record.localized and query is not None
                 else f"{estimator} {'accepted' if record.localized else record.reason}"
             )
+            if outcome.estimator_used not in (None, estimator):
+                cells[-1] += f" ({outcome.estimator_used})"
         eta = (time.perf_counter() - start) / i * (len(queries) - i)
         log(
             f"[{runner.features} {i}/{len(queries)}, eta {eta:.0f} s] {item.name}: "

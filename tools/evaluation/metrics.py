@@ -49,6 +49,7 @@ class QueryRecord:
     unrelated: bool = False
     wrong_intrinsics: bool = False
     stats: dict[str, float] = field(default_factory=dict)
+    estimator_used: str | None = None
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,7 @@ def make_record(
         confidence=outcome.confidence,
         timings_ms=outcome.timings_ms,
         retrieved=outcome.retrieved,
+        estimator_used=outcome.estimator_used,
         cam_from_world=pose.model_dump() if pose is not None else None,
         unrelated=truth is None,
         stats=outcome.stats,

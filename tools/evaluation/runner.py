@@ -33,7 +33,7 @@ from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import build_localizer
-from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_ESTIMATORS
+from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
 from services.pipeline import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES
@@ -57,6 +57,7 @@ class QueryOutcome:
         retrieved: names of the retrieved references, best first.
         timings_ms: the answer's stages plus ``client`` (wall time seen by the evaluator).
         stats: the engine's numbers about the estimate (in process only; the API has none).
+        estimator_used: the estimator whose answer it is (``auto`` names its choice).
     """
 
     localized: bool
@@ -67,6 +68,7 @@ class QueryOutcome:
     retrieved: list[str]
     timings_ms: dict[str, float]
     stats: dict[str, float] = field(default_factory=dict)
+    estimator_used: str | None = None
 
 
 class Runner(Protocol):
@@ -179,7 +181,7 @@ class InProcessRunner:
             LocalizeParamsIn.model_validate(params).to_request(),
             estimators,
             image,
-            depth if any(name in DEPTH_ESTIMATORS for name in estimators) else None,
+            depth if any(name in DEPTH_USING_ESTIMATORS for name in estimators) else None,
             max_top_k=1_000_000,
             cache=self._cache,
         )
@@ -203,6 +205,7 @@ def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
         retrieved=[r.name for r in result.retrieved],
         timings_ms={**result.timings_ms, "client": client_ms},
         stats=dict(result.stats),
+        estimator_used=result.estimator_used,
     )
 
 
@@ -302,6 +305,7 @@ class HttpRunner:
             confidence=float(body["confidence"]),
             retrieved=[r["name"] for r in body["retrieved"]],
             timings_ms=timings,
+            estimator_used=body.get("estimator_used"),
         )
 
     def localize_each(
@@ -315,7 +319,7 @@ class HttpRunner:
         return [
             self.localize(
                 image,
-                depth if name in DEPTH_ESTIMATORS else None,
+                depth if name in DEPTH_USING_ESTIMATORS else None,
                 {**params, "estimator": name},
             )
             for name in estimators

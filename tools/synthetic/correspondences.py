@@ -64,9 +64,11 @@ def sample_room_points(rng: np.random.Generator, count: int) -> FloatArray:
     return np.asarray(origins + ab[:, :1] * us + ab[:, 1:] * vs, dtype=np.float64)
 
 
-def _project(
+def project_points(
     camera: Camera, pose: Rigid3d, points: FloatArray
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """(N, 3) world points → (N, 2) pixels (COLMAP convention, pinhole), (N,) z-depth and
+    (N,) whether each is in front of the camera (z > 0.1) and inside the image."""
     X = pose.apply(points)
     z = X[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -109,7 +111,7 @@ def make_correspondences(
     R_q = _rotation(rng, np.eye(3), 8.0)
     query_pose = Rigid3d(R_q, -R_q @ q_center)
     points = sample_room_points(rng, num_points)
-    q_xy, q_z, q_vis = _project(camera, query_pose, points)
+    q_xy, q_z, q_vis = project_points(camera, query_pose, points)
     points, q_xy, q_z = points[q_vis], q_xy[q_vis], q_z[q_vis]
     q_xy_noisy = q_xy + rng.normal(0.0, noise_px, q_xy.shape)  # one keypoint per point
     shared_center = q_center + rng.uniform([-1.5, -0.5, -1.5], [1.5, 0.5, 1.5])
@@ -122,7 +124,7 @@ def make_correspondences(
         )
         R = _rotation(rng, R_q, 10.0)
         pose = Rigid3d(R, -R @ center)
-        r_xy, r_z, r_vis = _project(camera, pose, points)
+        r_xy, r_z, r_vis = project_points(camera, pose, points)
         visible = np.flatnonzero(r_vis)
         m = min(matches_per_reference, visible.size)
         chosen = rng.choice(visible, size=m, replace=False)

@@ -1,0 +1,187 @@
+"""``auto``: chooses, per query, which estimators to run, from the geometry the request shows
+before any pose is estimated, and which of their verified poses to answer.
+
+The plan (``plan_estimators``) has a first stage, whose estimators all run and whose verified
+poses are compared, and fallbacks tried in order when none of them verifies:
+
+- **forward motion** — the retrieved references lie on a line they look along (frames of a
+  vehicle driving straight ahead, ``position_conditioning.ReferenceLayout``): the query's
+  position along that line is unobservable for epipolar constraints, so E5+1 and the
+  essential-matrix family are skipped. ``local_tri_all`` first; ``motion_averaging`` (whose last
+  step is a 2D–3D refinement too) and, with depth for the query, ``e3p1`` (scale from depth) as
+  fallbacks.
+- **otherwise** — ``e5p1`` and ``local_tri_all`` both (E5+1 has the best accuracy for its time
+  in Panek et al. 2025, "A Guide to Structureless Visual Localization", local triangulation the
+  best accuracy; ``local_tri_all`` adds ~20 ms); ``motion_averaging`` then, with depth,
+  ``e3p1`` as fallbacks. E5+1 answers ``degenerate_geometry`` by itself when the query turns
+  out to lie on the line of the references.
+
+Choosing between verified poses (``choose``): the pose of local triangulation, which ends on a
+2D–3D refinement, is kept unless it has fewer than ``PREFER_RATIO`` times the epipolar inliers of
+the other — then its triangulated structure went wrong (on redkitchen: four queries where
+``local_tri_all`` was 0.4–1 m off with 11–16 % fewer inliers than ``e5p1``).
+
+Every pose goes through the 3D verification (``services.verification``); every estimator gets
+what is left of the time budget. The answer names the estimator whose pose it is and why
+(``EstimateResult.estimator_used`` and ``estimator_reason``); when every estimator fails, the
+first one's failure is the answer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from services.estimators.base import (
+    EstimateResult,
+    FailureReason,
+    PoseEstimator,
+    ReferenceObservation,
+)
+from services.estimators.estimator import precheck
+from services.estimators.options import EstimatorOptions
+from services.estimators.position_conditioning import ReferenceLayout, reference_layout
+from services.estimators.ransac import Deadline
+from services.geometry.camera import Camera
+from services.verification import verify_pose
+
+# local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
+# the other verified pose's
+PREFER_RATIO = 0.97
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What to run: ``first`` all, their verified poses compared; then ``fallbacks`` in order
+    until one verifies; and why (a short sentence for the answer)."""
+
+    first: tuple[str, ...]
+    fallbacks: tuple[str, ...]
+    reason: str
+
+    @property
+    def estimators(self) -> tuple[str, ...]:
+        return self.first + self.fallbacks
+
+
+def has_depth(references: list[ReferenceObservation]) -> bool:
+    """The query has depth at some matched keypoint and so has some reference."""
+
+    def any_positive(values: object) -> bool:
+        return values is not None and bool(np.any(np.asarray(values) > 0))
+
+    return any(any_positive(ref.query_depth) for ref in references) and any(
+        any_positive(ref.reference_depth) for ref in references
+    )
+
+
+def layout_of(references: list[ReferenceObservation]) -> ReferenceLayout:
+    """The layout of the references that have matches, weighted by their match counts."""
+    return reference_layout(
+        np.stack([ref.cam_from_world.center for ref in references]),
+        np.stack([ref.cam_from_world.rotation[2] for ref in references]),
+        np.array([float(ref.num_matches) for ref in references]),
+    )
+
+
+def plan_estimators(layout: ReferenceLayout, depth: bool) -> Plan:
+    """What to run for a request with this reference layout, with or without depth."""
+    depth_fallback = ("e3p1",) if depth else ()
+    if layout.forward_motion:
+        return Plan(
+            ("local_tri_all",),
+            ("motion_averaging", *depth_fallback),
+            f"forward motion: reference centres on a line (collinearity "
+            f"{layout.collinearity:.2f}) {layout.line_view_angle_deg:.0f}° from their viewing "
+            "direction, where epipolar constraints leave the position along it unobservable",
+        )
+    return Plan(
+        ("e5p1", "local_tri_all"),
+        ("motion_averaging", *depth_fallback),
+        f"references spread around the query (collinearity {layout.collinearity:.2f})",
+    )
+
+
+def choose(verified: dict[str, EstimateResult]) -> tuple[str, str]:
+    """The name of the verified pose to answer (``verified`` non-empty) and why."""
+    if len(verified) == 1:
+        return next(iter(verified)), "the only verified pose"
+    others = {name: r for name, r in verified.items() if name != "local_tri_all"}
+    best = max(others, key=lambda name: others[name].num_inliers)
+    if "local_tri_all" not in verified:
+        return best, "the most inliers"
+    local, other = verified["local_tri_all"].num_inliers, others[best].num_inliers
+    if local >= PREFER_RATIO * other:
+        return "local_tri_all", f"2D–3D refined, {local} inliers vs {best}'s {other}"
+    return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
+
+
+class AutoEstimator:
+    """Runs the estimators of ``plan_estimators`` and answers the pose ``choose`` keeps.
+
+    Args:
+        candidates: the estimators by name (the registry's), which the plans refer to.
+    """
+
+    name = "auto"
+    needs_depth = False
+
+    def __init__(self, candidates: Mapping[str, PoseEstimator]) -> None:
+        self.candidates = dict(candidates)
+
+    def estimate(
+        self,
+        query_camera: Camera,
+        references: list[ReferenceObservation],
+        options: EstimatorOptions,
+    ) -> EstimateResult:
+        reason = precheck(references, min_matches=1)
+        if reason is not None:
+            return replace(
+                EstimateResult.failure(reason, references),
+                estimator_used=self.name,
+                estimator_reason="no estimator ran",
+            )
+        deadline = Deadline(options.time_budget_s)
+        plan = plan_estimators(layout_of(references), has_depth(references))
+        results: dict[str, EstimateResult] = {}
+        for name in plan.estimators:
+            if deadline.expired() or (name in plan.fallbacks and self._verified(results)):
+                break
+            left = deadline.remaining_s()
+            budget = replace(options, time_budget_s=None if left == float("inf") else left)
+            results[name] = verify_pose(
+                self.candidates[name].estimate(query_camera, references, budget),
+                query_camera,
+                references,
+                budget,
+            )
+        attempts = {"auto_attempts": float(len(results))}
+        verified = self._verified(results)
+        if verified:
+            name, why = choose(verified)
+            failed = [f"{n} {r.failure_reason}" for n, r in results.items() if n not in verified]
+            tried = f"; failed: {', '.join(failed)}" if failed else ""
+            return replace(
+                verified[name],
+                stats=verified[name].stats | attempts,
+                estimator_used=name,
+                estimator_reason=f"{plan.reason}; {name}: {why}{tried}",
+            )
+        first_name = plan.estimators[0]
+        first = results.get(first_name) or EstimateResult.failure(
+            FailureReason.TIME_BUDGET_EXCEEDED, references
+        )
+        return replace(
+            first,
+            stats=first.stats | attempts,
+            estimator_used=first_name,
+            estimator_reason=f"{plan.reason}; no estimator localized "
+            f"({', '.join(results) or 'none ran'})",
+        )
+
+    @staticmethod
+    def _verified(results: dict[str, EstimateResult]) -> dict[str, EstimateResult]:
+        return {name: r for name, r in results.items() if r.cam_from_world is not None}
