@@ -10,6 +10,7 @@ from app.api.deps import (
     AdmissionDep,
     ClientKey,
     LocalizerDep,
+    MetricsDep,
     RetrievalCacheDep,
     SessionsDep,
     SettingsDep,
@@ -46,6 +47,7 @@ def localize(
     cache: RetrievalCacheDep,
     admission: AdmissionDep,
     trainer: TrainerDep,
+    metrics: MetricsDep,
     image: Annotated[UploadFile, File(description="Query image, JPEG or PNG")],
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
@@ -76,4 +78,5 @@ def localize(
             slots=admission.slots,
             trainer=trainer,
         )
+    metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(result, body.return_inliers)
