@@ -67,8 +67,7 @@ class ServiceMetrics:
         )
         self.outcomes = Counter(
             "slloc_localize_outcomes",
-            "Localize answers (HTTP 200) by estimator and outcome; reason is none when "
-            "localized",
+            "Localize answers (HTTP 200) by estimator and outcome; reason is none when localized",
             ("estimator", "localized", "reason"),
             registry=self.registry,
         )
@@ -183,9 +182,7 @@ class RequestMetrics:
         finally:
             method, route = scope["method"], self._template(scope)
             self.metrics.requests.labels(method, route, str(status)).inc()
-            self.metrics.request_seconds.labels(method, route).observe(
-                time.perf_counter() - start
-            )
+            self.metrics.request_seconds.labels(method, route).observe(time.perf_counter() - start)
 
     def _template(self, scope: Scope) -> str:
         routed = getattr(scope.get("route"), "path", None)

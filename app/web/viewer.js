@@ -299,6 +299,7 @@ function drawQuery(result, camera) {
     state.query.name = "query";
     three.group.add(state.query);
     $("scene").dataset.queryFrustum = "1";
+    $("scene").dataset.queryCentre = JSON.stringify(centre(result.cam_from_world));
   }
   three.render();
 }

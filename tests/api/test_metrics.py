@@ -102,7 +102,9 @@ def test_metrics_after_localize(
     maps = metrics["slloc_map_images"]
     assert value(maps, "slloc_map_images", map_id=map_id, map="scene") == 8
     assert value(maps, "slloc_map_images", map_id=empty, map="empty") == 0
-    assert value(metrics["slloc_retrieval_cache_references"], "slloc_retrieval_cache_references") >= 8
+    assert (
+        value(metrics["slloc_retrieval_cache_references"], "slloc_retrieval_cache_references") >= 8
+    )
     assert value(metrics["slloc_retrieval_cache_bytes"], "slloc_retrieval_cache_bytes") > 0
     settings = Settings()
     capacity = value(metrics["slloc_admission_capacity"], "slloc_admission_capacity")
