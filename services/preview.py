@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numpy as np
+from numpy.typing import NDArray
 
 from services.types import UInt8Array
 
@@ -30,7 +32,7 @@ def make_preview(image: UInt8Array, max_side: int) -> Preview:
         raise ValueError(f"max_side must be positive, got {max_side}")
     height, width = image.shape[:2]
     scale = min(1.0, max_side / max(height, width))
-    shown = image
+    shown: NDArray[np.generic] = image
     if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         shown = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
