@@ -6,8 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
-import numpy as np
-from numpy.typing import NDArray
 
 from services.types import UInt8Array
 
@@ -32,11 +30,10 @@ def make_preview(image: UInt8Array, max_side: int) -> Preview:
         raise ValueError(f"max_side must be positive, got {max_side}")
     height, width = image.shape[:2]
     scale = min(1.0, max_side / max(height, width))
-    shown: NDArray[np.generic] = image
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        shown = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    bgr = cv2.cvtColor(shown, cv2.COLOR_RGB2BGR)
+        bgr = cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)
     ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:  # pragma: no cover - OpenCV encodes any 8-bit RGB image
         raise RuntimeError("JPEG encoding failed")
