@@ -22,9 +22,22 @@ class Admission:
 
     def __init__(self, workers: int, queued: int) -> None:
         self.slots = threading.BoundedSemaphore(workers)
+        self.workers = workers
         self._capacity = workers + queued
         self._admitted = 0
         self._lock = threading.Lock()
+
+    @property
+    def capacity(self) -> int:
+        """Requests that may be admitted at once (computing or waiting)."""
+        return self._capacity
+
+    @property
+    def admitted(self) -> int:
+        """Requests admitted now: computing, waiting for a worker, or reading the database
+        before or after their engine work."""
+        with self._lock:
+            return self._admitted
 
     @contextmanager
     def admit(self) -> Iterator[None]:

@@ -18,9 +18,12 @@ from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
 from app.localizer_factory import build_localizer, thread_plan
 from app.logs import install_request_id_records
+from app.metrics import RequestMetrics, ServiceMetrics
+from app.metrics import router as metrics_router
 from app.openapi import install_openapi
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
+from app.viewer import install_viewer
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.pipeline import Localizer
@@ -77,8 +80,13 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.add_middleware(ApiKeyGate, routes=routes)
     # around the others: every answer, their 401 and 413 included, carries the request id
     app.add_middleware(RequestContext)
+    # outermost: every answer is counted under its route template
+    app.state.metrics = ServiceMetrics(app.state)
+    app.add_middleware(RequestMetrics, metrics=app.state.metrics, routes=routes)
     install_error_handlers(app, routes)
     for router in routers:
         app.include_router(router)
+    app.include_router(metrics_router)
+    install_viewer(app)
     install_openapi(app)
     return app

@@ -120,6 +120,17 @@ class Settings(BaseSettings):
         description="`slloc serve`: log lines as text (time level logger [request id]: "
         "message) or as JSON objects, one per line",
     )
+    metrics_require_key: bool = Field(
+        False,
+        description="GET /metrics needs an admin or client X-API-Key (default: open, like "
+        "/v1/health; it shows map ids, names and sizes)",
+    )
+    preview_max_side: int = Field(
+        1024,
+        ge=0,
+        description="Longer side (px) of the JPEG preview kept of each reference image for "
+        "the viewer (GET …/images/{image_id}/preview); 0 = keep none",
+    )
     limit_concurrency: int = Field(
         64,
         gt=0,

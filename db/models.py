@@ -130,6 +130,20 @@ class FeatureArray(Base):
     image: Mapped[ReferenceImage] = relationship(back_populates="arrays")
 
 
+class ReferencePreview(Base):
+    """A JPEG preview of a reference image for display, its longer side bounded by the
+    service's ``preview_max_side``; never read by the engine."""
+
+    __tablename__ = "reference_previews"
+
+    image_id: Mapped[str] = mapped_column(
+        ForeignKey("reference_images.id", ondelete="CASCADE"), primary_key=True
+    )
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    jpeg: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 class MapVocabulary(Base):
     """The current VLAD vocabulary of a map for one local-feature model: (K, D) float32
     k-means centres of the map's own stored descriptors. ``version`` grows with every

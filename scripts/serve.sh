@@ -9,5 +9,7 @@ if ! scripts/build_models.sh; then
     "${SLLOC_MODELS_DIR:-./models} already holds; without ALIKED + LightGlue it serves the" \
     "weight-free SIFT pipeline (GET /v1/health names the features in use)." >&2
 fi
+scripts/build_web.sh || echo "WARNING: the viewer's three.js could not be installed; /viewer/" \
+  "works without its 3D view" >&2
 .venv/bin/slloc db upgrade
 exec .venv/bin/slloc serve "$@"

@@ -323,6 +323,7 @@ def _import(args: argparse.Namespace) -> int:
                 item.metadata.to_new_image(),
                 item.image_path.read_bytes(),
                 depth,
+                preview_max_side=settings.preview_max_side,
             )
             added_here.add(item.metadata.name)
             status = f"added ({out.num_keypoints} keypoints)"

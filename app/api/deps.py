@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.admission import Admission
 from app.auth import RoleCheck
 from app.errors import ProblemError, invalid, too_large
+from app.metrics import ServiceMetrics
 from app.settings import Settings
 from services.pipeline import Localizer
 from services.reference_cache import ReferenceFeatureCache
@@ -57,6 +58,11 @@ async def get_admission(request: Request) -> Admission:
     return admission
 
 
+async def get_metrics(request: Request) -> ServiceMetrics:
+    metrics: ServiceMetrics = request.app.state.metrics
+    return metrics
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
@@ -64,6 +70,7 @@ RetrievalCacheDep = Annotated[RetrievalIndexCache, Depends(get_retrieval_cache)]
 ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache)]
 AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
+MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)
 MAX_OFFSET = 2**31 - 1

@@ -20,7 +20,9 @@ from db.vocabulary import SqlVocabularyStore
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from services.imaging import decode_image
 from services.pipeline import Localizer
+from services.preview import Preview, make_preview
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer
@@ -62,12 +64,14 @@ def add_reference_image(
     depth_bytes: bytes | None = None,
     trainer: BackgroundTrainer | None = None,
     slots: AbstractContextManager[object] = nullcontext(),
+    preview_max_side: int = 0,
 ) -> StoredImage:
     """Describe and store a posed reference image: the row and all its features in one
     transaction, or nothing. Without a GPS position, the one in the image's EXIF is kept.
     With a ``trainer``, a retrieval vocabulary that the add makes due is trained in the
     background, so no request waits for it. ``slots`` is held while the image is described
-    (bounds concurrent engine work).
+    (bounds concurrent engine work). ``preview_max_side`` > 0 stores a JPEG preview of the
+    image with its longer side at most that many pixels.
 
     Raises:
         NotFoundError: unknown map.
@@ -85,12 +89,19 @@ def add_reference_image(
         localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
     with slots:
         data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
+        preview = (
+            make_preview(decode_image(image_bytes, localizer.max_pixels), preview_max_side)
+            if preview_max_side > 0
+            else None
+        )
     try:
         with sessions.begin() as session:
             require_map(session, map_id)  # deleted while we extracted
             row = ImageRepository(session).add(
                 map_id, image.name, image.camera, image.cam_from_world, data, image.gps
             )
+            if preview is not None:
+                ImageRepository(session).add_preview(row.id, preview)
             stored = _stored(row)
     except IntegrityError as exc:
         with sessions() as session:
@@ -137,6 +148,20 @@ def get_image(sessions: sessionmaker[Session], map_id: str, image_id: str) -> St
             require_map(session, map_id)
             raise NotFoundError("image", image_id)
         return _stored(row)
+
+
+def get_preview(sessions: sessionmaker[Session], map_id: str, image_id: str) -> Preview:
+    """The JPEG preview of one image of the map.
+
+    Raises:
+        NotFoundError: unknown map or image, or an image stored without a preview.
+    """
+    with sessions() as session:
+        preview = ImageRepository(session).preview(map_id, image_id)
+        if preview is None:
+            get_image(sessions, map_id, image_id)
+            raise NotFoundError("preview of image", image_id)
+        return preview
 
 
 def delete_image(

@@ -6,10 +6,11 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from db.arrays import to_row
-from db.models import FeatureArray, Map, ReferenceImage, is_stored_id
+from db.models import FeatureArray, Map, ReferenceImage, ReferencePreview, is_stored_id
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
+from services.preview import Preview
 from services.references import ReferenceData
 
 
@@ -81,6 +82,25 @@ class ImageRepository:
                 .order_by(ReferenceImage.created_at, ReferenceImage.id)
             )
         )
+
+    def add_preview(self, image_id: str, preview: Preview) -> None:
+        self.session.add(
+            ReferencePreview(
+                image_id=image_id, width=preview.width, height=preview.height, jpeg=preview.jpeg
+            )
+        )
+        self.session.flush()
+
+    def preview(self, map_id: str, image_id: str) -> Preview | None:
+        """The image's preview; None for an unknown image or one stored without a preview."""
+        if not (is_stored_id(map_id) and is_stored_id(image_id)):
+            return None
+        row = self.session.scalars(
+            select(ReferencePreview)
+            .join(ReferenceImage, ReferenceImage.id == ReferencePreview.image_id)
+            .where(ReferencePreview.image_id == image_id, ReferenceImage.map_id == map_id)
+        ).one_or_none()
+        return None if row is None else Preview(row.jpeg, row.width, row.height)
 
     def get(self, map_id: str, image_id: str) -> ReferenceImage | None:
         if not (is_stored_id(map_id) and is_stored_id(image_id)):

@@ -57,6 +57,19 @@ class MapRepository:
         ).all()
         return {map_id: int(count) for map_id, count in rows}
 
+    def largest(self, limit: int) -> list[tuple[str, str, int]]:
+        """``(id, name, image count)`` of the ``limit`` maps with the most images, largest
+        first."""
+        count = func.count(ReferenceImage.id)
+        rows = self.session.execute(
+            select(Map.id, Map.name, count)
+            .outerjoin(ReferenceImage, ReferenceImage.map_id == Map.id)
+            .group_by(Map.id, Map.name)
+            .order_by(count.desc(), Map.id)
+            .limit(limit)
+        ).all()
+        return [(map_id, name, int(n)) for map_id, name, n in rows]
+
     def delete(self, map_id: str) -> bool:
         """Delete a map with its images and their features. True when it existed."""
         # ON DELETE CASCADE does the work on both backends; the explicit statement keeps the

@@ -34,6 +34,16 @@ class IndexSource(Protocol):
     ) -> RetrievalIndex: ...
 
 
+@dataclass(frozen=True)
+class CacheSize:
+    """What a ``RetrievalIndexCache`` holds: indexes (one per map and model pair), their
+    references, and the bytes of their descriptor and centre arrays."""
+
+    indexes: int
+    references: int
+    nbytes: int
+
+
 @dataclass
 class _CachedIndex:
     revision: int
@@ -74,6 +84,15 @@ class RetrievalIndexCache:
                     entry.index = _catch_up(entry.index, store, vocabulary)
                 entry.revision = revision
             return entry.index
+
+    def size(self) -> CacheSize:
+        with self._lock:
+            indexes = [entry.index for entry in self._entries.values()]
+        return CacheSize(
+            indexes=len(indexes),
+            references=sum(len(index.image_ids) for index in indexes),
+            nbytes=sum(index.descriptors.nbytes + index.centers.nbytes for index in indexes),
+        )
 
 
 def _catch_up(

@@ -70,6 +70,7 @@ def add_image(
             depth_bytes,
             trainer=trainer if settings.global_model is None else None,
             slots=admission.slots,
+            preview_max_side=settings.preview_max_side,
         )
     return ImageOut.from_stored(stored)
 
@@ -99,6 +100,27 @@ def list_images(
 )
 def get_image(map_id: str, image_id: str, sessions: SessionsDep) -> ImageOut:
     return ImageOut.from_stored(images.get_image(sessions, map_id, image_id))
+
+
+@router.get(
+    "/{image_id}/preview",
+    operation_id="get_image_preview",
+    dependencies=[ClientKey],
+    response_class=Response,
+    responses={
+        200: {"content": {"image/jpeg": {}}, "description": "The JPEG preview"},
+        **problem_responses(401, 404),
+    },
+)
+def get_image_preview(map_id: str, image_id: str, sessions: SessionsDep) -> Response:
+    """A JPEG of the reference image for display, its longer side at most
+    ``SLLOC_PREVIEW_MAX_SIDE`` pixels: scale the image's pixel coordinates (inliers) by the
+    preview's width over ``camera.width``. 404 for an image stored without a preview (added
+    with previews off)."""
+    preview = images.get_preview(sessions, map_id, image_id)
+    # an image id names one image for good (images are never modified in place)
+    headers = {"Cache-Control": "private, max-age=86400, immutable"}
+    return Response(preview.jpeg, media_type="image/jpeg", headers=headers)
 
 
 @router.delete(

@@ -10,6 +10,7 @@ from app.api.deps import (
     AdmissionDep,
     ClientKey,
     LocalizerDep,
+    MetricsDep,
     ReferenceCacheDep,
     RetrievalCacheDep,
     SessionsDep,
@@ -59,6 +60,7 @@ def localize(
             "described by params.frames, in order; together within the upload limit)"
         ),
     ],
+    metrics: MetricsDep,
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
     ] = "{}",
@@ -121,6 +123,7 @@ def localize(
             trainer=trainer,
             features_cache=features_cache,
         )
+    metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(
         result, body.return_inliers, geo.geopose_answer(registration, result)
     )

@@ -1,0 +1,220 @@
+"""Prometheus metrics of one app (``GET /metrics``): HTTP requests by route template, localize
+stage timings and outcomes, and, read at each scrape, the admission queue, the retrieval cache
+and the size of the largest maps."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping, Sequence
+
+from fastapi import APIRouter, Depends, Request, Response
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+)
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.metrics_core import Metric
+from prometheus_client.registry import Collector
+from sqlalchemy.exc import SQLAlchemyError
+from starlette.datastructures import State
+from starlette.routing import BaseRoute, Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.auth import API_KEY_HEADER, RoleCheck
+from db.repositories.maps import MapRepository
+
+logger = logging.getLogger(__name__)
+
+# seconds; HTTP answers range from a cached health probe to a localize near its time budget
+REQUEST_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+STAGE_BUCKETS_S = (0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+# the route label of a request that matched no route (keeps the label set bounded)
+UNMATCHED_ROUTE = "unmatched"
+# maps reported by `slloc_map_images` at each scrape, the largest first
+MAX_MAP_SERIES = 1000
+
+
+class ServiceMetrics:
+    """The app's metrics in a registry of their own (two apps in one process never share
+    series). ``state`` is the app's state, read at scrape time for the gauges."""
+
+    def __init__(self, state: State) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "slloc_http_requests",
+            "HTTP requests answered, by method, route template and status code",
+            ("method", "route", "status"),
+            registry=self.registry,
+        )
+        self.request_seconds = Histogram(
+            "slloc_http_request_duration_seconds",
+            "Time from a request's arrival to the end of its answer, by route template",
+            ("method", "route"),
+            buckets=REQUEST_BUCKETS_S,
+            registry=self.registry,
+        )
+        self.stage_seconds = Histogram(
+            "slloc_localize_stage_seconds",
+            "Localize time per engine stage (decode, extract, retrieve, match, estimate) and "
+            "in total; stages a request never reached are not observed",
+            ("stage",),
+            buckets=STAGE_BUCKETS_S,
+            registry=self.registry,
+        )
+        self.outcomes = Counter(
+            "slloc_localize_outcomes",
+            "Localize answers (HTTP 200) by estimator and outcome; reason is none when localized",
+            ("estimator", "localized", "reason"),
+            registry=self.registry,
+        )
+        self.registry.register(_StateCollector(state))
+
+    def observe_localization(
+        self, estimator: str, reason: str | None, timings_ms: Mapping[str, float]
+    ) -> None:
+        """Count one localize answer; ``timings_ms`` as in the result (0: not reached)."""
+        self.outcomes.labels(estimator, str(reason is None).lower(), reason or "none").inc()
+        for stage, ms in timings_ms.items():
+            if ms > 0.0:
+                self.stage_seconds.labels(stage).observe(ms / 1000.0)
+
+    def exposition(self) -> bytes:
+        """The registry in the Prometheus text format."""
+        return generate_latest(self.registry)
+
+
+class _StateCollector(Collector):
+    """Gauges read from the app's state at each scrape."""
+
+    def __init__(self, state: State) -> None:
+        self.state = state
+
+    def collect(self) -> Iterable[Metric]:
+        # the attributes appear when the app's lifespan starts
+        admission = getattr(self.state, "admission", None)
+        if admission is not None:
+            admitted = admission.admitted
+            yield _gauge(
+                "slloc_admission_admitted",
+                "Localize and add requests admitted: computing or waiting for a worker",
+                admitted,
+            )
+            yield _gauge(
+                "slloc_admission_queue_depth",
+                "Admitted localize and add requests beyond the worker count (waiting)",
+                max(0, admitted - admission.workers),
+            )
+            yield _gauge(
+                "slloc_admission_capacity",
+                "Localize and add requests admitted at most (workers + queue); more get 503",
+                admission.capacity,
+            )
+        cache = getattr(self.state, "retrieval_cache", None)
+        if cache is not None:
+            size = cache.size()
+            yield _gauge(
+                "slloc_retrieval_cache_indexes",
+                "Retrieval indexes held in memory (one per map and feature model)",
+                size.indexes,
+            )
+            yield _gauge(
+                "slloc_retrieval_cache_references",
+                "References in the retrieval indexes held in memory",
+                size.references,
+            )
+            yield _gauge(
+                "slloc_retrieval_cache_bytes",
+                "Bytes of the descriptor and position arrays of the cached retrieval indexes",
+                size.nbytes,
+            )
+        sessions = getattr(self.state, "sessions", None)
+        if sessions is not None:
+            maps = GaugeMetricFamily(
+                "slloc_map_images",
+                f"Reference images per map (the {MAX_MAP_SERIES} largest maps)",
+                labels=("map_id", "map"),
+            )
+            try:
+                with sessions() as session:
+                    largest = MapRepository(session).largest(MAX_MAP_SERIES)
+            except SQLAlchemyError:
+                logger.warning("metrics: map sizes left out, the database is unreachable")
+            else:
+                for map_id, name, count in largest:
+                    maps.add_metric((map_id, name), count)
+                yield maps
+
+
+def _gauge(name: str, documentation: str, value: float) -> GaugeMetricFamily:
+    return GaugeMetricFamily(name, documentation, value=value)
+
+
+class RequestMetrics:
+    """ASGI middleware: counts and times every HTTP request under its route template (e.g.
+    ``/v1/maps/{map_id}/localize``), so that ids never become label values. The template is
+    the route the router picked; for an answer given before routing (a 401 of the key gate)
+    it is the first of ``routes`` that matches the path."""
+
+    def __init__(self, app: ASGIApp, metrics: ServiceMetrics, routes: Sequence[BaseRoute]) -> None:
+        self.app = app
+        self.metrics = metrics
+        self.routes = routes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500
+
+        async def send_and_record(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_and_record)
+        finally:
+            method, route = scope["method"], self._template(scope)
+            self.metrics.requests.labels(method, route, str(status)).inc()
+            self.metrics.request_seconds.labels(method, route).observe(time.perf_counter() - start)
+
+    def _template(self, scope: Scope) -> str:
+        routed = getattr(scope.get("route"), "path", None)
+        if isinstance(routed, str):
+            return routed
+        partial = None
+        for route in self.routes:
+            match, _ = route.matches(scope)
+            path = getattr(route, "path", None)
+            if match is Match.FULL and isinstance(path, str):
+                return path
+            if match is Match.PARTIAL and partial is None and isinstance(path, str):
+                partial = path  # the path of a route with other methods (405)
+        return partial or UNMATCHED_ROUTE
+
+
+_ANY_KEY = RoleCheck(("admin", "client"))
+
+
+async def _metrics_access(request: Request) -> None:
+    """With ``SLLOC_METRICS_REQUIRE_KEY`` a scrape needs an admin or client key."""
+    settings = request.app.state.settings
+    if settings.metrics_require_key:
+        _ANY_KEY.check(settings, request.headers.get(API_KEY_HEADER))
+
+
+router = APIRouter()
+
+
+@router.get("/metrics", include_in_schema=False, dependencies=[Depends(_metrics_access)])
+def metrics(request: Request) -> Response:
+    """Prometheus text exposition (runs on a worker thread: the map sizes query the
+    database)."""
+    registry: ServiceMetrics = request.app.state.metrics
+    return Response(registry.exposition(), media_type=CONTENT_TYPE_LATEST)
