@@ -22,14 +22,14 @@ import numpy as np
 import pycolmap
 
 from services.estimators.base import FailureReason, ReferenceObservation
-from services.estimators.correspondences import stack_matches
+from services.estimators.correspondences import StackedMatches, stack_matches
 from services.estimators.options import EstimatorOptions, FocalOptions
 from services.estimators.ransac import Deadline
-from services.estimators.tracks import build_tracks, triangulate_tracks
+from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
 from services.geometry.camera import Camera, default_camera
 from services.geometry.pose_covariance import pose_covariance
 from services.geometry.rigid import Rigid3d
-from services.types import BoolArray, FloatArray
+from services.types import BoolArray, FloatArray, IntArray
 
 logger = logging.getLogger(__name__)
 
@@ -104,6 +104,42 @@ def _refit_focal(
     return refined if out is not None and np.isfinite(refined) and refined > 0 else None
 
 
+def _jackknife_sigma(
+    stacked: StackedMatches,
+    tracks: Tracks,
+    rows: IntArray,
+    width: int,
+    height: int,
+    focal: float,
+    pose: Rigid3d,
+    options: EstimatorOptions,
+) -> float:
+    """Leave-one-reference-out standard deviation of the focal length, pixels: the inlier
+    tracks ``rows`` are triangulated again without each reference and the focal refined on
+    them. Errors shared by one reference's points (its pose, its lens) move the points
+    together, which the per-point covariance cannot see; the jackknife does."""
+    num_views = tracks.match_index.shape[1]
+    observed = tracks.subset(rows)
+    refits = []
+    for left_out in range(num_views):
+        if not observed.observed[:, left_out].any():
+            continue
+        views = np.delete(np.arange(num_views), left_out)
+        tri = triangulate_tracks(stacked, observed, options.triangulation.max_error_px, views)
+        keep = np.flatnonzero(tri.valid)
+        if keep.size < options.focal.min_points:
+            continue
+        xy = stacked.query_xy[observed.query_match[keep]]
+        refit = _refit_focal(xy, tri.points[keep], width, height, focal, pose)
+        if refit is not None:
+            refits.append(refit)
+    n = len(refits)
+    if n < 3:
+        return 0.0
+    values = np.asarray(refits)
+    return float(np.sqrt((n - 1) / n * np.sum((values - values.mean()) ** 2)))
+
+
 def estimate_focal(
     width: int,
     height: int,
@@ -152,6 +188,10 @@ def estimate_focal(
     sigma = covariance.focal_sigma if covariance is not None else None
     if sigma is None:
         return unobservable()
+    stats["focal_relative_sigma_points"] = sigma / focal
+    jackknife = _jackknife_sigma(stacked, tracks, valid[mask], width, height, focal, pose, options)
+    stats["focal_relative_sigma_references"] = jackknife / focal
+    sigma = max(sigma, jackknife)
     stats["focal_relative_sigma"] = sigma / focal
     # two random halves of the inliers must agree on the focal length
     inlier_rows = np.flatnonzero(mask)

@@ -13,28 +13,22 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from services.errors import InvalidInputError
-from services.estimators.base import (
-    EstimateResult,
-    FailureReason,
-    PoseEstimator,
-    ReferenceObservation,
-)
+from services.estimators.base import FailureReason, PoseEstimator, ReferenceObservation
 from services.estimators.options import EstimatorOptions
 from services.estimators.ransac import Deadline
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
-from services.focal import estimate_focal
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
 from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
-from services.pose_uncertainty import PoseUncertainty, with_uncertainty
+from services.pose_answer import answer_pose
+from services.pose_uncertainty import PoseUncertainty
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
 from services.retrieval.vlad import encode
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
-from services.verification import verify_pose
 
 logger = logging.getLogger(__name__)
 
@@ -187,6 +181,7 @@ class Localizer:
             if depth_bytes is not None
             else None
         )
+        camera_used = params.camera
         lap("decode")
         query = self.extractor.extract(image)
         lap("extract")
@@ -211,35 +206,15 @@ class Localizer:
             for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
         uncertainty = None
-        focal_estimated = params.camera is None
         if not observations:
             outcome = None
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
             options = clock.bound(params.options)
-            focal = (
-                estimate_focal(camera.width, camera.height, observations, options, clock.deadline)
-                if focal_estimated
-                else None
+            answer = answer_pose(
+                estimator, camera, params.camera is None, observations, options, clock.deadline
             )
-            if focal is not None and focal.camera is None:
-                outcome = EstimateResult.failure(FailureReason.FOCAL_UNOBSERVABLE, observations)
-            else:
-                camera = focal.camera if focal is not None and focal.camera else camera
-                outcome, uncertainty = with_uncertainty(
-                    verify_pose(
-                        estimator.estimate(camera, observations, options),
-                        camera,
-                        observations,
-                        options,
-                    ),
-                    camera,
-                    observations,
-                    options,
-                    focal_estimated,
-                )
-            if focal is not None:
-                outcome = replace(outcome, stats={**outcome.stats, **focal.stats})
+            outcome, camera_used, uncertainty = answer.result, answer.camera, answer.uncertainty
             reason = outcome.failure_reason.value if outcome.failure_reason else None
         lap("estimate", check=False)  # the work is done: its answer is kept
         timings = clock.finish()
@@ -269,8 +244,8 @@ class Localizer:
             retrieved=retrieved,
             timings_ms=timings,
             stats=outcome.stats if outcome is not None else {},
-            camera=None if reason == FailureReason.FOCAL_UNOBSERVABLE else camera,
-            camera_source="estimated" if focal_estimated else "request",
+            camera=camera_used,
+            camera_source="estimated" if params.camera is None else "request",
             uncertainty=uncertainty,
         )
 

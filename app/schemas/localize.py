@@ -1,10 +1,13 @@
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, Field
 
 from app.schemas.estimators import EstimatorName
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
+from app.schemas.uncertainty import UncertaintyOut
 from app.usecases.localize import LocalizeRequest
 from services.estimators.base import FailureReason
 from services.pipeline import LocalizationResult
@@ -21,8 +24,9 @@ class LocalizeParamsIn(BaseModel):
 
     camera: CameraSchema | None = Field(
         None,
-        description="Query intrinsics. When absent: SIMPLE_PINHOLE, focal 1.2 × the longer "
-        "image side, principal point at the image centre.",
+        description="Query intrinsics. When absent, the focal length is estimated from the "
+        "matches (SIMPLE_PINHOLE, principal point at the image centre; answer camera_source "
+        "'estimated'), or the answer is localized: false with reason focal_unobservable.",
     )
     estimator: EstimatorName | None = Field(
         None, description="Estimator name; default: the map's default_estimator"
@@ -92,6 +96,13 @@ class LocalizeResult(BaseModel):
     retrieved: list[RetrievedOut]
     inliers: list[InliersOut] | None = None
     timings_ms: Timings
+    camera: CameraSchema | None = Field(
+        None, description="The query camera used: the request's, or the estimated one"
+    )
+    camera_source: Literal["request", "estimated"] | None = None
+    uncertainty: UncertaintyOut | None = Field(
+        None, description="Pose uncertainty; null without a pose or enough verified points"
+    )
 
     @classmethod
     def from_result(cls, result: LocalizationResult, return_inliers: bool) -> LocalizeResult:
@@ -127,4 +138,9 @@ class LocalizeResult(BaseModel):
             if return_inliers
             else None,
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
+            camera=CameraSchema.from_camera(result.camera) if result.camera is not None else None,
+            camera_source=result.camera_source,  # type: ignore[arg-type]
+            uncertainty=UncertaintyOut.from_uncertainty(result.uncertainty)
+            if result.uncertainty is not None
+            else None,
         )

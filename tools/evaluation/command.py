@@ -69,6 +69,7 @@ def eval_main(args: argparse.Namespace) -> int:
         use_depth=not args.no_depth,
         unrelated=args.unrelated,
         max_queries=args.max_queries,
+        send_intrinsics=not args.no_intrinsics,
     )
     factories: list[Callable[[], Runner]]
     if args.url:
@@ -93,6 +94,7 @@ def eval_main(args: argparse.Namespace) -> int:
         "features": None if args.url else features,
         "top_k": args.top_k,
         "max_error_px": args.max_error_px,
+        "intrinsics": not args.no_intrinsics,
         "thresholds": thresholds,
         "seconds": time.perf_counter() - start,
     }

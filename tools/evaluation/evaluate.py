@@ -37,6 +37,8 @@ class EvalOptions:
             the estimators that use depth).
         unrelated: also localize this many images of nothing in the map (false accepts).
         max_queries: localize only the first N queries of the split.
+        send_intrinsics: send each query's camera (False: none, the service estimates the
+            focal length).
     """
 
     estimators: Sequence[str]
@@ -45,6 +47,7 @@ class EvalOptions:
     use_depth: bool = True
     unrelated: int = 0
     max_queries: int | None = None
+    send_intrinsics: bool = True
 
 
 @dataclass
@@ -62,14 +65,12 @@ def _depth(image: PosedImage, wanted: bool) -> bytes | None:
 
 
 def localize_params(
-    camera: Camera, estimator: str, top_k: int, max_error_px: float | None = None
+    camera: Camera | None, estimator: str, top_k: int, max_error_px: float | None = None
 ) -> dict[str, Any]:
-    """The API's localize ``params`` object."""
-    params: dict[str, Any] = {
-        "camera": CameraSchema.from_camera(camera).model_dump(),
-        "estimator": estimator,
-        "top_k": top_k,
-    }
+    """The API's localize ``params`` object (without ``camera`` when ``camera`` is None)."""
+    params: dict[str, Any] = {"estimator": estimator, "top_k": top_k}
+    if camera is not None:
+        params["camera"] = CameraSchema.from_camera(camera).model_dump()
     if max_error_px is not None:
         params["max_error_px"] = max_error_px
     return params
@@ -175,7 +176,12 @@ def _localize_all(
                 if query is not None and estimator in DEPTH_ESTIMATORS
                 else None
             )
-            params = localize_params(item.camera, estimator, options.top_k, options.max_error_px)
+            params = localize_params(
+                item.camera if options.send_intrinsics else None,
+                estimator,
+                options.top_k,
+                options.max_error_px,
+            )
             try:
                 outcome = runner.localize(image, depth, params)
             except Exception as exc:  # this query's failure; the run goes on
