@@ -34,17 +34,17 @@ class TestEstimateFocal:
         assert found.stats["focal_points"] >= 100
 
     def test_within_five_percent_or_unobservable(self) -> None:
-        """Sparse scenes (6 references × 120 matches, 1.5 px noise, 30 % outliers): every
-        focal length reported is within 5 % of the truth; most scenes get one."""
+        """30 scenes (10 references × 200 matches, 1.5 px noise, 30 % outliers): every focal
+        length reported is within 5 % of the truth; most scenes get one."""
         answered = 0
-        for scene in _scenes(30, num_references=6, matches_per_reference=120, noise_px=1.5):
+        for scene in _scenes(30, num_references=10, matches_per_reference=200, noise_px=1.5):
             found = estimate_focal(640, 480, scene.references, TEST_OPTIONS, Deadline(None))
             if found.camera is None:
                 assert found.failure_reason is FailureReason.FOCAL_UNOBSERVABLE
                 continue
             answered += 1
             assert abs(found.camera.params[0] / TRUE_FOCAL - 1.0) < 0.05, found.stats
-        assert answered >= 5
+        assert answered >= 15
 
     def test_few_matches_are_unobservable(self) -> None:
         scene = make_correspondences(seed=3, num_references=2, matches_per_reference=25)
@@ -65,7 +65,7 @@ def test_uncertainty_covers_the_actual_error(name: str, focal_estimated: bool) -
     least 95 % of the localized trials (position and rotation), with the exact focal length or
     the estimated one."""
     within, trials = np.zeros(2), 0
-    for scene in _scenes(40, num_references=6, matches_per_reference=200, noise_px=1.5):
+    for scene in _scenes(40, num_references=10, matches_per_reference=200, noise_px=1.5):
         camera = scene.query_camera
         if focal_estimated:
             found = estimate_focal(640, 480, scene.references, TEST_OPTIONS, Deadline(None))
@@ -88,7 +88,7 @@ def test_uncertainty_covers_the_actual_error(name: str, focal_estimated: bool) -
         dt, dr = pose_error(result.cam_from_world, scene.query_pose)
         within += [dt < 3 * uncertainty.position_m, dr < 3 * uncertainty.rotation_deg]
         trials += 1
-    assert trials >= (5 if focal_estimated else 30)
+    assert trials >= (20 if focal_estimated else 30)
     assert np.all(within / trials >= 0.95), (within, trials)
 
 
