@@ -139,7 +139,7 @@ class LocalizeResult(BaseModel):
             else None,
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
             camera=CameraSchema.from_camera(result.camera) if result.camera is not None else None,
-            camera_source=result.camera_source,  # type: ignore[arg-type]
+            camera_source=result.camera_source,
             uncertainty=UncertaintyOut.from_uncertainty(result.uncertainty)
             if result.uncertainty is not None
             else None,
