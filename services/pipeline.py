@@ -15,7 +15,6 @@ from typing import NamedTuple
 import numpy as np
 
 from services.confidence.model import ConfidenceModel, default_confidence_model
-from services.confidence.rescoring import rescore
 from services.errors import InvalidInputError
 from services.estimators.base import FailureReason, PoseEstimator, ReferenceObservation
 from services.estimators.options import EstimatorOptions
@@ -26,12 +25,13 @@ from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
 from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
+from services.pose_answer import answer_pose
+from services.pose_uncertainty import PoseUncertainty
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
 from services.retrieval.vlad import encode
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
-from services.verification import verify_pose
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +85,9 @@ class LocalizationResult:
     stats: dict[str, float]
     estimator_used: str | None = None
     estimator_reason: str | None = None
+    camera: Camera | None = None  # the query camera used (None: no focal length determined)
+    camera_source: str | None = None  # "request" or "estimated" (from the matches)
+    uncertainty: PoseUncertainty | None = None
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -233,22 +236,23 @@ class Localizer:
         clock: _StageClock,
     ) -> LocalizationResult:
         camera, references, observations = matched
+        uncertainty = None
+        camera_used: Camera | None = camera if params.camera is not None else None
         if not observations:
             outcome = None
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
             options = clock.bound(params.options)
-            verified = verify_pose(
-                estimator.estimate(camera, observations, options), camera, observations, options
-            )
-            outcome = rescore(
-                verified,
+            answer = answer_pose(
+                estimator,
                 camera,
+                params.camera is None,
                 observations,
                 options,
-                verified.estimator_used or estimator.name,  # auto: the model of its choice
+                clock.deadline,
                 self.confidence_model,
             )
+            outcome, camera_used, uncertainty = answer.result, answer.camera, answer.uncertainty
             reason = outcome.failure_reason.value if outcome.failure_reason else None
         clock.lap("estimate", check=False)  # the work is done: its answer is kept
         timings = clock.finish()
@@ -281,6 +285,9 @@ class Localizer:
             estimator_used=(outcome.estimator_used if outcome is not None else None)
             or estimator.name,
             estimator_reason=outcome.estimator_reason if outcome is not None else None,
+            camera=camera_used,
+            camera_source="estimated" if params.camera is None else "request",
+            uncertainty=uncertainty,
         )
 
 

@@ -264,23 +264,24 @@ def _normalized(camera: Camera, xy: FloatArray) -> FloatArray:
     return np.asarray(model.unproject(np.ascontiguousarray(xy, dtype=np.float64)), np.float64)
 
 
-def count_verified_points(
+def check_structure(
     query_camera: Camera,
     cam_from_world: Rigid3d,
     references: list[ReferenceObservation],
     inliers: list[BoolArray],
     max_error_px: float,
-) -> tuple[int, int]:
-    """(verified points, candidate tracks) of a pose; see ``verify_by_reference_triangulation``.
+) -> tuple[StructureCheck, FloatArray] | None:
+    """``verify_by_reference_triangulation`` of a pose's inlier tracks, and the (T, 2) query
+    pixel of each track (its ``points`` row); None with inliers in fewer than two references.
 
     Query keypoints are identified across references by their exact pixel coordinates (every
     reference is matched against the same query keypoint array).
     """
     used = [i for i, mask in enumerate(inliers) if mask.any()]
     if len(used) < 2:
-        return 0, 0
+        return None
     query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
-    _, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
+    track_xy, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
     check = verify_by_reference_triangulation(
         cam_from_world.rotation,
         cam_from_world.translation,
@@ -298,7 +299,21 @@ def count_verified_points(
         max_error_px / float(np.mean(query_camera.focal_lengths)),
         np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
     )
-    return check.num_verified_points, check.num_tracks
+    return check, np.asarray(track_xy, dtype=np.float64)
+
+
+def count_verified_points(
+    query_camera: Camera,
+    cam_from_world: Rigid3d,
+    references: list[ReferenceObservation],
+    inliers: list[BoolArray],
+    max_error_px: float,
+) -> tuple[int, int]:
+    """(verified points, candidate tracks) of a pose; see ``check_structure``."""
+    checked = check_structure(query_camera, cam_from_world, references, inliers, max_error_px)
+    if checked is None:
+        return 0, 0
+    return checked[0].num_verified_points, checked[0].num_tracks
 
 
 def verify_pose(

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, Field
 
@@ -7,6 +9,7 @@ from app.schemas.estimators import EstimatorName
 from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
 from app.schemas.session import MAX_FRAMES_SCHEMA, FrameIn, SessionAlignmentOut
+from app.schemas.uncertainty import UncertaintyOut
 from app.usecases.localize import LocalizeRequest
 from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
@@ -26,8 +29,9 @@ class LocalizeParamsIn(BaseModel):
 
     camera: CameraSchema | None = Field(
         None,
-        description="Query intrinsics. When absent: SIMPLE_PINHOLE, focal 1.2 × the longer "
-        "image side, principal point at the image centre.",
+        description="Query intrinsics. When absent, the focal length is estimated from the "
+        "matches (SIMPLE_PINHOLE, principal point at the image centre; answer camera_source "
+        "'estimated'), or the answer is localized: false with reason focal_unobservable.",
     )
     estimator: EstimatorName | None = Field(
         None, description="Estimator name; default: the map's default_estimator"
@@ -180,6 +184,13 @@ class LocalizeResult(BaseModel):
     frames: list[FrameOut] | None = Field(
         None, description="With params.frames: one per uploaded frame, in order"
     )
+    camera: CameraSchema | None = Field(
+        None, description="The query camera used: the request's, or the estimated one"
+    )
+    camera_source: Literal["request", "estimated"] | None = None
+    uncertainty: UncertaintyOut | None = Field(
+        None, description="Pose uncertainty; null without a pose or enough verified points"
+    )
 
     @classmethod
     def from_result(
@@ -206,6 +217,11 @@ class LocalizeResult(BaseModel):
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
             geopose=GeoPoseSchema.from_geopose(geopose[0]) if geopose else None,
             geopose_accuracy=GeoPoseAccuracySchema.from_accuracy(geopose[1]) if geopose else None,
+            camera=CameraSchema.from_camera(result.camera) if result.camera is not None else None,
+            camera_source=result.camera_source,
+            uncertainty=UncertaintyOut.from_uncertainty(result.uncertainty)
+            if result.uncertainty is not None
+            else None,
         )
 
     @classmethod

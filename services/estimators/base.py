@@ -23,6 +23,8 @@ class FailureReason(StrEnum):
     NO_CONSENSUS = "no_consensus"  # the robust loop found too few inliers
     MISSING_DEPTH = "missing_depth"  # a depth estimator, but the query or no reference has depth
     TIME_BUDGET_EXCEEDED = "time_budget_exceeded"
+    # no intrinsics were sent and the matches do not determine the focal length
+    FOCAL_UNOBSERVABLE = "focal_unobservable"
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,47 @@ class VerificationOptions:
     min_reference_spread_deg: float = 3.0
 
 
+@dataclass(frozen=True)
+class FocalOptions:
+    """Focal-length estimation for a query sent without intrinsics (``services.focal``).
+
+    Attributes:
+        min_points: fewer 2D–3D inliers than this (query keypoints ↔ points triangulated
+            from the references) leave the focal length unobservable.
+        max_relative_sigma: the focal length is unobservable when its standard deviation
+            (pose-and-focal covariance) exceeds this fraction of it (default: 3σ within 5 %).
+        halves_sigmas: … or when two random halves of the inliers give focal lengths
+            that differ by more than this many standard deviations of their difference (2σ:
+            each half has twice the variance).
+        field_of_view_deg: plausible range of the longer side's field of view, degrees.
+    """
+
+    min_points: int = 30
+    max_relative_sigma: float = 0.05 / 3.0
+    halves_sigmas: float = 3.0
+    field_of_view_deg: tuple[float, float] = (10.0, 150.0)
+
+
+@dataclass(frozen=True)
+class UncertaintyOptions:
+    """The pose uncertainty reported with every localized answer, and how it caps the
+    confidence (``services.pose_uncertainty``).
+
+    Attributes:
+        min_points: fewer verified 3D points than this and no uncertainty is computed.
+        max_position_3sigma_m: a 3σ (3 × RMS) position uncertainty above this, in map units
+            (metres on a metric map), caps the confidence at ``capped_confidence``.
+        max_rotation_3sigma_deg: the same for the rotation, degrees.
+        capped_confidence: the cap; also applied when no uncertainty could be computed for a
+            pose whose focal length was estimated.
+    """
+
+    min_points: int = 6
+    max_position_3sigma_m: float = 0.25
+    max_rotation_3sigma_deg: float = 5.0
+    capped_confidence: float = 0.5
+
+
 class PoseApproxMode(StrEnum):
     """How ``pose_approx`` combines the retrieved poses."""
 
@@ -109,3 +150,5 @@ class EstimatorOptions:
     time_budget_s: float | None = None
     pose_approx: PoseApproxOptions = field(default_factory=PoseApproxOptions)
     e3p1: E3p1Options = field(default_factory=E3p1Options)
+    focal: FocalOptions = field(default_factory=FocalOptions)
+    uncertainty: UncertaintyOptions = field(default_factory=UncertaintyOptions)

@@ -96,7 +96,7 @@ def test_unrelated_image_is_not_localized(client: TestClient, scene_map: str) ->
     for seed in range(3):
         result = _localize(client, scene_map, encode_png(unrelated_image(seed)), {})
         assert result["localized"] is False
-        assert result["reason"] in ("no_consensus", "too_few_matches")
+        assert result["reason"] in ("no_consensus", "too_few_matches", "focal_unobservable")
         assert result["cam_from_world"] is None and result["camera_center"] is None
 
 
@@ -181,3 +181,35 @@ def test_map_default_estimator(client: TestClient, query_views: list[SyntheticVi
     assert _localize(client, map_id, image, {"estimator": "e5p1"})["estimator"] == "e5p1"
     bad = client.post("/v1/maps", json={"name": "x", "default_estimator": "magic"})
     assert bad.status_code == 422 and "unknown estimator 'magic'" in bad.json()["detail"]
+
+
+def test_without_camera_the_focal_length_is_estimated(
+    client: TestClient, scene_map: str, scene: SyntheticScene, query_views: list[SyntheticView]
+) -> None:
+    view = query_views[0]
+    result = _localize(client, scene_map, encode_png(view.image), {})
+    assert result["camera_source"] == "estimated"
+    if not result["localized"]:
+        assert result["reason"] == "focal_unobservable" and result["camera"] is None
+        return
+    camera = result["camera"]
+    assert camera["model"] == "SIMPLE_PINHOLE" and (camera["width"], camera["height"]) == (640, 480)
+    assert abs(camera["params"][0] / view.camera.params[0] - 1.0) < 0.05
+    assert camera["params"][1:] == [320.0, 240.0]
+    uncertainty = result["uncertainty"]
+    assert uncertainty["position_m"] > 0 and uncertainty["rotation_deg"] > 0
+    assert uncertainty["num_points"] >= 6
+    pose = Rigid3d.from_quaternion(
+        np.array(result["cam_from_world"]["rotation"]),
+        np.array(result["cam_from_world"]["translation"]),
+    )
+    assert pose_error(pose, view.cam_from_world)[0] < 0.01 * scene.extent
+
+
+def test_request_camera_is_echoed(
+    client: TestClient, scene_map: str, query_views: list[SyntheticView]
+) -> None:
+    view = query_views[1]
+    result = _localize(client, scene_map, encode_png(view.image), {"camera": _camera(view)})
+    assert result["camera_source"] == "request" and result["camera"] == _camera(view)
+    assert result["localized"] and result["uncertainty"]["num_points"] >= 6

@@ -71,6 +71,24 @@ def test_outputs_written(
         assert (tmp_path / plot).read_bytes().startswith(b"\x89PNG")
 
 
+def test_no_intrinsics_sends_no_camera(
+    synthetic_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Queries without their camera: the focal length is estimated, the poses are as accurate
+    as with it (or the query is refused), and no confident answer is wrong."""
+    code, results = run_eval(
+        synthetic_csv, tmp_path, "--estimators", "local_tri_all", "--no-intrinsics"
+    )
+    assert code == 0 and results["meta"]["intrinsics"] is False
+    summary = results["summaries"]["sift/local_tri_all"]
+    assert summary["confident_wrong"] == 0 and summary["confident"] >= 1
+    assert set(summary["failures"]) <= {"focal_unobservable"}
+    for query in results["queries"]:
+        if query["localized"]:
+            assert query["position_error_m"] < 0.05
+    assert "Answers with confidence > 0.8" in capsys.readouterr().out
+
+
 def test_ctrl_c_leaves_partial_results(
     synthetic_csv: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

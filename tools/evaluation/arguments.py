@@ -60,6 +60,11 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-depth", action="store_true", help="never send depth maps")
     parser.add_argument(
+        "--no-intrinsics",
+        action="store_true",
+        help="send queries without their camera (the service estimates the focal length)",
+    )
+    parser.add_argument(
         "--unrelated",
         type=int,
         default=0,

@@ -90,6 +90,7 @@ def eval_main(args: argparse.Namespace) -> int:
         wrong_focal=args.wrong_focal,
         unrelated_seed=args.unrelated_seed,
         unrelated_images=unrelated_images,
+        send_intrinsics=not args.no_intrinsics,
     )
     map_features = {
         key: value
@@ -129,6 +130,7 @@ def eval_main(args: argparse.Namespace) -> int:
         "top_k": args.top_k,
         "map_features": map_features,
         "max_error_px": args.max_error_px,
+        "intrinsics": not args.no_intrinsics,
         "thresholds": thresholds,
         "seconds": time.perf_counter() - start,
     }

@@ -44,6 +44,8 @@ class EvalOptions:
         unrelated_seed: the unrelated images are those of seeds ``unrelated_seed`` onwards.
         unrelated_images: also localize these images of another scene (with the first query's
             camera, its focal scaled to the image's width, principal point at the centre).
+        send_intrinsics: send each query's camera (False: none, the service estimates the
+            focal length).
     """
 
     estimators: Sequence[str]
@@ -55,6 +57,7 @@ class EvalOptions:
     wrong_focal: int = 0
     unrelated_seed: int = 0
     unrelated_images: Sequence[Path] = ()
+    send_intrinsics: bool = True
 
 
 WRONG_FOCAL_SCALES = (1.5, 1 / 1.5)
@@ -75,14 +78,12 @@ def _depth(image: PosedImage, wanted: bool) -> bytes | None:
 
 
 def localize_params(
-    camera: Camera, estimator: str, top_k: int, max_error_px: float | None = None
+    camera: Camera | None, estimator: str, top_k: int, max_error_px: float | None = None
 ) -> dict[str, Any]:
-    """The API's localize ``params`` object."""
-    params: dict[str, Any] = {
-        "camera": CameraSchema.from_camera(camera).model_dump(),
-        "estimator": estimator,
-        "top_k": top_k,
-    }
+    """The API's localize ``params`` object (without ``camera`` when ``camera`` is None)."""
+    params: dict[str, Any] = {"estimator": estimator, "top_k": top_k}
+    if camera is not None:
+        params["camera"] = CameraSchema.from_camera(camera).model_dump()
     if max_error_px is not None:
         params["max_error_px"] = max_error_px
     return params
@@ -207,7 +208,12 @@ def _localize_all(
     for i, item in enumerate(queries, start=1):
         image, query = item.image(), item.posed
         depth = _depth(query, options.use_depth) if query is not None else None
-        params = localize_params(item.camera, estimators[0], options.top_k, options.max_error_px)
+        params = localize_params(
+            item.camera if options.send_intrinsics else None,
+            estimators[0],
+            options.top_k,
+            options.max_error_px,
+        )
         try:
             outcomes = runner.localize_each(image, depth, params, estimators)
         except Exception as exc:  # this query's failure; the run goes on

@@ -137,6 +137,23 @@ def _percentiles(values: list[float]) -> dict[str, float]:
     return {"median": _quantile(ordered, 0.5), "p90": _quantile(ordered, 0.9)}
 
 
+# an answer above this confidence should be right within these errors (issue 12)
+CONFIDENT = 0.8
+WRONG_M, WRONG_DEG = 0.25, 5.0
+
+
+def confident_answers(posed: list[QueryRecord]) -> dict[str, int]:
+    """``confident``: localized answers with confidence above ``CONFIDENT``;
+    ``confident_wrong``: those more than ``WRONG_M`` or ``WRONG_DEG`` off."""
+    confident = [r for r in posed if r.localized and r.confidence > CONFIDENT]
+    wrong = [
+        r
+        for r in confident
+        if not (r.position_error_m <= WRONG_M and r.rotation_error_deg <= WRONG_DEG)
+    ]
+    return {"confident": len(confident), "confident_wrong": len(wrong)}
+
+
 def summarize(
     records: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
 ) -> dict[str, Any]:
@@ -175,6 +192,7 @@ def summarize(
         "retrieval_recall": sum(r.retrieval_hit for r in covered) / len(covered)
         if covered
         else 0.0,
+        **confident_answers(posed),
         "unrelated_queries": len(unrelated),
         "unrelated_accepted": sum(r.localized for r in unrelated),
         "wrong_intrinsics_queries": len(wrong_intrinsics),

@@ -12,7 +12,14 @@ from typing import Any
 import numpy as np
 
 from tools.evaluation.confidence_curve import REPORTED_THRESHOLDS, TARGET, curve_of
-from tools.evaluation.metrics import STAGES, QueryRecord, recall_key
+from tools.evaluation.metrics import (
+    CONFIDENT,
+    STAGES,
+    WRONG_DEG,
+    WRONG_M,
+    QueryRecord,
+    recall_key,
+)
 
 PLOT_STAGES = ("decode", "extract", "retrieve", "match", "estimate")
 
@@ -76,6 +83,13 @@ def markdown_tables(
         "| unrelated accepted |",
         "|---|---|---|---|---|---|",
         *extra,
+        "",
+        f"Answers with confidence > {CONFIDENT:g}, and those of them more than "
+        f"{WRONG_M * 100:g} cm or {WRONG_DEG:g}° off: "
+        + ", ".join(
+            f"{config} {s['confident']} / {s['confident_wrong']} wrong"
+            for config, s in summaries.items()
+        ),
     ]
     lines += ["", *confidence_table(summaries)]
     return "\n".join(lines) + "\n"

@@ -1,0 +1,74 @@
+"""The estimate stage of a localization: the query camera (the request's, or estimated from the
+matches), the estimator's pose, its 3D verification, and its uncertainty with the confidence
+cap it implies."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from services.confidence.model import ConfidenceModel
+from services.confidence.rescoring import rescore
+from services.estimators.base import (
+    EstimateResult,
+    FailureReason,
+    PoseEstimator,
+    ReferenceObservation,
+)
+from services.estimators.estimator import missing_depth
+from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
+from services.focal import estimate_focal
+from services.geometry.camera import Camera
+from services.pose_uncertainty import PoseUncertainty, with_uncertainty
+from services.verification import verify_pose
+
+
+@dataclass(frozen=True)
+class PoseAnswer:
+    """Attributes:
+    result: the verified estimate, confidence capped, focal and uncertainty stats included.
+    camera: the query camera used; None when the focal length was not determined.
+    uncertainty: of the pose, when there is one and enough verified points.
+    """
+
+    result: EstimateResult
+    camera: Camera | None
+    uncertainty: PoseUncertainty | None
+
+
+def answer_pose(
+    estimator: PoseEstimator,
+    camera: Camera,
+    focal_estimated: bool,
+    references: list[ReferenceObservation],
+    options: EstimatorOptions,
+    deadline: Deadline,
+    confidence_model: ConfidenceModel,
+) -> PoseAnswer:
+    """Estimate and verify the query pose with ``camera``, or, when ``focal_estimated``, with
+    the camera estimated from the matches (``camera`` gives only the image size then); a
+    depth estimator without depth fails as ``missing_depth`` before any focal estimation. The
+    confidence is ``confidence_model``'s (of the estimator ``auto`` chose, for ``auto``), then
+    capped by the uncertainty."""
+    focal_stats: dict[str, float] = {}
+    if focal_estimated and not (estimator.needs_depth and missing_depth(references)):
+        focal = estimate_focal(camera.width, camera.height, references, options, deadline)
+        if focal.camera is None:
+            failed = EstimateResult.failure(
+                FailureReason.FOCAL_UNOBSERVABLE, references, focal.stats
+            )
+            return PoseAnswer(failed, None, None)
+        camera, focal_stats = focal.camera, focal.stats
+    verified = verify_pose(
+        estimator.estimate(camera, references, options), camera, references, options
+    )
+    scored = rescore(
+        verified,
+        camera,
+        references,
+        options,
+        verified.estimator_used or estimator.name,
+        confidence_model,
+    )
+    result, uncertainty = with_uncertainty(scored, camera, references, options, focal_estimated)
+    return PoseAnswer(replace(result, stats={**result.stats, **focal_stats}), camera, uncertainty)
