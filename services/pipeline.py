@@ -19,9 +19,18 @@ from services.estimators.ransac import Deadline
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
+from services.geometry.intrinsics_adaptation import CameraAdaptation
 from services.geometry.rigid import Rigid3d
 from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
+from services.query_frame import (
+    QueryFrame,
+    QueryFrameHints,
+    check_gravity,
+    features_in_upload,
+    resolve_query_frame,
+    turn_image,
+)
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
@@ -39,6 +48,7 @@ class LocalizeParams:
         unbounded). It is checked after each stage (decode, extract, retrieve) and before
         the match of each reference, and it bounds the estimator's own budget; once spent,
         the result is ``time_budget_exceeded``.
+    frame: what an AR client says about its frame (camera rotation, gravity, rotation search).
     """
 
     camera: Camera | None = None
@@ -47,6 +57,7 @@ class LocalizeParams:
     prior: PositionPrior | None = None
     options: EstimatorOptions = field(default_factory=EstimatorOptions)
     time_budget_s: float | None = None
+    frame: QueryFrameHints = field(default_factory=QueryFrameHints)
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,8 @@ class LocalizationResult:
     retrieved: list[RetrievedReference]
     timings_ms: dict[str, float]
     stats: dict[str, float]
+    camera_adaptation: CameraAdaptation | None = None  # how the request's camera was adapted
+    upright_turn_deg: int = 0  # the clockwise turn of the upload the query was matched at
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -168,23 +181,59 @@ class Localizer:
         estimator: PoseEstimator,
         clock: _StageClock,
     ) -> LocalizationResult:
-        lap = clock.lap
         image = decode_image(image_bytes, self.max_pixels)
-        camera = params.camera or default_camera(image.shape[1], image.shape[0])
-        _check_camera_matches(camera, image)
+        frame = resolve_query_frame(image_bytes, image, params.camera, params.frame)
+        camera = frame.camera or default_camera(image.shape[1], image.shape[0])
         query_depth = (
             decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
             if depth_bytes is not None
             else None
         )
-        lap("decode")
-        query = self.extractor.extract(image)
+        clock.lap("decode")
+        first = self._attempt(
+            image, frame.turns[0], camera, frame, query_depth, params, store, estimator, clock
+        )
+        result, attempts = first, 1
+        for turn in frame.turns[1:]:  # other turns only while not localized, within the budget
+            if result.localized or clock.deadline.expired():
+                break
+            try:
+                result = self._attempt(
+                    image, turn, camera, frame, query_depth, params, store, estimator, clock
+                )
+            except _OutOfTimeError:
+                break
+            attempts += 1
+        if not result.localized:
+            result = first
+        stats = {**result.stats, "orientation_attempts": float(attempts)}
+        return replace(
+            result, camera_adaptation=frame.adaptation, timings_ms=clock.finish(), stats=stats
+        )
+
+    def _attempt(
+        self,
+        image: UInt8Array,
+        turn: int,
+        camera: Camera,
+        frame: QueryFrame,
+        query_depth: Float32Array | None,
+        params: LocalizeParams,
+        store: ReferenceStore,
+        estimator: PoseEstimator,
+        clock: _StageClock,
+    ) -> LocalizationResult:
+        """Extract, retrieve, match and estimate with the upload turned clockwise by ``turn``
+        degrees; keypoints go back to the upload before estimation (the pose is the upload's)."""
+        lap = clock.lap
+        turned = turn_image(image, turn)
+        query = self.extractor.extract(turned)
         lap("extract")
         index = store.retrieval_index()
         query_global = (
             encode(query.descriptors, index.vocabulary)
             if index.vocabulary is not None
-            else self.global_descriptor.compute(image, query)
+            else self.global_descriptor.compute(turned, query)
         )
         rows, scores = top_k(
             query_global, index.descriptors, params.top_k, index.centers, params.prior
@@ -196,8 +245,9 @@ class Localizer:
             query, [ref.features for ref in references], stop=clock.deadline.expired
         )
         lap("match")  # before the pairs are used: a stopped matcher returns fewer
+        in_upload = features_in_upload(query, turn)
         observations = [
-            _observe(query, query_depth, ref, score_of[ref.image_id], ref_pairs)
+            _observe(in_upload, query_depth, ref, score_of[ref.image_id], ref_pairs)
             for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
         if not observations:
@@ -205,11 +255,16 @@ class Localizer:
             reason: str | None = FailureReason.NO_REFERENCES.value
         else:
             options = clock.bound(params.options)
-            outcome = verify_pose(
-                estimator.estimate(camera, observations, options),
-                camera,
+            outcome = check_gravity(
+                verify_pose(
+                    estimator.estimate(camera, observations, options),
+                    camera,
+                    observations,
+                    options,
+                ),
+                frame.gravity,
+                params.frame.gravity,
                 observations,
-                options,
             )
             reason = outcome.failure_reason.value if outcome.failure_reason else None
         lap("estimate", check=False)  # the work is done: its answer is kept
@@ -240,6 +295,7 @@ class Localizer:
             retrieved=retrieved,
             timings_ms=timings,
             stats=outcome.stats if outcome is not None else {},
+            upright_turn_deg=turn,
         )
 
 
@@ -259,13 +315,13 @@ class _StageClock:
         self._start = self._lap_start = time.perf_counter()
 
     def lap(self, stage: str, check: bool = True) -> None:
-        """Records ``stage`` as ended now.
+        """Records ``stage`` as ended now (a stage run again adds up).
 
         Raises:
             _OutOfTimeError: ``check`` and the budget is spent.
         """
         now = time.perf_counter()
-        self._timings[stage] = (now - self._lap_start) * 1000.0
+        self._timings[stage] = self._timings.get(stage, 0.0) + (now - self._lap_start) * 1000.0
         self._lap_start = now
         if check and self.deadline.expired():
             raise _OutOfTimeError

@@ -1,13 +1,17 @@
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, Field
 
+from app.schemas.ar import CameraAdaptationOut, FramePoseOut, GravityIn, OutputIn, PoseConvention
 from app.schemas.estimators import EstimatorName
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
 from app.usecases.localize import LocalizeRequest
 from services.estimators.base import FailureReason
 from services.pipeline import LocalizationResult
+from services.query_frame import QueryFrameHints
 from services.retrieval.search import PositionPrior
 
 
@@ -45,6 +49,20 @@ class LocalizeParamsIn(BaseModel):
         "(SLLOC_LOCALIZE_TIME_BUDGET_S, its default); past it the answer is localized: false "
         "with reason time_budget_exceeded",
     )
+    # AR clients (README "Integrating an AR app")
+    camera_rotation_deg: Literal[0, 90, 180, 270] | None = Field(
+        None,
+        description="Clockwise turn from the image `camera` describes to the upload as "
+        "displayed (EXIF applied). Default: decided by the sizes (the camera may be given for "
+        "any uniform scale of the upload) and EXIF, a swapped aspect taken as 90°",
+    )
+    gravity: GravityIn | None = None
+    rotation_search: bool = Field(
+        True,
+        description="Without a gravity hint, also try the upload turned by 90°, 270° and 180° "
+        "(within the time budget) when it fails as uploaded",
+    )
+    output: OutputIn = Field(default_factory=OutputIn)
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -55,6 +73,11 @@ class LocalizeParamsIn(BaseModel):
             prior=PositionPrior(np.array(prior.position), prior.radius) if prior else None,
             max_error_px=self.max_error_px,
             time_budget_s=self.time_budget_s,
+            frame=QueryFrameHints(
+                self.camera_rotation_deg,
+                self.gravity.to_hint() if self.gravity else None,
+                self.rotation_search,
+            ),
         )
 
 
@@ -92,11 +115,28 @@ class LocalizeResult(BaseModel):
     retrieved: list[RetrievedOut]
     inliers: list[InliersOut] | None = None
     timings_ms: Timings
+    # AR clients (README "Integrating an AR app")
+    camera_adaptation: CameraAdaptationOut | None = Field(
+        None, description="How `camera` was adapted to the upload (when a camera was given)"
+    )
+    upright_turn_deg: int = Field(
+        0, description="Clockwise turn of the upload at which it was matched"
+    )
+    world_from_cam: dict[PoseConvention, FramePoseOut] | None = Field(
+        None, description="The pose in the conventions `output.frames` asked for"
+    )
 
     @classmethod
-    def from_result(cls, result: LocalizationResult, return_inliers: bool) -> LocalizeResult:
-        """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``."""
+    def from_result(
+        cls,
+        result: LocalizationResult,
+        return_inliers: bool,
+        frames: list[PoseConvention] | None = None,
+    ) -> LocalizeResult:
+        """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``,
+        camera-to-world in each convention of ``frames``."""
         pose = result.cam_from_world
+        adaptation = result.camera_adaptation
         return cls(
             localized=result.localized,
             reason=FailureReason(result.reason) if result.reason is not None else None,
@@ -127,4 +167,11 @@ class LocalizeResult(BaseModel):
             if return_inliers
             else None,
             timings_ms=Timings(**{k: round(v, 3) for k, v in result.timings_ms.items()}),
+            camera_adaptation=CameraAdaptationOut.from_adaptation(adaptation)
+            if adaptation is not None
+            else None,
+            upright_turn_deg=result.upright_turn_deg,
+            world_from_cam={f: FramePoseOut.from_pose(pose, f) for f in frames}
+            if pose is not None and frames
+            else None,
         )

@@ -16,6 +16,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
 from services.pipeline import LocalizationResult, LocalizeParams, Localizer
+from services.query_frame import QueryFrameHints
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer
@@ -33,6 +34,7 @@ class LocalizeRequest:
         prior: keep only references near a known position.
         max_error_px: inlier threshold in pixels (None: the estimator options' default).
         time_budget_s: wall-clock budget of the localization in seconds (None: the service's).
+        frame: an AR client's camera rotation, gravity and rotation search.
     """
 
     camera: Camera | None = None
@@ -41,6 +43,7 @@ class LocalizeRequest:
     prior: PositionPrior | None = None
     max_error_px: float | None = None
     time_budget_s: float | None = None
+    frame: QueryFrameHints = QueryFrameHints()
 
 
 def engine_params(
@@ -75,6 +78,7 @@ def engine_params(
         prior=request.prior,
         options=options,
         time_budget_s=budget,
+        frame=request.frame,
     )
 
 

@@ -23,6 +23,7 @@ class FailureReason(StrEnum):
     NO_CONSENSUS = "no_consensus"  # the robust loop found too few inliers
     MISSING_DEPTH = "missing_depth"  # a depth estimator, but the query or no reference has depth
     TIME_BUDGET_EXCEEDED = "time_budget_exceeded"
+    GRAVITY_MISMATCH = "gravity_mismatch"  # the pose disagrees with the query's gravity hint
 
 
 @dataclass(frozen=True)

@@ -99,9 +99,12 @@ class SyntheticScene:
         corners = np.array([[-6, -3, -6], [6, 3, 8]], float)
         self.extent = float(np.linalg.norm(corners[1] - corners[0]))
 
-    def render(self, cam_from_world: Rigid3d) -> tuple[UInt8Array, Float32Array]:
-        """Ray-cast the scene: (H, W, 3) RGB uint8 image and (H, W) float32 z-depth."""
-        cam = self.camera
+    def render(
+        self, cam_from_world: Rigid3d, camera: Camera | None = None
+    ) -> tuple[UInt8Array, Float32Array]:
+        """Ray-cast the scene through ``camera`` (a pinhole; default: the scene's): (H, W, 3)
+        RGB uint8 image and (H, W) float32 z-depth."""
+        cam = camera or self.camera
         # pixel centres in COLMAP convention, as rays with unit z in camera coordinates
         u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
         rays_cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(cam.K).T
