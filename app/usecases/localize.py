@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -43,7 +43,7 @@ class LocalizeRequest:
     prior: PositionPrior | None = None
     max_error_px: float | None = None
     time_budget_s: float | None = None
-    frame: QueryFrameHints = QueryFrameHints()
+    frame: QueryFrameHints = field(default_factory=QueryFrameHints)
 
 
 def engine_params(

@@ -8,6 +8,7 @@ depth are therefore exact. World frame: x right, y down, z forward; cameras look
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 import cv2
@@ -181,6 +182,23 @@ def encode_png(image: UInt8Array) -> bytes:
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.tobytes()
+
+
+def encode_jpeg(image: UInt8Array, orientation: int | None = None, quality: int = 95) -> bytes:
+    """JPEG bytes of an (H, W, 3) RGB image, with an EXIF block holding only the orientation
+    tag (1–8) when ``orientation`` is given: the pixels are stored as they are and a viewer
+    turns (or mirrors) them for display, as phones save portrait photos."""
+    ok, buf = cv2.imencode(".jpg", image[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    data = buf.tobytes()
+    if orientation is None:
+        return data
+    # little-endian TIFF: header, one IFD with one SHORT entry (tag 0x0112), no next IFD
+    tiff = b"II*\x00" + struct.pack("<IHHHIHHI", 8, 1, 0x0112, 3, 1, orientation, 0, 0)
+    payload = b"Exif\x00\x00" + tiff
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    return data[:2] + app1 + data[2:]
 
 
 def encode_depth_png(depth: Float32Array) -> bytes:
