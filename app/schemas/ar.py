@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from app.schemas.geometry import CameraSchema, FiniteFloat
-from services.geometry.intrinsics_adaptation import CameraAdaptation
+from services.geometry.intrinsics_adaptation import CameraAdaptation, rotated_from_camera
 from services.geometry.pose_conventions import world_from_cam
 from services.geometry.rigid import Rigid3d, matrix_to_quaternion
 from services.query_frame import DEFAULT_GRAVITY_MAX_ANGLE_DEG, GravityHint
@@ -57,6 +57,22 @@ class OutputIn(BaseModel):
         max_length=3,
         description="Also answer world_from_cam in these conventions (README 'Pose conventions')",
     )
+    pose_of: Literal["upload", "camera"] = Field(
+        "upload",
+        description="Whose world_from_cam: the uploaded image's camera, or the camera of "
+        "`camera` before camera_adaptation's turn (the frame of ARKit's camera.transform "
+        "and ARCore's Camera.getPose, which give landscape sensor intrinsics)",
+    )
+
+    def camera_pose(self, cam_from_world: Rigid3d, adaptation: CameraAdaptation | None) -> Rigid3d:
+        """``cam_from_world`` of the upload → that of the camera ``pose_of`` names."""
+        if self.pose_of == "upload" or adaptation is None:
+            return cam_from_world
+        camera_from_upload = rotated_from_camera(adaptation.rotation_deg).T
+        return Rigid3d(
+            camera_from_upload @ cam_from_world.rotation,
+            camera_from_upload @ cam_from_world.translation,
+        )
 
 
 class CameraAdaptationOut(BaseModel):

@@ -122,8 +122,11 @@ class LocalizeResult(BaseModel):
     upright_turn_deg: int = Field(
         0, description="Clockwise turn of the upload at which it was matched"
     )
+    gravity_error_deg: float | None = Field(
+        None, description="Angle between the gravity hint and the pose's (with a gravity hint)"
+    )
     world_from_cam: dict[PoseConvention, FramePoseOut] | None = Field(
-        None, description="The pose in the conventions `output.frames` asked for"
+        None, description="The pose of `output.pose_of` in the conventions `output.frames`"
     )
 
     @classmethod
@@ -131,12 +134,13 @@ class LocalizeResult(BaseModel):
         cls,
         result: LocalizationResult,
         return_inliers: bool,
-        frames: list[PoseConvention] | None = None,
+        output: OutputIn | None = None,
     ) -> LocalizeResult:
         """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``,
-        camera-to-world in each convention of ``frames``."""
+        camera-to-world as ``output`` asks."""
         pose = result.cam_from_world
         adaptation = result.camera_adaptation
+        output = output or OutputIn()
         return cls(
             localized=result.localized,
             reason=FailureReason(result.reason) if result.reason is not None else None,
@@ -171,7 +175,11 @@ class LocalizeResult(BaseModel):
             if adaptation is not None
             else None,
             upright_turn_deg=result.upright_turn_deg,
-            world_from_cam={f: FramePoseOut.from_pose(pose, f) for f in frames}
-            if pose is not None and frames
+            gravity_error_deg=result.stats.get("gravity_error_deg"),
+            world_from_cam={
+                f: FramePoseOut.from_pose(output.camera_pose(pose, adaptation), f)
+                for f in output.frames
+            }
+            if pose is not None and output.frames
             else None,
         )

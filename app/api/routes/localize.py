@@ -76,4 +76,4 @@ def localize(
             slots=admission.slots,
             trainer=trainer,
         )
-    return LocalizeResult.from_result(result, body.return_inliers, body.output.frames)
+    return LocalizeResult.from_result(result, body.return_inliers, body.output)
