@@ -107,6 +107,8 @@ def resolve_query_frame(
     if hints.gravity is not None:
         try:
             gravity = unit(hints.gravity.down)
+            if hints.gravity.map_down is not None:
+                unit(hints.gravity.map_down)
         except ValueError as exc:
             raise InvalidInputError(f"gravity: {exc}") from None
         if adaptation is not None:

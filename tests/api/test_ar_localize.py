@@ -106,6 +106,11 @@ def test_no_conventions_unless_asked(
         ("landscape", {"camera": "sensor", "camera_rotation_deg": 90}, "a camera of 480×640"),
         ("mirrored", {"camera": "sensor"}, "EXIF orientation 2 mirrors it"),
         ("landscape", {"gravity": {"down": [0, 0, 0]}}, "gravity: a direction must be"),
+        (
+            "landscape",
+            {"gravity": {"down": [0, 1, 0], "map_down": [0, 0, 0]}},
+            "gravity: a direction must be",
+        ),
         ("landscape", {"camera_rotation_deg": 45}, "camera_rotation_deg"),
         ("landscape", {"output": {"frames": ["vulkan"]}}, "output.frames"),
     ],

@@ -18,6 +18,7 @@ import argparse
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -29,7 +30,7 @@ from services.geometry.rigid import Rigid3d
 SENSOR_SCALE = 3  # ARKit: 1920×1440 intrinsics for a 640×480 upload
 
 
-def demo_query(demo: Path) -> tuple[np.ndarray, dict[str, object], Rigid3d]:
+def demo_query(demo: Path) -> tuple[np.ndarray, dict[str, Any], Rigid3d]:
     """The demo's first query: BGR image, its camera and its true ``cam_from_world``."""
     image = cv2.imread(str(demo / "queries" / "query0000.png"))
     params = json.loads((demo / "queries" / "query0000.params.json").read_text())
@@ -56,10 +57,12 @@ def main() -> None:
     session_from_cam = session_from_map @ world_from_cam(truth, "opengl")
 
     # 1. intrinsics as the phone gives them: the landscape sensor image, 3× the upload
-    sensor = dict(camera)
-    sensor["width"] = int(camera["width"]) * SENSOR_SCALE  # type: ignore[call-overload]
-    sensor["height"] = int(camera["height"]) * SENSOR_SCALE  # type: ignore[call-overload]
-    sensor["params"] = [p * SENSOR_SCALE for p in camera["params"]]  # type: ignore[attr-defined]
+    sensor = {
+        "model": camera["model"],
+        "width": camera["width"] * SENSOR_SCALE,
+        "height": camera["height"] * SENSOR_SCALE,
+        "params": [p * SENSOR_SCALE for p in camera["params"]],
+    }
     # 2. gravity in the sensor camera frame (COLMAP axes: x right, y down, z forward), from the
     #    session pose: the session's down (0, -1, 0) in OpenGL camera axes, then y and z flipped
     down_gl = session_from_cam[:3, :3].T @ np.array([0.0, -1.0, 0.0])
@@ -67,7 +70,8 @@ def main() -> None:
     # 3. the upload: the sensor image turned to portrait (90° clockwise) as a JPEG
     portrait = cv2.rotate(image, cv2.ROTATE_90_CLOCKWISE)
     ok, jpeg = cv2.imencode(".jpg", portrait, [cv2.IMWRITE_JPEG_QUALITY, 90])
-    assert ok
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
     params = {
         "camera": sensor,
         "gravity": {"down": down.tolist()},
