@@ -136,7 +136,9 @@ def features_in_upload(features: LocalFeatures, turn: int) -> LocalFeatures:
         return features
     width, height = features.image_size
     back = (360 - turn) % 360
-    keypoints = rotate_points(features.keypoints, back, width, height).astype(np.float32)
+    keypoints = rotate_points(features.keypoints.astype(np.float64), back, width, height).astype(
+        np.float32
+    )
     upload_width, upload_height = rotated_size(width, height, back)
     return replace(features, keypoints=keypoints, image_size=(upload_width, upload_height))
 

@@ -76,7 +76,7 @@ def test_portrait_frame_with_sensor_intrinsics_gravity_and_conventions(
     assert dt < 0.01 * scene.extent and dr < 0.5
     for convention, answer in result["world_from_cam"].items():
         back = cam_from_world_of(np.array(answer["matrix"]), convention)
-        assert pose_error(back, pose)[0] < 1e-9 and pose_error(back, pose)[1] < 1e-6
+        assert pose_error(back, pose)[0] < 1e-9 and pose_error(back, pose)[1] < 1e-4
         np.testing.assert_allclose(answer["position"], np.array(answer["matrix"])[:3, 3])
         same = Rigid3d.from_quaternion(np.array(answer["rotation"]), np.zeros(3))
         np.testing.assert_allclose(same.rotation, np.array(answer["matrix"])[:3, :3], atol=1e-9)

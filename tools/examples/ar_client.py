@@ -33,6 +33,8 @@ SENSOR_SCALE = 3  # ARKit: 1920×1440 intrinsics for a 640×480 upload
 def demo_query(demo: Path) -> tuple[np.ndarray, dict[str, Any], Rigid3d]:
     """The demo's first query: BGR image, its camera and its true ``cam_from_world``."""
     image = cv2.imread(str(demo / "queries" / "query0000.png"))
+    if image is None:
+        raise SystemExit(f"no demo query in {demo}: run `slloc synth --out {demo}` first")
     params = json.loads((demo / "queries" / "query0000.params.json").read_text())
     with (demo / "queries" / "ground_truth.csv").open() as f:
         row = next(r for r in csv.DictReader(f) if r["image"] == "query0000.png")
