@@ -138,4 +138,4 @@ def test_bad_ar_params_are_422(
     assert response.status_code == 422  # type: ignore[attr-defined]
     assert response.headers["content-type"] == PROBLEM  # type: ignore[attr-defined]
     body = response.json()  # type: ignore[attr-defined]
-    assert fragment in json.dumps(body), body
+    assert fragment in json.dumps(body, ensure_ascii=False), body
