@@ -22,11 +22,20 @@ from services.estimators.ransac import Deadline
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
+from services.geometry.intrinsics_adaptation import CameraAdaptation
 from services.geometry.rigid import Rigid3d
 from services.imaging import decode_depth, decode_image
 from services.matching.base import Matcher
 from services.pose_answer import answer_pose
 from services.pose_uncertainty import PoseUncertainty
+from services.query_frame import (
+    QueryFrame,
+    QueryFrameHints,
+    check_gravity,
+    features_in_upload,
+    resolve_query_frame,
+    turn_image,
+)
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
@@ -43,6 +52,7 @@ class LocalizeParams:
         unbounded). It is checked after each stage (decode, extract, retrieve) and before
         the match of each reference, and it bounds the estimator's own budget; once spent,
         the result is ``time_budget_exceeded``.
+    frame: what an AR client says about its frame (camera rotation, gravity, rotation search).
     """
 
     camera: Camera | None = None
@@ -51,6 +61,7 @@ class LocalizeParams:
     prior: PositionPrior | None = None
     options: EstimatorOptions = field(default_factory=EstimatorOptions)
     time_budget_s: float | None = None
+    frame: QueryFrameHints = field(default_factory=QueryFrameHints)
 
 
 @dataclass(frozen=True)
@@ -88,6 +99,8 @@ class LocalizationResult:
     camera: Camera | None = None  # the query camera used (None: no focal length determined)
     camera_source: str | None = None  # "request" or "estimated" (from the matches)
     uncertainty: PoseUncertainty | None = None
+    camera_adaptation: CameraAdaptation | None = None  # how the request's camera was adapted
+    upright_turn_deg: int = 0  # the clockwise turn of the upload the query was matched at
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -176,41 +189,75 @@ class Localizer:
         ``params.estimator`` is not used) on the same matches: one result per estimator, as
         ``localize`` with that estimator answers. Each result has the shared stage timings and
         its own ``estimate`` time (``total`` leaves the other estimators out), and each
-        estimator gets what is left of the time budget after matching."""
+        estimator gets what is left of the time budget after matching.
+
+        The query is matched turned upright (``QueryFrame.turns``, best guess first); the other
+        turns are tried, while the budget lasts, only for the estimators not localized yet. Past
+        one attempt, every result has the stages summed over the attempts."""
         chosen = [get_estimator(name) for name in estimators]
         clock = _StageClock(params.time_budget_s)
         try:
-            matched = self._match(image_bytes, params, store, depth_bytes, clock)
+            image = decode_image(image_bytes, self.max_pixels)
+            frame = resolve_query_frame(image_bytes, image, params.camera, params.frame)
+            camera = frame.camera or default_camera(image.shape[1], image.shape[0])
+            query_depth = (
+                decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
+                if depth_bytes is not None
+                else None
+            )
+            clock.lap("decode")
+            matched = self._match(image, frame.turns[0], camera, query_depth, params, store, clock)
         except _OutOfTimeError:
             timings = clock.finish()
             return [_out_of_time(estimator.name, timings) for estimator in chosen]
-        return [self._estimate(matched, params, e, clock.branch()) for e in chosen]
+        results = [self._estimate(matched, frame, params, e, clock.branch()) for e in chosen]
+        clock.lap("estimate", check=False)
+        attempts = 1
+        for turn in frame.turns[1:]:  # other turns only while not localized, within the budget
+            if all(r.localized for r in results) or clock.deadline.expired():
+                break
+            try:
+                matched = self._match(image, turn, camera, query_depth, params, store, clock)
+            except _OutOfTimeError:
+                break
+            attempts += 1
+            results = [
+                r if r.localized else self._estimate(matched, frame, params, e, clock.branch())
+                for r, e in zip(results, chosen, strict=True)
+            ]
+            clock.lap("estimate", check=False)
+        summed = clock.finish() if attempts > 1 else None
+        return [
+            replace(
+                r,
+                camera_adaptation=frame.adaptation,
+                timings_ms=summed or r.timings_ms,
+                stats={**r.stats, "orientation_attempts": float(attempts)},
+            )
+            for r in results
+        ]
 
     def _match(
         self,
-        image_bytes: bytes,
+        image: UInt8Array,
+        turn: int,
+        camera: Camera,
+        query_depth: Float32Array | None,
         params: LocalizeParams,
         store: ReferenceStore,
-        depth_bytes: bytes | None,
         clock: _StageClock,
     ) -> _MatchedQuery:
+        """Extract, retrieve and match with the upload turned clockwise by ``turn`` degrees;
+        keypoints go back to the upload before estimation (the pose is the upload's)."""
         lap = clock.lap
-        image = decode_image(image_bytes, self.max_pixels)
-        camera = params.camera or default_camera(image.shape[1], image.shape[0])
-        _check_camera_matches(camera, image)
-        query_depth = (
-            decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
-            if depth_bytes is not None
-            else None
-        )
-        lap("decode")
-        query = self.extractor.extract(image)
+        turned = turn_image(image, turn)
+        query = self.extractor.extract(turned)
         lap("extract")
         index = store.retrieval_index()
         query_global = (
             encode(query.descriptors, index.vocabulary)
             if index.vocabulary is not None
-            else self.global_descriptor.compute(image, query)
+            else self.global_descriptor.compute(turned, query)
         )
         rows, scores = top_k(
             query_global, index.descriptors, params.top_k, index.centers, params.prior
@@ -222,20 +269,22 @@ class Localizer:
             query, [ref.features for ref in references], stop=clock.deadline.expired
         )
         lap("match")  # before the pairs are used: a stopped matcher returns fewer
+        in_upload = features_in_upload(query, turn)
         observations = [
-            _observe(query, query_depth, ref, score_of[ref.image_id], ref_pairs)
+            _observe(in_upload, query_depth, ref, score_of[ref.image_id], ref_pairs)
             for ref, ref_pairs in zip(references, pairs, strict=True)
         ]
-        return _MatchedQuery(camera, references, observations)
+        return _MatchedQuery(camera, references, observations, turn)
 
     def _estimate(
         self,
         matched: _MatchedQuery,
+        frame: QueryFrame,
         params: LocalizeParams,
         estimator: PoseEstimator,
         clock: _StageClock,
     ) -> LocalizationResult:
-        camera, references, observations = matched
+        camera, references, observations, turn = matched
         uncertainty = None
         camera_used: Camera | None = camera if params.camera is not None else None
         if not observations:
@@ -252,7 +301,12 @@ class Localizer:
                 clock.deadline,
                 self.confidence_model,
             )
-            outcome, camera_used, uncertainty = answer.result, answer.camera, answer.uncertainty
+            outcome = check_gravity(
+                answer.result, frame.gravity, params.frame.gravity, observations
+            )
+            camera_used = answer.camera
+            if outcome.cam_from_world is not None:
+                uncertainty = answer.uncertainty
             reason = outcome.failure_reason.value if outcome.failure_reason else None
         clock.lap("estimate", check=False)  # the work is done: its answer is kept
         timings = clock.finish()
@@ -288,15 +342,18 @@ class Localizer:
             camera=camera_used,
             camera_source="estimated" if params.camera is None else "request",
             uncertainty=uncertainty,
+            upright_turn_deg=turn,
         )
 
 
 class _MatchedQuery(NamedTuple):
-    """A query described, its references retrieved and matched: what every estimator takes."""
+    """A query described, its references retrieved and matched (at the clockwise ``turn`` of
+    the upload, keypoints back in the upload): what every estimator takes."""
 
     camera: Camera
     references: list[ReferenceView]
     observations: list[ReferenceObservation]
+    turn: int
 
 
 def _out_of_time(estimator: str, timings: dict[str, float]) -> LocalizationResult:
@@ -331,13 +388,13 @@ class _StageClock:
         self._start = self._lap_start = time.perf_counter()
 
     def lap(self, stage: str, check: bool = True) -> None:
-        """Records ``stage`` as ended now.
+        """Records ``stage`` as ended now (a stage run again adds up).
 
         Raises:
             _OutOfTimeError: ``check`` and the budget is spent.
         """
         now = time.perf_counter()
-        self._timings[stage] = (now - self._lap_start) * 1000.0
+        self._timings[stage] = self._timings.get(stage, 0.0) + (now - self._lap_start) * 1000.0
         self._lap_start = now
         self._left_at_lap = self.deadline.remaining_s() if self._budgeted else None
         if check and self.deadline.expired():

@@ -5,6 +5,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field
 
+from app.schemas.ar import CameraAdaptationOut, FramePoseOut, GravityIn, OutputIn, PoseConvention
 from app.schemas.estimators import EstimatorName
 from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
@@ -15,6 +16,7 @@ from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
 from services.pipeline import LocalizationResult, RetrievedReference
+from services.query_frame import QueryFrameHints
 from services.retrieval.search import PositionPrior
 from services.rig_localizer import SessionLocalizationResult
 
@@ -69,6 +71,20 @@ class LocalizeParamsIn(BaseModel):
         "two or more frames (at most SLLOC_MAX_FRAMES) are localized jointly. See README "
         "'Several frames'",
     )
+    # AR clients (README "Integrating an AR app")
+    camera_rotation_deg: Literal[0, 90, 180, 270] | None = Field(
+        None,
+        description="Clockwise turn from the image `camera` describes to the upload as "
+        "displayed (EXIF applied). Default: decided by the sizes (the camera may be given for "
+        "any uniform scale of the upload) and EXIF, a swapped aspect taken as 90°",
+    )
+    gravity: GravityIn | None = None
+    rotation_search: bool = Field(
+        True,
+        description="Without a gravity hint, also try the upload turned by 90°, 270° and 180° "
+        "(within the time budget) when it fails as uploaded",
+    )
+    output: OutputIn = Field(default_factory=OutputIn)
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -79,6 +95,11 @@ class LocalizeParamsIn(BaseModel):
             prior=PositionPrior(np.array(prior.position), prior.radius) if prior else None,
             max_error_px=self.max_error_px,
             time_budget_s=self.time_budget_s,
+            frame=QueryFrameHints(
+                self.camera_rotation_deg,
+                self.gravity.to_hint() if self.gravity else None,
+                self.rotation_search,
+            ),
         )
 
     def to_frames(self) -> list[SessionFrame] | None:
@@ -191,6 +212,19 @@ class LocalizeResult(BaseModel):
     uncertainty: UncertaintyOut | None = Field(
         None, description="Pose uncertainty; null without a pose or enough verified points"
     )
+    # AR clients (README "Integrating an AR app")
+    camera_adaptation: CameraAdaptationOut | None = Field(
+        None, description="How `camera` was adapted to the upload (when a camera was given)"
+    )
+    upright_turn_deg: int = Field(
+        0, description="Clockwise turn of the upload at which it was matched"
+    )
+    gravity_error_deg: float | None = Field(
+        None, description="Angle between the gravity hint and the pose's (with a gravity hint)"
+    )
+    world_from_cam: dict[PoseConvention, FramePoseOut] | None = Field(
+        None, description="The pose of `output.pose_of` in the conventions `output.frames`"
+    )
 
     @classmethod
     def from_result(
@@ -198,10 +232,13 @@ class LocalizeResult(BaseModel):
         result: LocalizationResult,
         return_inliers: bool,
         geopose: tuple[GeoPose, GeoPoseAccuracy] | None = None,
+        output: OutputIn | None = None,
     ) -> LocalizeResult:
         """The answer to ``result``; per-reference inlier pixels only when ``return_inliers``;
-        the GeoPose when given."""
+        the GeoPose when given; camera-to-world as ``output`` asks."""
         pose = result.cam_from_world
+        adaptation = result.camera_adaptation
+        output = output or OutputIn()
         return cls(
             localized=result.localized,
             reason=FailureReason(result.reason) if result.reason is not None else None,
@@ -222,6 +259,17 @@ class LocalizeResult(BaseModel):
             uncertainty=UncertaintyOut.from_uncertainty(result.uncertainty)
             if result.uncertainty is not None
             else None,
+            camera_adaptation=CameraAdaptationOut.from_adaptation(adaptation)
+            if adaptation is not None
+            else None,
+            upright_turn_deg=result.upright_turn_deg,
+            gravity_error_deg=result.stats.get("gravity_error_deg"),
+            world_from_cam={
+                f: FramePoseOut.from_pose(output.camera_pose(pose, adaptation), f)
+                for f in output.frames
+            }
+            if pose is not None and output.frames
+            else None,
         )
 
     @classmethod
@@ -230,11 +278,12 @@ class LocalizeResult(BaseModel):
         result: SessionLocalizationResult,
         return_inliers: bool,
         geopose: tuple[GeoPose, GeoPoseAccuracy] | None = None,
+        output: OutputIn | None = None,
     ) -> LocalizeResult:
         """The answer with ``map_from_session`` and ``frames``; the summary fields (and the
         GeoPose, of frame 0) as in ``SessionLocalizationResult.result``."""
         alignment = result.map_from_session
-        return cls.from_result(result.result, return_inliers, geopose).model_copy(
+        return cls.from_result(result.result, return_inliers, geopose, output).model_copy(
             update={
                 "map_from_session": SessionAlignmentOut.from_rigid(alignment)
                 if alignment is not None

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -16,6 +16,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
 from services.pipeline import LocalizationResult, LocalizeParams, Localizer
+from services.query_frame import QueryFrameHints
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
@@ -34,6 +35,7 @@ class LocalizeRequest:
         prior: keep only references near a known position.
         max_error_px: inlier threshold in pixels (None: the estimator options' default).
         time_budget_s: wall-clock budget of the localization in seconds (None: the service's).
+        frame: an AR client's camera rotation, gravity and rotation search.
     """
 
     camera: Camera | None = None
@@ -42,6 +44,7 @@ class LocalizeRequest:
     prior: PositionPrior | None = None
     max_error_px: float | None = None
     time_budget_s: float | None = None
+    frame: QueryFrameHints = field(default_factory=QueryFrameHints)
 
 
 def engine_params(
@@ -76,6 +79,7 @@ def engine_params(
         prior=request.prior,
         options=options,
         time_budget_s=budget,
+        frame=request.frame,
     )
 
 

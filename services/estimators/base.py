@@ -25,6 +25,7 @@ class FailureReason(StrEnum):
     TIME_BUDGET_EXCEEDED = "time_budget_exceeded"
     # no intrinsics were sent and the matches do not determine the focal length
     FOCAL_UNOBSERVABLE = "focal_unobservable"
+    GRAVITY_MISMATCH = "gravity_mismatch"  # the pose disagrees with the query's gravity hint
 
 
 @dataclass(frozen=True)

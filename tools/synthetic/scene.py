@@ -8,6 +8,7 @@ depth are therefore exact. World frame: x right, y down, z forward; cameras look
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 import cv2
@@ -99,9 +100,12 @@ class SyntheticScene:
         corners = np.array([[-6, -3, -6], [6, 3, 8]], float)
         self.extent = float(np.linalg.norm(corners[1] - corners[0]))
 
-    def render(self, cam_from_world: Rigid3d) -> tuple[UInt8Array, Float32Array]:
-        """Ray-cast the scene: (H, W, 3) RGB uint8 image and (H, W) float32 z-depth."""
-        cam = self.camera
+    def render(
+        self, cam_from_world: Rigid3d, camera: Camera | None = None
+    ) -> tuple[UInt8Array, Float32Array]:
+        """Ray-cast the scene through ``camera`` (a pinhole; default: the scene's): (H, W, 3)
+        RGB uint8 image and (H, W) float32 z-depth."""
+        cam = camera or self.camera
         # pixel centres in COLMAP convention, as rays with unit z in camera coordinates
         u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
         rays_cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(cam.K).T
@@ -178,6 +182,23 @@ def encode_png(image: UInt8Array) -> bytes:
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.tobytes()
+
+
+def encode_jpeg(image: UInt8Array, orientation: int | None = None, quality: int = 95) -> bytes:
+    """JPEG bytes of an (H, W, 3) RGB image, with an EXIF block holding only the orientation
+    tag (1–8) when ``orientation`` is given: the pixels are stored as they are and a viewer
+    turns (or mirrors) them for display, as phones save portrait photos."""
+    ok, buf = cv2.imencode(".jpg", image[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    data = buf.tobytes()
+    if orientation is None:
+        return data
+    # little-endian TIFF: header, one IFD with one SHORT entry (tag 0x0112), no next IFD
+    tiff = b"II*\x00" + struct.pack("<IHHHIHHI", 8, 1, 0x0112, 3, 1, orientation, 0, 0)
+    payload = b"Exif\x00\x00" + tiff
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    return data[:2] + app1 + data[2:]
 
 
 def encode_depth_png(depth: Float32Array) -> bytes:

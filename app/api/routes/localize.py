@@ -106,6 +106,7 @@ def localize(
             session_result,
             body.return_inliers,
             geo.geopose_answer(registration, session_result.result),
+            body.output,
         )
     with admission.admit():
         result = localize_image(
@@ -125,5 +126,5 @@ def localize(
         )
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(
-        result, body.return_inliers, geo.geopose_answer(registration, result)
+        result, body.return_inliers, geo.geopose_answer(registration, result), body.output
     )
