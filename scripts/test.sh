@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh dev
-scripts/build_models.sh --models aliked-n16,lightglue-aliked,disk,lightglue-disk
+scripts/build_models.sh --models aliked-n16,lightglue-aliked,disk,lightglue-disk,xfeat,lighterglue-xfeat
 scripts/postgres.sh
 scripts/build_web.sh
 scripts/install_chromium.sh

@@ -86,6 +86,7 @@ def build_features(config: FeatureConfig, models: ModelStore) -> tuple[FeatureEx
         config.extractor,
         entry.keypoint_budget or config.max_keypoints,
         ResizeOptions(config.max_keypoints, config.max_side),
+        int(entry.config.get("side_multiple", 1)),
     )
     if config.lightglue is None:
         return extractor, nearest

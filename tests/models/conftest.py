@@ -2,7 +2,7 @@
 
 ``SLLOC_TEST_MODELS_DIR`` points elsewhere than ``./models``. Without models these tests skip,
 except under CI, where a missing model is a failure. ``models`` needs ALIKED + LightGlue,
-``disk_models`` DISK + LightGlue-DISK.
+``disk_models`` DISK + LightGlue-DISK, ``xfeat_models`` XFeat + LighterGlue.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from services.runtime.manifest import read_manifest
 
 MODELS_DIR = Path(os.environ.get("SLLOC_TEST_MODELS_DIR", "models"))
 DISK_MODELS = ("disk", "lightglue-disk")
+XFEAT_MODELS = ("xfeat", "lighterglue-xfeat")
 
 
 def _store(names: tuple[str, ...]) -> ModelStore:
@@ -39,3 +40,8 @@ def models() -> ModelStore:
 @pytest.fixture(scope="session")
 def disk_models() -> ModelStore:
     return _store(DISK_MODELS)
+
+
+@pytest.fixture(scope="session")
+def xfeat_models() -> ModelStore:
+    return _store(XFEAT_MODELS)

@@ -1,6 +1,6 @@
-"""ALIKED / DISK + LightGlue at run time: pixel conventions, geometric consistency of the
-matches, and localization through the whole pipeline on rendered images with exact ground
-truth."""
+"""ALIKED / DISK + LightGlue and XFeat + LighterGlue at run time: pixel conventions, geometric
+consistency of the matches, and localization through the whole pipeline on rendered images
+with exact ground truth."""
 
 from __future__ import annotations
 
@@ -24,15 +24,19 @@ from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 
 # extractor model → the fixture whose store has it and its LightGlue
-MODEL_FIXTURES = {"aliked-n16": "models", "disk": "disk_models"}
+MODEL_FIXTURES = {"aliked-n16": "models", "disk": "disk_models", "xfeat": "xfeat_models"}
 
 
 def _extractor(
     models: ModelStore, keypoints: int, max_side: int, model: str = "aliked-n16"
 ) -> OnnxKeypointExtractor:
-    budget = models.entry(model).keypoint_budget or keypoints
+    entry = models.entry(model)
     return OnnxKeypointExtractor(
-        models.session(model), model, budget, ResizeOptions(keypoints, max_side)
+        models.session(model),
+        model,
+        entry.keypoint_budget or keypoints,
+        ResizeOptions(keypoints, max_side),
+        int(entry.config.get("side_multiple", 1)),
     )
 
 
@@ -42,6 +46,7 @@ def test_keypoints_follow_the_colmap_convention(
 ) -> None:
     models = request.getfixturevalue(MODEL_FIXTURES[model])
     image = reference_views[0].image
+    image = image[: image.shape[0] // 64 * 64, : image.shape[1] // 64 * 64]  # halves: of 32
     height, width = image.shape[:2]
     full = _extractor(models, 512, width // 2, model).extract(image)  # resized inside
     half = cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
@@ -62,6 +67,42 @@ def test_budget_is_a_prefix(models: ModelStore, reference_views: list[SyntheticV
     )
     assert len(few) == 256 and len(many) == 1024
     np.testing.assert_array_equal(few.keypoints, many.keypoints[:256])
+
+
+class _ShapeRecorder:
+    """An extractor session that records the image shapes it is given (no detections)."""
+
+    def __init__(self) -> None:
+        self.shapes: list[tuple[int, ...]] = []
+
+    def run(self, _: object, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        self.shapes.append(feeds["image"].shape)
+        return [np.zeros((8, 2), np.float32), np.full(8, -np.inf, np.float32), np.zeros((8, 4))]
+
+
+def test_sides_are_rounded_down_to_the_models_multiple() -> None:
+    session = _ShapeRecorder()
+    extractor = OnnxKeypointExtractor(session, "x", 8, ResizeOptions(8, 600), side_multiple=32)
+    image = np.zeros((480, 640, 3), np.uint8)
+    assert len(extractor.extract(image)) == 0  # padding rows only
+    assert len(extractor.with_budget(4, 300).extract(image)) == 0
+    extractor.with_budget(None, 4000).extract(image)  # never enlarged, already multiples
+    assert session.shapes == [(1, 3, 448, 576), (1, 3, 224, 288), (1, 3, 480, 640)]
+    with pytest.raises(ValueError, match="side_multiple"):
+        OnnxKeypointExtractor(session, "x", 8, ResizeOptions(8, 600), side_multiple=0)
+
+
+def test_xfeat_keypoints_are_scaled_back_to_the_original_image(
+    xfeat_models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    image = reference_views[0].image  # resized to sides that are multiples of 32
+    height, width = image.shape[:2]
+    features = _extractor(xfeat_models, 512, 600, "xfeat").extract(image)
+    assert len(features) == 512 and features.image_size == (width, height)
+    assert (features.keypoints > 0).all() and (features.keypoints < [width, height]).all()
+    # the detections spread over the whole image, not only the resized part
+    assert features.keypoints[:, 0].max() > 0.9 * width
+    assert features.keypoints[:, 1].max() > 0.9 * height
 
 
 def test_disk_drops_the_padding_rows(disk_models: ModelStore) -> None:
@@ -96,7 +137,9 @@ def test_lightglue_matches_are_geometrically_correct(
         b.cam_from_world,
         fb.keypoints[pairs[:, 1]].astype(np.float64),
     )
-    assert np.mean(errors < 2.0) > 0.9, np.median(errors)
+    # XFeat's keypoints lie on the pixel grid (no sub-pixel refinement): measured 86 % within
+    # 2 px on this pair, median 0.68 px; ALIKED and DISK > 90 %
+    assert np.mean(errors < 2.0) > (0.8 if model == "xfeat" else 0.9), np.median(errors)
 
 
 def test_match_many_equals_one_at_a_time(
@@ -133,7 +176,9 @@ def test_lightglue_keypoint_cap_matches_the_leading_keypoints(
         OnnxLightGlueMatcher(session, "lightglue-aliked", lightglue_keypoints=1)
 
 
-@pytest.mark.parametrize("features", ["aliked", "aliked-fast", "aliked-nn", "disk", "disk-fast"])
+@pytest.mark.parametrize(
+    "features", ["aliked", "aliked-fast", "aliked-nn", "disk", "disk-fast", "xfeat", "xfeat-nn"]
+)
 def test_localizes_rendered_queries(
     features: str,
     request: pytest.FixtureRequest,
@@ -141,7 +186,7 @@ def test_localizes_rendered_queries(
     reference_views: list[SyntheticView],
     query_views: list[SyntheticView],
 ) -> None:
-    request.getfixturevalue("disk_models" if features.startswith("disk") else "models")
+    request.getfixturevalue(MODEL_FIXTURES[FEATURE_CONFIGS[features].extractor])
     localizer = build_localizer(MODELS_DIR, 40_000_000, features)
     store = MemoryReferenceStore()
     for view in reference_views:

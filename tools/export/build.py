@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 from services.features.configs import PREFERRED_MODELS
@@ -16,16 +17,19 @@ def _exporter(name: str) -> tuple[Callable[[Path], ModelEntry], int]:
     """The export function for ``name`` and the version of the graph it writes."""
     from tools.export.aliked import ALIKED_MODELS, export_aliked
     from tools.export.disk import DISK_MODELS, export_disk
-    from tools.export.lightglue import EXPORT_VERSION, LIGHTGLUE_FEATURES, export_lightglue
+    from tools.export.lightglue import EXPORT_VERSION, MATCHERS, export_lightglue
+    from tools.export.xfeat import XFEAT_MODELS, export_xfeat
 
     if name in ALIKED_MODELS:
         return (lambda models_dir: export_aliked(name, models_dir)), 1
     if name in DISK_MODELS:
         return export_disk, 1
-    features = name.removeprefix("lightglue-")
-    if name.startswith("lightglue-") and features in LIGHTGLUE_FEATURES:
-        return (lambda models_dir: export_lightglue(features, models_dir)), EXPORT_VERSION
-    known = [*ALIKED_MODELS, *DISK_MODELS, *(f"lightglue-{f}" for f in LIGHTGLUE_FEATURES)]
+    if name in XFEAT_MODELS:
+        return export_xfeat, 1
+    for features, source in MATCHERS.items():
+        if name == source.name:
+            return partial(export_lightglue, features), EXPORT_VERSION
+    known = [*ALIKED_MODELS, *DISK_MODELS, *XFEAT_MODELS, *(s.name for s in MATCHERS.values())]
     raise ValueError(f"unknown model {name!r}; known: {', '.join(known)}")
 
 

