@@ -197,4 +197,9 @@ def geopose_answer(
     if registration is None or not result.localized or result.cam_from_world is None:
         return None
     pose = geopose_of(result.cam_from_world, registration)
-    return pose, geopose_accuracy(registration, None, None)
+    uncertainty = result.uncertainty
+    return pose, geopose_accuracy(
+        registration,
+        uncertainty.position_m if uncertainty is not None else None,
+        uncertainty.rotation_deg if uncertainty is not None else None,
+    )

@@ -59,10 +59,16 @@ def geopose_accuracy(
     position_sigma: float | None,
     rotation_sigma_deg: float | None,
 ) -> GeoPoseAccuracy:
-    """Accuracies of a GeoPose from the pose's own 1-σ (``position_sigma`` in map units,
-    None when unknown) and the registration's, added in quadrature. Unknown pose σ counts
-    as zero; the registration alone bounds the answer from below."""
+    """Accuracies of a GeoPose from the pose's own RMS errors (``position_sigma``: of the
+    camera centre in map units; ``rotation_sigma_deg``: of its rotation angle; None when
+    unknown, counted as zero) and the registration's, added in quadrature. A 3-D RMS error is
+    split as if isotropic: √(2/3) of it horizontally, √(1/3) vertically; the rotation's whole
+    RMS angle bounds the yaw's."""
     pose_m = (position_sigma or 0.0) * registration.scale
     position = float(np.hypot(pose_m, registration.position_sigma_m))
     yaw = float(np.hypot(rotation_sigma_deg or 0.0, registration.rotation_sigma_deg))
-    return GeoPoseAccuracy(horizontal_m=position, vertical_m=position, yaw_deg=yaw)
+    return GeoPoseAccuracy(
+        horizontal_m=position * float(np.sqrt(2.0 / 3.0)),
+        vertical_m=position * float(np.sqrt(1.0 / 3.0)),
+        yaw_deg=yaw,
+    )

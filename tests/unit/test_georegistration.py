@@ -110,7 +110,9 @@ class TestGeoPose:
     def test_accuracy_adds_in_quadrature(self) -> None:
         registration = GeoRegistration(ZURICH, np.eye(3), np.zeros(3), 2.0, 0.3, 0.4)
         accuracy = geopose_accuracy(registration, 0.2, 0.3)
-        assert accuracy.horizontal_m == pytest.approx(0.5)  # hypot(0.2 × 2, 0.3)
+        # RMS 3-D error hypot(0.2 × 2, 0.3) = 0.5 m, split as if isotropic
+        assert accuracy.horizontal_m == pytest.approx(0.5 * np.sqrt(2 / 3))
+        assert accuracy.vertical_m == pytest.approx(0.5 * np.sqrt(1 / 3))
         assert accuracy.yaw_deg == pytest.approx(0.5)
 
 
