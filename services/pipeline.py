@@ -192,8 +192,10 @@ class Localizer:
         estimator gets what is left of the time budget after matching.
 
         The query is matched turned upright (``QueryFrame.turns``, best guess first); the other
-        turns are tried, while the budget lasts, only for the estimators not localized yet. Past
-        one attempt, every result has the stages summed over the attempts."""
+        turns are tried, while the budget lasts, for the estimators without a confident answer
+        yet (confidence below ``SEARCH_CONFIDENCE``: a sideways image can give a pose from
+        chance matches, which the confidence reads as wrong), and each keeps its most confident
+        answer. Past one attempt, every result has the stages summed over the attempts."""
         chosen = [get_estimator(name) for name in estimators]
         clock = _StageClock(params.time_budget_s)
         try:
@@ -213,8 +215,8 @@ class Localizer:
         results = [self._estimate(matched, frame, params, e, clock.branch()) for e in chosen]
         clock.lap("estimate", check=False)
         attempts = 1
-        for turn in frame.turns[1:]:  # other turns only while not localized, within the budget
-            if all(r.localized for r in results) or clock.deadline.expired():
+        for turn in frame.turns[1:]:  # other turns only while unsure, within the budget
+            if all(_confident(r) for r in results) or clock.deadline.expired():
                 break
             try:
                 matched = self._match(image, turn, camera, query_depth, params, store, clock)
@@ -222,7 +224,9 @@ class Localizer:
                 break
             attempts += 1
             results = [
-                r if r.localized else self._estimate(matched, frame, params, e, clock.branch())
+                r
+                if _confident(r)
+                else _better(r, self._estimate(matched, frame, params, e, clock.branch()))
                 for r, e in zip(results, chosen, strict=True)
             ]
             clock.lap("estimate", check=False)
@@ -354,6 +358,20 @@ class _MatchedQuery(NamedTuple):
     references: list[ReferenceView]
     observations: list[ReferenceObservation]
     turn: int
+
+
+SEARCH_CONFIDENCE = 0.5  # an answer below it lets the other turns of the query be tried
+
+
+def _confident(result: LocalizationResult) -> bool:
+    return result.localized and result.confidence >= SEARCH_CONFIDENCE
+
+
+def _better(a: LocalizationResult, b: LocalizationResult) -> LocalizationResult:
+    """The localized one of two answers, the more confident when both are (``a`` on ties)."""
+    if a.localized != b.localized:
+        return a if a.localized else b
+    return b if b.confidence > a.confidence else a
 
 
 def _out_of_time(estimator: str, timings: dict[str, float]) -> LocalizationResult:

@@ -46,7 +46,7 @@ def test_json_form_fields_and_enums_are_published() -> None:
     assert schemas["EstimatorName"]["enum"] == estimator_names()
     assert schemas["FailureReason"]["enum"] == [reason.value for reason in FailureReason]
     result = schemas["LocalizeResult"]["properties"]
-    assert result["estimator"] == {"$ref": "#/components/schemas/EstimatorName"}
+    assert result["estimator"]["$ref"] == "#/components/schemas/EstimatorName"
     assert {"$ref": "#/components/schemas/FailureReason"} in result["reason"]["anyOf"]
     estimator_param = schemas["LocalizeParamsIn"]["properties"]["estimator"]
     assert {"$ref": "#/components/schemas/EstimatorName"} in estimator_param["anyOf"]

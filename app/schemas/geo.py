@@ -3,18 +3,19 @@ OGC GeoPose (Basic-Quaternion) of a localized camera."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field
 
-from app.schemas.geometry import FiniteFloat
 from db.geo import StoredRegistration
 from services.geo.geodesy import Geodetic
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
 from services.geo.gps import GpsFix
 from services.geo.registration import GeoRegistration
 
+# numbers as JSON numbers: a boolean is not one (lax mode would read false as 0)
+Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Latitude = Field(ge=-90, le=90, allow_inf_nan=False, description="WGS84 degrees")
 Longitude = Field(ge=-180, le=180, allow_inf_nan=False, description="WGS84 degrees")
 
@@ -23,10 +24,10 @@ class GpsSchema(BaseModel):
     """A GPS position (WGS84). ``height`` in metres above the ellipsoid (EXIF altitudes, above
     sea level, are taken as they are); ``accuracy_m`` the horizontal 1-σ in metres."""
 
-    latitude: float = Latitude
-    longitude: float = Longitude
-    height: FiniteFloat | None = None
-    accuracy_m: float | None = Field(None, gt=0, allow_inf_nan=False)
+    latitude: Number = Latitude
+    longitude: Number = Longitude
+    height: Number | None = None
+    accuracy_m: Number | None = Field(None, gt=0)
 
     def to_fix(self) -> GpsFix:
         return GpsFix(self.latitude, self.longitude, self.height, self.accuracy_m)
@@ -42,19 +43,19 @@ class GpsSchema(BaseModel):
 
 
 class GeodeticSchema(BaseModel):
-    latitude: float = Latitude
-    longitude: float = Longitude
-    height: FiniteFloat = Field(0.0, description="metres above the WGS84 ellipsoid")
+    latitude: Number = Latitude
+    longitude: Number = Longitude
+    height: Number = Field(0.0, description="metres above the WGS84 ellipsoid")
 
 
 class EnuFromMapSchema(BaseModel):
-    rotation: list[FiniteFloat] = Field(
+    rotation: list[Number] = Field(
         [1.0, 0.0, 0.0, 0.0],
         min_length=4,
         max_length=4,
         description="enu_from_map rotation quaternion [w, x, y, z]",
     )
-    translation: list[FiniteFloat] = Field(
+    translation: list[Number] = Field(
         [0.0, 0.0, 0.0], min_length=3, max_length=3, description="metres in ENU"
     )
 
@@ -66,7 +67,7 @@ class GeoRegistrationIn(BaseModel):
 
     origin: GeodeticSchema
     enu_from_map: EnuFromMapSchema = EnuFromMapSchema()
-    scale: float = Field(1.0, gt=0, allow_inf_nan=False, description="metres per map unit")
+    scale: Number = Field(1.0, gt=0, description="metres per map unit")
 
     def to_registration(self) -> GeoRegistration:
         o = self.origin
@@ -79,11 +80,10 @@ class GeoRegistrationIn(BaseModel):
 
 
 class GeoRegistrationEstimateIn(BaseModel):
-    max_error_m: float = Field(
+    max_error_m: Number = Field(
         10.0,
         gt=0,
         le=10_000,
-        allow_inf_nan=False,
         description="RANSAC inlier threshold in metres between a registered camera centre and "
         "its GPS position (about 3 × the GPS accuracy)",
     )

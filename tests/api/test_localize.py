@@ -122,7 +122,10 @@ def test_empty_map_is_not_localized(client: TestClient, query_views: list[Synthe
 @pytest.mark.parametrize(
     ("params", "fragment"),
     [
-        ({"estimator": "nope"}, "unknown estimator 'nope'; known: e3p1, e5p1, essential_3pt_depth"),
+        (
+            {"estimator": "nope"},
+            "unknown estimator 'nope'; known: auto, e3p1, e5p1, essential_3pt_depth",
+        ),
         ({"top_k": 0}, "top_k"),
         ({"top_k": 1000}, "top_k may be at most"),
         (

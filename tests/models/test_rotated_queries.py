@@ -54,6 +54,6 @@ def test_demo_query_turned_localizes_within_1cm(
     result = aliked.localize(encode_png(image), params, demo_map)
     assert result.localized and result.cam_from_world is not None, result.reason
     dt, dr = pose_error(result.cam_from_world, truth)
-    assert dt < 0.01 and dr < 0.2, (dt, dr)
+    assert dt < 0.01 and dr < 0.2, (dt, dr, result.confidence)
     assert result.upright_turn_deg == 360 - turn
     assert result.stats["orientation_attempts"] == (1 if with_gravity else {90: 3, 270: 2}[turn])
