@@ -95,6 +95,15 @@ class Settings(BaseSettings):
         description="Decoded reference features (and depth) kept in memory between "
         "requests, MiB; 0 = off",
     )
+    ann_min_references: int = Field(
+        50_000,
+        gt=0,
+        description="Maps with at least this many references are searched through an "
+        "approximate faiss index (IVF-SQ8) instead of exactly",
+    )
+    ann_nprobe: int = Field(
+        32, gt=0, description="Inverted lists the approximate index visits per query"
+    )
     max_queued: int = Field(
         8,
         ge=0,
