@@ -58,7 +58,9 @@ def test_manifests_wire_the_service_together() -> None:
     assert hpa["spec"]["metrics"][0]["resource"]["name"] == "cpu"
     assert container["resources"]["requests"]["cpu"]  # utilization is relative to it
     services = {s["metadata"]["name"]: s for s in by_kind["Service"]}
-    assert services["slloc-api"]["spec"]["selector"] == deployment["spec"]["selector"]["matchLabels"]
+    assert (
+        services["slloc-api"]["spec"]["selector"] == deployment["spec"]["selector"]["matchLabels"]
+    )
     (postgres,) = by_kind["StatefulSet"]
     assert postgres["spec"]["serviceName"] in services
 

@@ -71,9 +71,10 @@ def test_two_replicas_share_one_database(
 ) -> None:
     a, b = replicas
     engine = create_engine(database)
-    with httpx.Client(base_url=a.url, timeout=120) as on_a, httpx.Client(
-        base_url=b.url, timeout=120
-    ) as on_b:
+    with (
+        httpx.Client(base_url=a.url, timeout=120) as on_a,
+        httpx.Client(base_url=b.url, timeout=120) as on_b,
+    ):
         map_id = create_map(on_a)  # type: ignore[arg-type]
 
         def vocabulary_version() -> int | None:

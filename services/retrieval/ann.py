@@ -35,11 +35,13 @@ class AnnOptions:
 class AnnIndex:
     """A faiss IVF-SQ8 index over unit vectors, addressed by slot ids; thread-safe."""
 
-    def __init__(self, vectors: Float32Array, options: AnnOptions, seed: int = 0) -> None:
+    def __init__(
+        self, vectors: Float32Array, options: AnnOptions, seed: int = 0, nlist: int | None = None
+    ) -> None:
         """Train on (a sample of) ``vectors`` (N, D) float32 unit rows and add them all as
-        slots 0..N-1."""
+        slots 0..N-1. ``nlist``: inverted lists (default √N)."""
         n, dim = vectors.shape
-        nlist = max(1, int(np.sqrt(n)))
+        nlist = nlist or max(1, int(np.sqrt(n)))
         quantizer = faiss.IndexFlatIP(dim)
         index = faiss.IndexIVFScalarQuantizer(
             quantizer, dim, nlist, faiss.ScalarQuantizer.QT_8bit, faiss.METRIC_INNER_PRODUCT

@@ -98,7 +98,10 @@ def test_deletes_and_adds_are_respected(scene: RetrievalIndex) -> None:
     deleted = scene.descriptors[1:10_000:2][:20]
     for query in deleted:  # a deleted reference is never answered, even for its own vector
         rows, _ = search_index(index, query, 10)
-        assert all(int(index.image_ids[r][1:]) % 2 == 0 or int(index.image_ids[r][1:]) >= 10_000 for r in rows)
+        assert all(
+            int(index.image_ids[r][1:]) % 2 == 0 or int(index.image_ids[r][1:]) >= 10_000
+            for r in rows
+        )
     for i, query in enumerate(added[:20]):  # an added one is found by its own vector
         rows, _ = search_index(index, query, 1)
         assert index.image_ids[rows[0]] == f"r{10_000 + i}"
