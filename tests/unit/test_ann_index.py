@@ -10,25 +10,23 @@ from services.retrieval.ann import AnnOptions, AnnView
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.contracts import RetrievalIndex, VocabularyState
 from services.retrieval.search import PositionPrior, search_index, top_k
+from tools.synthetic.descriptors import place_views, unit_rows
 
 DIM = 1024  # the service's VLAD length (8 centres × 128-D ALIKED descriptors)
 
 
-def unit_rows(rng: np.random.Generator, n: int) -> np.ndarray:
-    rows = rng.standard_normal((n, DIM)).astype(np.float32)
-    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+PLACES = unit_rows(np.random.default_rng(10), 400, DIM)  # 50 references per place
 
 
-def near(rng: np.random.Generator, rows: np.ndarray, noise: float) -> np.ndarray:
-    """Queries close to ``rows`` (as a query photo is close to its references)."""
-    out = rows + noise * unit_rows(rng, rows.shape[0])
-    return (out / np.linalg.norm(out, axis=1, keepdims=True)).astype(np.float32)
+def queries_of(rng: np.random.Generator, n: int) -> np.ndarray:
+    """New views of random places: their exact top-10 are views of the same place."""
+    return place_views(rng, PLACES, rng.integers(0, len(PLACES), n))
 
 
 @pytest.fixture(scope="module")
 def scene() -> RetrievalIndex:
     rng = np.random.default_rng(0)
-    vectors = unit_rows(rng, 20_000)
+    vectors = place_views(rng, PLACES, rng.integers(0, len(PLACES), 20_000))
     centers = rng.uniform(-100, 100, (20_000, 3))
     return RetrievalIndex([f"r{i}" for i in range(20_000)], vectors, centers)
 
@@ -50,7 +48,7 @@ def test_recall_against_exact_search(scene: RetrievalIndex) -> None:
         scene.centers,
         ann=AnnView.build(scene.descriptors, AnnOptions(1000, nprobe=16)),
     )
-    queries = near(rng, scene.descriptors[rng.choice(20_000, 50)], 0.5)
+    queries = queries_of(rng, 50)
     assert recall_at_10(index, queries, None) >= 0.95
     rows, scores = search_index(index, queries[0], 10)
     assert rows.shape == (10,) and np.all(np.diff(scores) <= 1e-6)  # best first
@@ -72,7 +70,7 @@ def test_prior_is_respected(scene: RetrievalIndex) -> None:
     inside = prior.distances(index.centers) <= prior.radius
     assert 1000 < inside.sum() < 20_000
     outside_rows = np.flatnonzero(~inside)
-    queries = near(rng, scene.descriptors[rng.choice(outside_rows, 20)], 0.1)
+    queries = np.concatenate([queries_of(rng, 20), scene.descriptors[outside_rows[:10]]])
     for query in queries:
         rows, _ = search_index(index, query, 10, prior)
         assert rows.size == 10 and inside[rows].all()

@@ -23,20 +23,10 @@ import faiss
 import numpy as np
 
 from services.retrieval.ann import AnnIndex, AnnOptions
-from services.types import Float32Array
+from tools.synthetic.descriptors import place_views, unit_rows
 
 DIM = 1024
 CHUNK = 100_000
-
-
-def _unit(rows: Float32Array) -> Float32Array:
-    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
-
-
-def _views(rng: np.random.Generator, places: Float32Array, of: np.ndarray) -> Float32Array:
-    """(len(of), DIM) unit views of ``places[of]``: place + isotropic noise of equal norm."""
-    noise = _unit(rng.standard_normal((of.size, DIM), dtype=np.float32))
-    return _unit(places[of] + noise).astype(np.float32)
 
 
 def _rss_mib() -> float:
@@ -55,8 +45,8 @@ def main() -> None:
     args = parser.parse_args()
     n, k = args.references, 10
     rng = np.random.default_rng(0)
-    places = _unit(rng.standard_normal((args.places, DIM), dtype=np.float32))
-    queries = _views(rng, places, rng.integers(0, args.places, args.queries))
+    places = unit_rows(rng, args.places, DIM)
+    queries = place_views(rng, places, rng.integers(0, args.places, args.queries))
     options = AnnOptions(min_references=1, nprobe=args.nprobe)
 
     rss_before = _rss_mib()
@@ -65,7 +55,7 @@ def main() -> None:
     best_ids = np.zeros((args.queries, k), np.int64)
     index: AnnIndex | None = None
     for first in range(0, n, CHUNK):
-        chunk = _views(rng, places, rng.integers(0, args.places, min(CHUNK, n - first)))
+        chunk = place_views(rng, places, rng.integers(0, args.places, min(CHUNK, n - first)))
         scores = queries @ chunk.T  # exact search, merged chunk by chunk
         merged_scores = np.concatenate([best_scores, scores], axis=1)
         merged_ids = np.concatenate(
@@ -93,7 +83,7 @@ def main() -> None:
         latencies.append((time.perf_counter() - start) * 1e3)
         hits += len(set(slots.tolist()) & set(best_ids[q].tolist()))
     exact_ms = []
-    sample_rows = _views(rng, places, rng.integers(0, args.places, min(n, CHUNK)))
+    sample_rows = place_views(rng, places, rng.integers(0, args.places, min(n, CHUNK)))
     for q in range(min(20, args.queries)):  # exact search over one chunk, scaled to n
         start = time.perf_counter()
         np.argpartition(-(sample_rows @ queries[q]), k)[:k]
