@@ -9,7 +9,8 @@ no real map looks like), so references are drawn around ``--places`` random plac
 a new view of a random place; its exact top-10 are views of that place. The vectors are made
 in chunks, so the exact top-10 are found without holding the 4 GiB float32 matrix.
 
-Usage: python -m tools.benchmarks.ann [--references 1000000] [--queries 200] [--nprobe 32]
+Usage: python -m tools.benchmarks.ann [--references 1000000] [--queries 200]
+       [--nprobe 16 32 64 128 256]
 """
 
 from __future__ import annotations
@@ -41,13 +42,15 @@ def main() -> None:
     parser.add_argument("--references", type=int, default=1_000_000)
     parser.add_argument("--queries", type=int, default=200)
     parser.add_argument("--places", type=int, default=20_000)
-    parser.add_argument("--nprobe", type=int, default=AnnOptions().nprobe)
+    parser.add_argument(
+        "--nprobe", type=int, nargs="+", default=[16, 32, 64, 128, 256], help="values to sweep"
+    )
     args = parser.parse_args()
     n, k = args.references, 10
     rng = np.random.default_rng(0)
     places = unit_rows(rng, args.places, DIM)
     queries = place_views(rng, places, rng.integers(0, args.places, args.queries))
-    options = AnnOptions(min_references=1, nprobe=args.nprobe)
+    options = AnnOptions(min_references=1, nprobe=args.nprobe[0])
 
     rss_before = _rss_mib()
     build_s = 0.0
@@ -76,12 +79,16 @@ def main() -> None:
     rss_after = _rss_mib()
 
     faiss.omp_set_num_threads(1)  # one request searches on one thread
-    latencies, hits = [], 0
-    for q in range(args.queries):
-        start = time.perf_counter()
-        slots, _ = index.search(queries[q], k)
-        latencies.append((time.perf_counter() - start) * 1e3)
-        hits += len(set(slots.tolist()) & set(best_ids[q].tolist()))
+    sweep = []
+    for nprobe in args.nprobe:
+        index.options = AnnOptions(min_references=1, nprobe=nprobe)
+        latencies, hits = [], 0
+        for q in range(args.queries):
+            start = time.perf_counter()
+            slots, _ = index.search(queries[q], k)
+            latencies.append((time.perf_counter() - start) * 1e3)
+            hits += len(set(slots.tolist()) & set(best_ids[q].tolist()))
+        sweep.append((nprobe, np.percentile(latencies, 50), np.percentile(latencies, 90), hits))
     exact_ms = []
     sample_rows = place_views(rng, places, rng.integers(0, args.places, min(n, CHUNK)))
     for q in range(min(20, args.queries)):  # exact search over one chunk, scaled to n
@@ -89,14 +96,14 @@ def main() -> None:
         np.argpartition(-(sample_rows @ queries[q]), k)[:k]
         exact_ms.append((time.perf_counter() - start) * 1e3 * n / sample_rows.shape[0])
 
-    print(f"faiss {faiss.__version__}, IVF-SQ8, nlist {int(np.sqrt(n))}, nprobe {args.nprobe}")
-    print(f"references: {n} synthetic unit vectors, {DIM}-D (VLAD, 8 × 128)")
+    print(f"faiss {faiss.__version__}, IVF-SQ8, nlist {int(np.sqrt(n))}")
+    print(f"references: {n} synthetic unit vectors, {DIM}-D (VLAD, 8 x 128), {args.places} places")
     print(f"build (train + add): {build_s:.1f} s")
-    print(
-        f"top-10 latency over {args.queries} queries, 1 thread: "
-        f"p50 {np.percentile(latencies, 50):.2f} ms, p90 {np.percentile(latencies, 90):.2f} ms"
-    )
-    print(f"recall@10 vs exact: {hits / (k * args.queries):.3f}")
+    print(f"top-10 over {args.queries} queries, one thread:")
+    print("| nprobe | p50 ms | p90 ms | recall@10 vs exact |")
+    print("|---|---|---|---|")
+    for nprobe, p50, p90, hits in sweep:
+        print(f"| {nprobe} | {p50:.2f} | {p90:.2f} | {hits / (k * args.queries):.3f} |")
     print(
         f"exact search (numpy, extrapolated from {sample_rows.shape[0]}): "
         f"p50 {np.median(exact_ms):.0f} ms"
