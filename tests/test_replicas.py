@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import create_engine, select
 
 from db.locks import try_exclusive
-from db.models import MapVocabulary
+from db.models import MapVocabulary, ReferenceImage
 from services.features.configs import SIFT
 from services.retrieval.policy import MIN_IMAGES
 from tests.conftest import create_map, fresh_postgres_database, upload_view
@@ -77,21 +77,28 @@ def test_two_replicas_share_one_database(
     ):
         map_id = create_map(on_a)  # type: ignore[arg-type]
 
+        first = upload_view(on_b, map_id, reference_views[0])  # type: ignore[arg-type]
+        assert first.status_code == 201  # type: ignore[attr-defined]
+        ids = [first.json()["id"]]  # type: ignore[attr-defined]
+        with engine.connect() as conn:  # the map's feature model names its lock
+            feature_model = conn.scalar(
+                select(ReferenceImage.feature_model).where(ReferenceImage.id == ids[0])
+            )
+
         def vocabulary_version() -> int | None:
             with engine.connect() as conn:
                 return conn.scalar(
                     select(MapVocabulary.version).where(
-                        MapVocabulary.map_id == map_id, MapVocabulary.feature_model == SIFT
+                        MapVocabulary.map_id == map_id,
+                        MapVocabulary.feature_model == feature_model,
                     )
                 )
 
         # While another holder (this test) has the training lock, neither replica trains,
         # though the map has grown past the training threshold on both.
-        lock = f"vocabulary:{map_id}:{SIFT}"
-        with try_exclusive(engine, lock) as held:
+        with try_exclusive(engine, f"vocabulary:{map_id}:{feature_model}") as held:
             assert held
-            ids = []
-            for i, view in enumerate(reference_views[:MIN_IMAGES]):
+            for i, view in enumerate(reference_views[1:MIN_IMAGES]):
                 response = upload_view(on_a if i % 2 else on_b, map_id, view)  # type: ignore[arg-type]
                 assert response.status_code == 201, response.text  # type: ignore[attr-defined]
                 ids.append(response.json()["id"])  # type: ignore[attr-defined]
