@@ -102,7 +102,10 @@ class Settings(BaseSettings):
         "approximate faiss index (IVF-SQ8) instead of exactly",
     )
     ann_nprobe: int = Field(
-        32, gt=0, description="Inverted lists the approximate index visits per query"
+        256,
+        gt=0,
+        description="Inverted lists (of √N) the approximate index visits per query; more: "
+        "higher recall, slower (1M references: 128 → 15 ms, recall@10 0.88; 256 → 28 ms, 0.945)",
     )
     max_queued: int = Field(
         8,

@@ -29,7 +29,7 @@ class AnnOptions:
     inverted lists visited per query (more: higher recall, slower)."""
 
     min_references: int = 50_000
-    nprobe: int = 32
+    nprobe: int = 256
 
 
 class AnnIndex:
