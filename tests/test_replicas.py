@@ -110,7 +110,7 @@ def test_two_replicas_share_one_database(
         # Released: both replicas find the vocabulary due at once; one trains and publishes.
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(lambda s: localize(s.url, map_id, query_views[1]), (a, b)))
-        assert wait_for(lambda: vocabulary_version() == 1)
+        assert wait_for(lambda: vocabulary_version() == 1), a.log_text() + b.log_text()
         time.sleep(3)  # a second trainer, were there one, would publish v2 by now
         assert vocabulary_version() == 1
         assert a.log_text().count(TRAINED) + b.log_text().count(TRAINED) == 1

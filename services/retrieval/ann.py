@@ -77,14 +77,16 @@ class AnnIndex:
     def remove(self, slots: IntArray) -> None:
         if slots.size:
             with self._lock:
-                self._index.remove_ids(np.ascontiguousarray(slots, np.int64))
+                ids = np.ascontiguousarray(slots, np.int64)
+                self._index.remove_ids(faiss.IDSelectorBatch(ids.size, faiss.swig_ptr(ids)))
 
     def search(
         self, query: Float32Array, k: int, allowed_slots: BoolArray | None = None
     ) -> tuple[IntArray, Float32Array]:
         """Up to ``k`` (slots, scores) best first; ``allowed_slots`` ((next_slot,) bool or
         shorter): only those slots qualify."""
-        params = faiss.SearchParametersIVF(nprobe=self.options.nprobe)
+        params = faiss.SearchParametersIVF()
+        params.nprobe = self.options.nprobe
         bitmap = None
         if allowed_slots is not None:
             bitmap = np.packbits(allowed_slots, bitorder="little")
@@ -131,7 +133,7 @@ class AnnView:
 
     def stale(self) -> bool:
         """Whether the map outgrew the sample the coarse quantizer was trained on."""
-        return self.slot_of_row.size >= REBUILD_GROWTH * self.index.trained_size
+        return bool(self.slot_of_row.size >= REBUILD_GROWTH * self.index.trained_size)
 
     def search(
         self, query: Float32Array, k: int, allowed_rows: BoolArray | None = None

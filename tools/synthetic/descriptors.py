@@ -16,10 +16,12 @@ from services.types import Float32Array, IntArray
 def unit_rows(rng: np.random.Generator, n: int, dim: int) -> Float32Array:
     """(n, dim) i.i.d. random unit rows."""
     rows = rng.standard_normal((n, dim), dtype=np.float32)
-    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+    unit: Float32Array = rows / np.linalg.norm(rows, axis=1, keepdims=True)
+    return unit
 
 
 def place_views(rng: np.random.Generator, places: Float32Array, of: IntArray) -> Float32Array:
     """(len(of), D) unit views of ``places[of]`` ((P, D) unit rows)."""
     views = places[of] + unit_rows(rng, of.size, places.shape[1])
-    return (views / np.linalg.norm(views, axis=1, keepdims=True)).astype(np.float32)
+    unit: Float32Array = (views / np.linalg.norm(views, axis=1, keepdims=True)).astype(np.float32)
+    return unit
