@@ -107,9 +107,17 @@ def test_two_replicas_share_one_database(
                 assert wait_for(lambda s=server: "training runs elsewhere" in s.log_text())
             assert vocabulary_version() is None
 
-        # Released: both replicas find the vocabulary due at once; one trains and publishes.
+        # Released: an add on each replica at once finds the vocabulary due on both (a
+        # localize checks only when the map changed); one trains and publishes.
         with ThreadPoolExecutor(2) as pool:
-            list(pool.map(lambda s: localize(s.url, map_id, query_views[1]), (a, b)))
+            both = pool.map(
+                lambda pair: upload_view(*pair),  # type: ignore[arg-type]
+                [
+                    (on_a, map_id, reference_views[MIN_IMAGES]),
+                    (on_b, map_id, reference_views[MIN_IMAGES + 1]),
+                ],
+            )
+            ids += [response.json()["id"] for response in both]  # type: ignore[attr-defined]
         assert wait_for(lambda: vocabulary_version() == 1), a.log_text() + b.log_text()
         time.sleep(3)  # a second trainer, were there one, would publish v2 by now
         assert vocabulary_version() == 1
@@ -117,14 +125,14 @@ def test_two_replicas_share_one_database(
 
         # An add acknowledged by A is retrieved by B's next localize (B's index is warm).
         assert sorted(localize(b.url, map_id, query_views[2])) == sorted(ids)
-        added = upload_view(on_a, map_id, reference_views[MIN_IMAGES])  # type: ignore[arg-type]
+        added = upload_view(on_a, map_id, reference_views[MIN_IMAGES + 2])  # type: ignore[arg-type]
         assert added.status_code == 201  # type: ignore[attr-defined]
         new_id = added.json()["id"]  # type: ignore[attr-defined]
-        assert new_id in localize(b.url, map_id, reference_views[MIN_IMAGES])
+        assert new_id in localize(b.url, map_id, reference_views[MIN_IMAGES + 2])
 
         # A delete acknowledged by A is never served by B afterwards.
         assert on_a.delete(f"/v1/maps/{map_id}/images/{new_id}").status_code == 204
         assert on_b.get(f"/v1/maps/{map_id}/images/{new_id}").status_code == 404
-        assert new_id not in localize(b.url, map_id, reference_views[MIN_IMAGES])
+        assert new_id not in localize(b.url, map_id, reference_views[MIN_IMAGES + 2])
         assert sorted(localize(b.url, map_id, query_views[3])) == sorted(ids)
     engine.dispose()
