@@ -28,6 +28,7 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.pipeline import Localizer
 from services.reference_cache import ReferenceFeatureCache
+from services.retrieval.ann import AnnOptions
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.threads import apply_thread_plan
@@ -51,7 +52,9 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.localizer = localizer or build_localizer(settings)
-        app.state.retrieval_cache = RetrievalIndexCache()
+        app.state.retrieval_cache = RetrievalIndexCache(
+            AnnOptions(settings.ann_min_references, settings.ann_nprobe)
+        )
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.admission = Admission(plan.workers, settings.max_queued)

@@ -95,6 +95,18 @@ class Settings(BaseSettings):
         description="Decoded reference features (and depth) kept in memory between "
         "requests, MiB; 0 = off",
     )
+    ann_min_references: int = Field(
+        50_000,
+        gt=0,
+        description="Maps with at least this many references are searched through an "
+        "approximate faiss index (IVF-SQ8) instead of exactly",
+    )
+    ann_nprobe: int = Field(
+        256,
+        gt=0,
+        description="Inverted lists (of √N) the approximate index visits per query; more: "
+        "higher recall, slower (1M references: 128 → 15 ms, recall@10 0.88; 256 → 28 ms, 0.945)",
+    )
     max_queued: int = Field(
         8,
         ge=0,

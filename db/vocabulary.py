@@ -10,6 +10,8 @@ under a staging kind until it is published in one transaction.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 from sqlalchemy import ColumnElement, delete, func, or_, select, update
@@ -17,6 +19,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row, to_row
+from db.locks import try_exclusive
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from services.retrieval.contracts import Encoder, VocabularyError, VocabularyState
 from services.retrieval.vlad import Vocabulary
@@ -73,6 +76,13 @@ class SqlVocabularyStore:
     def descriptors(self, image_ids: list[str]) -> dict[str, Float32Array]:
         with self.sessions() as session:
             return _descriptors(session, image_ids)
+
+    @contextmanager
+    def training_lock(self) -> Iterator[bool]:
+        """The map and model's training lock across every process on the database."""
+        engine = self.sessions.kw["bind"]
+        with try_exclusive(engine, f"vocabulary:{self.map_id}:{self.feature_model}") as held:
+            yield held
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:
         try:

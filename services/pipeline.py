@@ -38,7 +38,7 @@ from services.query_frame import (
 )
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
-from services.retrieval.search import PositionPrior, top_k
+from services.retrieval.search import PositionPrior, search_index
 from services.retrieval.vlad import encode
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
 
@@ -263,9 +263,7 @@ class Localizer:
             if index.vocabulary is not None
             else self.global_descriptor.compute(turned, query)
         )
-        rows, scores = top_k(
-            query_global, index.descriptors, params.top_k, index.centers, params.prior
-        )
+        rows, scores = search_index(index, query_global, params.top_k, params.prior)
         references = store.load_references([index.image_ids[i] for i in rows])
         score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
         lap("retrieve")

@@ -28,7 +28,7 @@ from services.pipeline import (
     _StageClock,
 )
 from services.references import ReferenceStore
-from services.retrieval.search import top_k
+from services.retrieval.search import search_index
 from services.retrieval.vlad import encode
 from services.types import BoolArray, UInt8Array
 
@@ -193,9 +193,7 @@ def _retrieve(
             if index.vocabulary is not None
             else localizer.global_descriptor.compute(image, query)
         )
-        rows, scores = top_k(
-            query_global, index.descriptors, params.top_k, index.centers, params.prior
-        )
+        rows, scores = search_index(index, query_global, params.top_k, params.prior)
         out.append([(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)])
     return out
 

@@ -9,6 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
+from services.retrieval.ann import AnnOptions, AnnView
 from services.retrieval.contracts import EMPTY_INDEX, RetrievalIndex, VocabularyState, empty_index
 
 
@@ -59,9 +60,13 @@ class RetrievalIndexCache:
     catches up: the ids of the map's references are listed, descriptors are read only for the
     new ones, and deleted ones are dropped. The revision is read before the ids, so a write
     racing with the catch-up leaves the cache at most one request behind, never wrong for good.
+
+    With ``ann`` options, an index of at least ``ann.min_references`` references also keeps an
+    approximate faiss index (``RetrievalIndex.ann``), updated by the same catch-up.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, ann: AnnOptions | None = None) -> None:
+        self.ann = ann
         self._entries: dict[tuple[str, str, str], _CachedIndex] = {}
         self._lock = threading.Lock()
 
@@ -79,9 +84,10 @@ class RetrievalIndexCache:
                 vocabulary = store.vocabulary()
                 version = 0 if vocabulary is None else vocabulary.version
                 if version != entry.index.vocabulary_version:  # other descriptors: reload
-                    entry.index = store.load_index(vocabulary)
+                    index = store.load_index(vocabulary)
                 else:
-                    entry.index = _catch_up(entry.index, store, vocabulary)
+                    index = _catch_up(entry.index, store, vocabulary)
+                entry.index = _with_ann(index, self.ann)
                 entry.revision = revision
             return entry.index
 
@@ -91,8 +97,23 @@ class RetrievalIndexCache:
         return CacheSize(
             indexes=len(indexes),
             references=sum(len(index.image_ids) for index in indexes),
-            nbytes=sum(index.descriptors.nbytes + index.centers.nbytes for index in indexes),
+            nbytes=sum(
+                index.descriptors.nbytes
+                + index.centers.nbytes
+                + (0 if index.ann is None else index.ann.index.nbytes())
+                for index in indexes
+            ),
         )
+
+
+def _with_ann(index: RetrievalIndex, options: AnnOptions | None) -> RetrievalIndex:
+    """``index`` with an approximate index when it is large enough, built anew when it has
+    none yet or outgrew the one it has; a small one searches exactly."""
+    if options is None or len(index.image_ids) < options.min_references:
+        return index if index.ann is None else replace(index, ann=None)
+    if index.ann is None or index.ann.stale():
+        return replace(index, ann=AnnView.build(index.descriptors, options))
+    return index
 
 
 def _catch_up(
@@ -110,9 +131,13 @@ def _catch_up(
     parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
     if added.image_ids:
         parts.append((added.descriptors, added.centers))
+    ann = index.ann
+    if ann is not None:
+        ann = ann.updated(np.asarray(keep, np.int64), added.descriptors)
     return replace(
         index,
         image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
         descriptors=np.concatenate([d for d, _ in parts]),
         centers=np.concatenate([c for _, c in parts]),
+        ann=ann,
     )

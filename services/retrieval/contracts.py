@@ -4,11 +4,13 @@ may use, and the storage protocol of vocabularies and VLAD vectors."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
+from services.retrieval.ann import AnnView
 from services.retrieval.vlad import Vocabulary
 from services.types import Float32Array, FloatArray
 
@@ -33,6 +35,7 @@ class RetrievalIndex:
         vocabulary: with VLAD retrieval, the map's vocabulary (``descriptors`` are VLAD
             vectors; the query is encoded with it); None: the localizer's global descriptor.
         vocabulary_version: its version (0 without one).
+        ann: an approximate index over ``descriptors`` (large maps); None: exact search.
     """
 
     image_ids: list[str]
@@ -40,6 +43,7 @@ class RetrievalIndex:
     centers: FloatArray
     vocabulary: Vocabulary | None = None
     vocabulary_version: int = 0
+    ann: AnnView | None = None
 
 
 EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
@@ -79,6 +83,11 @@ class VocabularyStore(Protocol):
 
     def descriptors(self, image_ids: list[str]) -> dict[str, Float32Array]:
         """(N, D) local descriptors of the references among ``image_ids`` still stored."""
+        ...
+
+    def training_lock(self) -> AbstractContextManager[bool]:
+        """Held while a vocabulary is trained, by one trainer at a time across every process
+        sharing the store; yields False (without waiting) when another trainer holds it."""
         ...
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.retrieval.contracts import RetrievalIndex
 from services.types import Float32Array, FloatArray, IntArray
 
 
@@ -61,3 +62,25 @@ def top_k(
     chosen = candidates[part]
     order = np.argsort(-scores[chosen], kind="stable")
     return chosen[order].astype(np.int64), scores[chosen[order]].astype(np.float32)
+
+
+def search_index(
+    index: RetrievalIndex, query: Float32Array, k: int, prior: PositionPrior | None = None
+) -> tuple[IntArray, Float32Array]:
+    """``top_k`` over ``index``: exact, or through its approximate index when it has one (with
+    a prior, exact over the references inside it while they are fewer than the approximate
+    index's ``min_references``).
+
+    Returns:
+        (K,) int64 row indices into ``index`` and (K,) float32 scores, best first.
+    """
+    if index.ann is None or k <= 0:
+        return top_k(query, index.descriptors, k, index.centers, prior)
+    if prior is None:
+        return index.ann.search(query, k)
+    inside = prior.distances(index.centers) <= prior.radius
+    rows = np.flatnonzero(inside)
+    if rows.size < index.ann.index.options.min_references:
+        chosen, scores = top_k(query, index.descriptors[rows], k)
+        return rows[chosen], scores
+    return index.ann.search(query, k, inside)

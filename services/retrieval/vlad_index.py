@@ -74,9 +74,16 @@ class VladIndexer:
         return state
 
     def train_if_due(self) -> ReindexReport | None:
-        """Train when the policy asks for it; a version another trainer publishes meanwhile
-        is kept instead of this one."""
-        return self.train(yield_to_newer=True) if self.due() else None
+        """Train when the policy asks for it, holding the store's training lock so one
+        process trains; None when not due or another process is training (its version is
+        published when done). A version published meanwhile by an explicit ``train`` is kept
+        instead of this one."""
+        with self.store.training_lock() as held:
+            if not held:
+                logger.info("map %s: vocabulary training runs elsewhere", self.store.map_id)
+                return None
+            # checked under the lock: a trainer that held it before may just have published
+            return self.train(yield_to_newer=True) if self.due() else None
 
     def train(self, yield_to_newer: bool = False) -> ReindexReport:
         """Train a new vocabulary version now, encode every reference with it, publish it (on

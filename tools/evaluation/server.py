@@ -44,7 +44,12 @@ class LocalServer:
     """``slloc serve`` on 127.0.0.1 and a free port, auth off, SQLite in a temporary folder;
     a context manager that waits for ``/v1/health`` and stops the process on exit."""
 
-    def __init__(self, extra_env: dict[str, str] | None = None, start_timeout_s: float = 120.0):
+    def __init__(
+        self,
+        extra_env: dict[str, str] | None = None,
+        start_timeout_s: float = 120.0,
+        log_level: str = "warning",
+    ):
         self._tmp = tempfile.TemporaryDirectory(prefix="slloc-server-")
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -66,7 +71,7 @@ class LocalServer:
                 "--port",
                 str(self.port),
                 "--log-level",
-                "warning",
+                log_level,
             ],
             env=env,
             stdout=self._log,
