@@ -24,13 +24,13 @@ from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import decode_depth, decode_image
+from services.imaging import DecodedImage, decode_depth, decode_image_reduced
 from services.matching.base import Matcher
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, top_k
 from services.retrieval.vlad import encode
-from services.types import Float32Array, FloatArray, IntArray, UInt8Array
+from services.types import Float32Array, FloatArray, IntArray
 from services.verification import verify_pose
 
 logger = logging.getLogger(__name__)
@@ -136,20 +136,26 @@ class Localizer:
         self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None
     ) -> ReferenceData:
         """Decode and describe a reference image; checks the camera against the image size."""
-        image = decode_image(image_bytes, self.max_pixels)
+        image = decode_image_reduced(image_bytes, self.max_pixels, self.extractor.max_side)
         _check_camera_matches(camera, image)
         depth = (
             decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
             if depth_bytes is not None
             else None
         )
-        features = self.extractor.extract(image)
+        features = self.extract_features(image)
         return ReferenceData(
             features=features,
-            global_descriptor=self.global_descriptor.compute(image, features),
+            global_descriptor=self.global_descriptor.compute(image.rgb, features),
             depth=depth,
             feature_model=self.extractor.name,
             descriptor_model=self.global_descriptor.name,
+        )
+
+    def extract_features(self, image: DecodedImage) -> LocalFeatures:
+        """Features of a (possibly reduced) decoded image in its full-size pixels."""
+        return self.extractor.extract(image.rgb).at_full_size(
+            image.factor, (image.width, image.height)
         )
 
     def localize(
@@ -192,8 +198,8 @@ class Localizer:
         clock: _StageClock,
     ) -> _MatchedQuery:
         lap = clock.lap
-        image = decode_image(image_bytes, self.max_pixels)
-        camera = params.camera or default_camera(image.shape[1], image.shape[0])
+        image = decode_image_reduced(image_bytes, self.max_pixels, self.extractor.max_side)
+        camera = params.camera or default_camera(image.width, image.height)
         _check_camera_matches(camera, image)
         query_depth = (
             decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
@@ -201,13 +207,13 @@ class Localizer:
             else None
         )
         lap("decode")
-        query = self.extractor.extract(image)
+        query = self.extract_features(image)
         lap("extract")
         index = store.retrieval_index()
         query_global = (
             encode(query.descriptors, index.vocabulary)
             if index.vocabulary is not None
-            else self.global_descriptor.compute(image, query)
+            else self.global_descriptor.compute(image.rgb, query)
         )
         rows, scores = top_k(
             query_global, index.descriptors, params.top_k, index.centers, params.prior
@@ -384,8 +390,8 @@ def _observe(
     )
 
 
-def _check_camera_matches(camera: Camera, image: UInt8Array) -> None:
-    height, width = image.shape[:2]
+def _check_camera_matches(camera: Camera, image: DecodedImage) -> None:
+    width, height = image.width, image.height
     if (camera.width, camera.height) != (width, height):
         raise InvalidInputError(
             f"camera is {camera.width}×{camera.height} but the image is {width}×{height}"

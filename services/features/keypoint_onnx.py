@@ -46,6 +46,7 @@ class OnnxKeypointExtractor:
             raise ValueError(f"max_side must be at least {MIN_SIDE}, got {options.max_side}")
         self.session = session
         self.model_name = model_name
+        self.max_side = options.max_side
         self.exported_budget = exported_budget
         self.options = options
         self.name = f"{model_name}-{options.max_keypoints}-{options.max_side}"
