@@ -1,7 +1,11 @@
 """Whether a JPEG codes every pixel it declares. libjpeg decodes a stream whose coded data
 runs out (a file cut short with an end marker appended, a header claiming more pixels than are
 coded) without an error: it fills the missing blocks and only prints a warning. The checks here
-find such streams from the marker structure and from the decoder itself."""
+find such streams from the marker structure and from the decoder itself.
+
+A progressive stream cut exactly after one of its scans decodes without any warning; it is
+found from what its scans code: a complete stream (as every common encoder writes it) brings
+each coefficient of each component down to its last bit (successive approximation Al = 0)."""
 
 from __future__ import annotations
 
@@ -40,18 +44,32 @@ class _Layout:
     restart_interval: int = 0
     scan_ends: list[int] = field(default_factory=list)
     short_scans: int = 0
+    # progressive: per component id, per coefficient, the lowest bit coded so far (64 = none)
+    lowest_bit: dict[int, list[int]] = field(default_factory=dict)
+
+    def progressive_incomplete(self) -> bool:
+        """Whether a progressive stream leaves a coefficient of a component short of its
+        last bit (a stream cut at a scan boundary)."""
+        return self.progressive and any(
+            max(self.lowest_bit.get(component, [64])) > 0 for component in self.sampling
+        )
 
 
 def check_jpeg_complete(data: bytes) -> None:
     """Refuse a JPEG whose coded data ends before its last block.
 
     Raises:
-        ImageDecodeError: no end-of-image marker, fewer restart intervals than blocks need, or
-            blocks that the decoder filled in for want of data.
+        ImageDecodeError: no end-of-image marker, fewer restart intervals than blocks need,
+            progressive scans that stop before the last bit of every coefficient, or blocks
+            that the decoder filled in for want of data.
     """
     layout = _walk(data)
     if layout.short_scans:
         raise ImageDecodeError("truncated JPEG: a scan has fewer restart intervals than blocks")
+    if layout.progressive_incomplete():
+        raise ImageDecodeError(
+            "truncated JPEG: the progressive scans end before every coefficient is complete"
+        )
     pieces, start = [], 0
     for end in layout.scan_ends:
         pieces += [data[start:end], _PROBE]
@@ -99,6 +117,8 @@ def _walk(data: bytes) -> _Layout:
             components = [segment[1 + 2 * k] for k in range(segment[0])] if segment else []
             if restarts < _restarts_needed(layout, components):
                 layout.short_scans += 1
+            if layout.progressive:
+                _record_coefficients(layout, segment, components)
             i = scan_end.start()
             layout.scan_ends.append(i)
     raise ImageDecodeError("truncated JPEG: no end-of-image marker")
@@ -111,6 +131,18 @@ def _read_frame(layout: _Layout, marker: int, segment: bytes) -> None:
         component = segment[6 + 3 * k : 9 + 3 * k]
         if len(component) == 3:
             layout.sampling[component[0]] = (component[1] >> 4, component[1] & 0x0F)
+
+
+def _record_coefficients(layout: _Layout, segment: bytes, components: list[int]) -> None:
+    """Note the coefficients (spectral selection Ss…Se) and bit (Al) a progressive scan codes."""
+    tail = 1 + 2 * len(components)
+    if len(segment) < tail + 3:
+        return
+    start, end, al = segment[tail], min(segment[tail + 1], 63), segment[tail + 2] & 0x0F
+    for component in components:
+        bits = layout.lowest_bit.setdefault(component, [64] * 64)
+        for k in range(start, end + 1):
+            bits[k] = min(bits[k], al)
 
 
 def _restarts_needed(layout: _Layout, components: list[int]) -> int:

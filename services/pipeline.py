@@ -24,7 +24,7 @@ from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.intrinsics_adaptation import CameraAdaptation
 from services.geometry.rigid import Rigid3d
-from services.imaging import decode_depth, decode_image
+from services.imaging import DecodedImage, decode_depth, decode_image, decode_image_reduced
 from services.matching.base import Matcher
 from services.pose_answer import answer_pose
 from services.pose_uncertainty import PoseUncertainty
@@ -152,20 +152,26 @@ class Localizer:
         self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None
     ) -> ReferenceData:
         """Decode and describe a reference image; checks the camera against the image size."""
-        image = decode_image(image_bytes, self.max_pixels)
+        image = decode_image_reduced(image_bytes, self.max_pixels, self.extractor.max_side)
         _check_camera_matches(camera, image)
         depth = (
             decode_depth(depth_bytes, camera.width, camera.height, self.max_pixels)
             if depth_bytes is not None
             else None
         )
-        features = self.extractor.extract(image)
+        features = self.extract_features(image)
         return ReferenceData(
             features=features,
-            global_descriptor=self.global_descriptor.compute(image, features),
+            global_descriptor=self.global_descriptor.compute(image.rgb, features),
             depth=depth,
             feature_model=self.extractor.name,
             descriptor_model=self.global_descriptor.name,
+        )
+
+    def extract_features(self, image: DecodedImage) -> LocalFeatures:
+        """Features of a (possibly reduced) decoded image in its full-size pixels."""
+        return self.extractor.extract(image.rgb).at_full_size(
+            image.factor, (image.width, image.height)
         )
 
     def localize(
@@ -464,8 +470,8 @@ def _observe(
     )
 
 
-def _check_camera_matches(camera: Camera, image: UInt8Array) -> None:
-    height, width = image.shape[:2]
+def _check_camera_matches(camera: Camera, image: DecodedImage) -> None:
+    width, height = image.width, image.height
     if (camera.width, camera.height) != (width, height):
         raise InvalidInputError(
             f"camera is {camera.width}×{camera.height} but the image is {width}×{height}"

@@ -16,7 +16,7 @@ from services.estimators.rig_pose import RIG_METHOD, RigEstimate, RigFrame, esti
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import decode_image, image_size_from_header
+from services.imaging import DecodedImage, decode_image_reduced, image_size_from_header
 from services.pipeline import (
     LocalizationResult,
     LocalizeParams,
@@ -30,7 +30,7 @@ from services.pipeline import (
 from services.references import ReferenceStore
 from services.retrieval.search import search_index
 from services.retrieval.vlad import encode
-from services.types import BoolArray, UInt8Array
+from services.types import BoolArray
 
 
 @dataclass(frozen=True)
@@ -120,9 +120,9 @@ def localize_frames(
         return SessionLocalizationResult(empty, None, [FrameResult(None, 0, 0, []) for _ in frames])
 
 
-def decode_frames(images: list[bytes], max_pixels: int) -> list[UInt8Array]:
+def decode_frames(images: list[bytes], max_pixels: int, min_side: int) -> list[DecodedImage]:
     """Decode every frame, refusing more than ``max_pixels`` pixels in all (from the headers,
-    before any decoding).
+    before any decoding); JPEGs reduced while their longer side stays at least ``min_side``.
 
     Raises:
         ImageTooLargeError: the frames together are too large.
@@ -134,7 +134,7 @@ def decode_frames(images: list[bytes], max_pixels: int) -> list[UInt8Array]:
         raise ImageTooLargeError(
             f"the {len(images)} frames have {total} pixels together; the limit is {max_pixels}"
         )
-    return [decode_image(data, max_pixels) for data in images]
+    return [decode_image_reduced(data, max_pixels, min_side) for data in images]
 
 
 def _localize_frames(
@@ -145,14 +145,16 @@ def _localize_frames(
     clock: _StageClock,
 ) -> SessionLocalizationResult:
     lap = clock.lap
-    images = decode_frames([frame.image_bytes for frame in frames], localizer.max_pixels)
+    images = decode_frames(
+        [frame.image_bytes for frame in frames], localizer.max_pixels, localizer.extractor.max_side
+    )
     cameras = []
     for frame, image in zip(frames, images, strict=True):
-        camera = frame.camera or params.camera or default_camera(image.shape[1], image.shape[0])
+        camera = frame.camera or params.camera or default_camera(image.width, image.height)
         _check_camera_matches(camera, image)
         cameras.append(camera)
     lap("decode")
-    features = [localizer.extractor.extract(image) for image in images]
+    features = [localizer.extract_features(image) for image in images]
     lap("extract")
     retrieved_rows = _retrieve(localizer, images, features, params, store)
     all_ids = list(dict.fromkeys(image_id for rows in retrieved_rows for image_id, _ in rows))
@@ -179,7 +181,7 @@ def _localize_frames(
 
 def _retrieve(
     localizer: Localizer,
-    images: list[UInt8Array],
+    images: list[DecodedImage],
     features: list[LocalFeatures],
     params: LocalizeParams,
     store: ReferenceStore,
@@ -191,7 +193,7 @@ def _retrieve(
         query_global = (
             encode(query.descriptors, index.vocabulary)
             if index.vocabulary is not None
-            else localizer.global_descriptor.compute(image, query)
+            else localizer.global_descriptor.compute(image.rgb, query)
         )
         rows, scores = search_index(index, query_global, params.top_k, params.prior)
         out.append([(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)])

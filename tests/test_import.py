@@ -247,7 +247,9 @@ def test_read_colmap_formats(
     """The reader alone (no database): every model flavour yields the same items."""
     model = tmp_path / "model"
     write_colmap_model(views, model, fmt)
-    items = read_colmap(model, dataset)
+    colmap = read_colmap(model, dataset)
+    assert colmap.rejected == []
+    items = colmap.items
     assert [item.metadata.name for item in items] == sorted(
         _name(i, v) for i, v in enumerate(views)
     )
@@ -513,6 +515,38 @@ def test_failing_rows_are_reported_and_skipped(
     db = stored(slloc_env)
     assert_consistent(db)
     assert sorted(db.by_name()) == ["missing.png", "ok1.png", "ok2.png"]
+
+
+def test_colmap_implausible_camera_fails_its_images_only(
+    slloc_env: str,
+    views: list[SyntheticView],
+    dataset: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A COLMAP camera with fx = 1e-300 fails each of its images on one line naming the
+    parameter; the images of the plausible camera are added and the command exits 1."""
+    model = tmp_path / "sparse"
+    write_colmap_model(views, model, "text")
+    rec = pycolmap.Reconstruction(str(model))
+    _, cx, cy = rec.cameras[2].params
+    rec.cameras[2].params = [1e-300, cx, cy]
+    rec.write_text(str(model))
+
+    run = run_import(capsys, "--map", "scene", "--colmap", model, "--images", dataset)
+    assert run.rc == 1, run.out + run.err
+    assert run.summary() == (NUM_VIEWS, 0, NUM_VIEWS // 2)
+    refused = [line for line in run.out.splitlines() if "FAILED" in line]
+    assert sorted(line.split("] ", 1)[1].split(": ", 1)[0] for line in refused) == sorted(
+        _name(i, v) for i, v in enumerate(views) if i % 2
+    )
+    for line in refused:
+        assert "camera f = 1e-300 px is implausible" in line, line
+    assert "Traceback" not in run.err and "validation error" not in run.out + run.err
+    assert f"done: {NUM_VIEWS // 2} added, {NUM_VIEWS // 2} failed" in run.out
+    assert sorted(stored(slloc_env).by_name()) == sorted(
+        _name(i, v) for i, v in enumerate(views) if i % 2 == 0
+    )
 
 
 def test_unreadable_source_is_a_clean_error(

@@ -271,7 +271,14 @@ def _import(args: argparse.Namespace) -> int:
     from services.errors import InvalidInputError
     from services.retrieval.contracts import VocabularyError
     from services.retrieval.vlad_index import VladIndexer
-    from tools.importers import ImportItem, iter_pending, read_colmap, read_csv, read_kapture
+    from tools.importers import (
+        ImportItem,
+        RejectedItem,
+        iter_pending,
+        read_colmap,
+        read_csv,
+        read_kapture,
+    )
 
     settings = get_settings()
     if args.colmap is not None and args.images is None:
@@ -286,8 +293,10 @@ def _import(args: argparse.Namespace) -> int:
     source = args.colmap or args.kapture or args.csv
     try:  # a malformed source is reported before the map is touched
         items: list[ImportItem]
+        rejected: list[RejectedItem] = []  # images refused on their own; the others go on
         if args.colmap is not None:
-            items = read_colmap(args.colmap, args.images)
+            colmap = read_colmap(args.colmap, args.images)
+            items, rejected = colmap.items, colmap.rejected
         elif args.kapture is not None:
             items = read_kapture(args.kapture)
         else:
@@ -304,10 +313,12 @@ def _import(args: argparse.Namespace) -> int:
         existing = ImageRepository(session).names(map_id)
     pending = list(iter_pending(items, existing))
     print(
-        f"map {args.map!r} ({map_id}): {len(items)} images listed, {len(existing)} stored, "
-        f"{len(pending)} to add",
+        f"map {args.map!r} ({map_id}): {len(items) + len(rejected)} images listed, "
+        f"{len(existing)} stored, {len(pending)} to add, {len(rejected)} refused",
         flush=True,
     )
+    for refused in rejected:
+        print(f"[refused] {refused.name}: FAILED: {refused.reason}", flush=True)
     localizer = build_localizer(settings)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = stored_meanwhile = 0
@@ -343,6 +354,7 @@ def _import(args: argparse.Namespace) -> int:
             f"[{done}/{len(pending)}] {item.metadata.name}: {status} (eta {eta:.0f} s)", flush=True
         )
     added = len(pending) - failed - stored_meanwhile
+    failed += len(rejected)
     meanwhile = f", {stored_meanwhile} stored meanwhile by another run" if stored_meanwhile else ""
     print(f"done: {added} added, {failed} failed{meanwhile}", flush=True)
     if settings.global_model is None:  # train the vocabulary now so the server need not

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from pydantic import ValidationError
 
 from app.schemas.geo import GpsSchema
 from app.schemas.geometry import CameraSchema, PoseSchema
@@ -45,33 +46,68 @@ class ImportItem:
     depth_path: Path | None = None
 
 
-def read_colmap(model_dir: Path, image_dir: Path) -> list[ImportItem]:
+@dataclass(frozen=True)
+class RejectedItem:
+    """An image of the source that cannot be imported, and why (one line)."""
+
+    name: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class ColmapImages:
+    """The images of a COLMAP model: those to import and those whose camera or pose is refused."""
+
+    items: list[ImportItem]
+    rejected: list[RejectedItem]
+
+
+def validation_message(exc: ValidationError) -> str:
+    """A pydantic validation error on one line: ``field: message`` for each error."""
+    parts = []
+    for error in exc.errors():
+        message = error["msg"].removeprefix("Value error, ")
+        where = ".".join(str(part) for part in error["loc"])
+        parts.append(f"{where}: {message}" if where else message)
+    return "; ".join(parts)
+
+
+def read_colmap(model_dir: Path, image_dir: Path) -> ColmapImages:
     """Images of a COLMAP sparse model (``cameras``/``images`` in text or binary form).
 
     Image names are COLMAP's (paths relative to ``image_dir``); poses are its cam_from_world.
+    An image whose camera is implausible (``check_plausible``) is rejected on its own.
     """
     reconstruction = pycolmap.Reconstruction(str(model_dir))
-    items = []
+    items: list[ImportItem] = []
+    rejected: list[RejectedItem] = []
     for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
         camera = reconstruction.cameras[image.camera_id]
-        pose = image.cam_from_world()
-        quat_xyzw = np.asarray(pose.rotation.quat)
-        metadata = ImageMetadata(
-            name=image.name,
-            camera=CameraSchema(
-                model=camera.model.name,
-                width=camera.width,
-                height=camera.height,
-                params=[float(p) for p in camera.params],
-            ),
-            cam_from_world=PoseSchema.from_rigid(
-                Rigid3d.from_quaternion(
-                    np.array([quat_xyzw[3], *quat_xyzw[:3]]), np.asarray(pose.translation)
-                )
-            ),
-        )
+        try:
+            metadata = _colmap_metadata(image.name, camera, image.cam_from_world())
+        except ValidationError as exc:
+            rejected.append(RejectedItem(image.name, validation_message(exc)))
+            continue
         items.append(ImportItem(metadata, image_dir / image.name))
-    return items
+    return ColmapImages(items, rejected)
+
+
+def _colmap_metadata(name: str, camera: pycolmap.Camera, pose: pycolmap.Rigid3d) -> ImageMetadata:
+    quat_xyzw = np.asarray(pose.rotation.quat)
+    return ImageMetadata(
+        name=name,
+        camera=CameraSchema(
+            model=camera.model.name,
+            width=camera.width,
+            height=camera.height,
+            params=[float(p) for p in camera.params],
+        ),
+        cam_from_world=PoseSchema.from_rigid(
+            Rigid3d.from_quaternion(
+                np.array([quat_xyzw[3], *quat_xyzw[:3]]), np.asarray(pose.translation)
+            )
+        ),
+    )
 
 
 def read_kapture(root: Path) -> list[ImportItem]:
@@ -128,8 +164,8 @@ def read_kapture(root: Path) -> list[ImportItem]:
                 ),
                 gps=gps,
             )
-        except ValueError as exc:
-            raise ValueError(f"{root}: record {name!r}: {exc}") from exc
+        except ValidationError as exc:
+            raise ValueError(f"{root}: record {name!r}: {validation_message(exc)}") from None
         items.append(ImportItem(metadata, Path(get_image_fullpath(str(root), name))))
     if not items:
         raise ValueError(f"{root}: no camera record has a pose")
@@ -167,6 +203,8 @@ def _csv_item(root: Path, row: dict[str, str], line: int) -> ImportItem:
             ),
             gps=_csv_gps(row),
         )
+    except ValidationError as exc:
+        raise ValueError(f"line {line}: {validation_message(exc)}") from None
     except ValueError as exc:
         raise ValueError(f"line {line}: {exc}") from exc
     depth = row.get("depth") or None

@@ -20,7 +20,7 @@ from db.vocabulary import SqlVocabularyStore
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import decode_image
+from services.imaging import decode_image_reduced
 from services.pipeline import Localizer
 from services.preview import Preview, make_preview
 from services.reference_cache import ReferenceFeatureCache
@@ -90,7 +90,10 @@ def add_reference_image(
     with slots:
         data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
         preview = (
-            make_preview(decode_image(image_bytes, localizer.max_pixels), preview_max_side)
+            make_preview(
+                decode_image_reduced(image_bytes, localizer.max_pixels, preview_max_side).rgb,
+                preview_max_side,
+            )
             if preview_max_side > 0
             else None
         )

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
+
 from services.types import Float32Array, UInt8Array
 
 
@@ -29,6 +31,15 @@ class LocalFeatures:
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
 
+    def at_full_size(self, factor: int, image_size: tuple[int, int]) -> LocalFeatures:
+        """These features, found on an image decoded at 1/``factor`` scale, in the pixels of
+        the full ``image_size`` image (COLMAP coordinates scale exactly about the corner)."""
+        if factor == 1:
+            return self
+        return LocalFeatures(
+            self.keypoints * np.float32(factor), self.descriptors, self.scores, image_size
+        )
+
 
 class FeatureExtractor(Protocol):
     """Detects and describes keypoints.
@@ -38,6 +49,8 @@ class FeatureExtractor(Protocol):
     """
 
     name: str
+    # the longer side images are shrunk to before detection: a larger image brings nothing
+    max_side: int
 
     def extract(self, image: UInt8Array) -> LocalFeatures:
         """Features of an (H, W, 3) RGB uint8 image."""

@@ -33,6 +33,7 @@ class SiftExtractor:
     def __init__(self, options: SiftOptions | None = None) -> None:
         self.options = options or SiftOptions()
         o = self.options
+        self.max_side = o.max_side
         self.name = f"sift-rootsift-{o.max_keypoints}-{o.max_side}-c{o.contrast_threshold:g}"
 
     def with_budget(self, max_keypoints: int | None, max_side: int | None) -> SiftExtractor:

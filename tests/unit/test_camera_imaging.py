@@ -1,10 +1,12 @@
 import io
+import re
 import struct
 
 import cv2
 import numpy as np
 import pytest
 from numpy.lib import format as npy_format
+from PIL import Image
 
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 from services.geometry.camera import Camera, check_plausible, default_camera
@@ -127,6 +129,30 @@ class TestDecode:
         data[sof + 5 : sof + 9] = struct.pack(">HH", 6000, 6000)
         with pytest.raises(ImageDecodeError, match=r"truncated|corrupt"):
             decode_image(bytes(data), max_pixels=10**8)
+
+    @pytest.mark.parametrize("encoder", ["opencv", "pillow"])
+    @pytest.mark.parametrize("channels", [3, 1], ids=["colour", "grey"])
+    def test_progressive_jpeg_cut_at_a_scan_boundary_refused(
+        self, encoder: str, channels: int
+    ) -> None:
+        """Issue 14: a progressive JPEG cut after any of its scans (an end marker appended)
+        decodes without a warning; it is refused, the whole stream accepted."""
+        image = cv2.GaussianBlur(_textured(240, 320), (0, 0), 2)
+        image = image if channels == 3 else image[:, :, 0]
+        if encoder == "opencv":
+            ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+            assert ok
+            data = buf.tobytes()
+        else:
+            out = io.BytesIO()
+            Image.fromarray(image).save(out, "JPEG", progressive=True, quality=90)
+            data = out.getvalue()
+        assert decode_image(data, max_pixels=10**8).shape == (240, 320, 3)
+        scan_starts = [m.start() for m in re.finditer(b"\xff\xda", data)]
+        assert len(scan_starts) >= 5
+        for cut in scan_starts[1:]:  # after the first, second, … scan
+            with pytest.raises(ImageDecodeError, match="progressive scans end"):
+                decode_image(data[:cut] + b"\xff\xd9", max_pixels=10**8)
 
     def test_jpeg_with_bytes_after_the_image_accepted(self) -> None:
         """Phones append data (a second image, a video) after the end-of-image marker."""

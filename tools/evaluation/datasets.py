@@ -56,8 +56,19 @@ def _from_items(items: list[ImportItem]) -> list[PosedImage]:
 
 
 def colmap_dataset(model_dir: Path, image_dir: Path) -> Dataset:
-    """A COLMAP sparse model (text or binary), images sorted by name."""
-    return Dataset(model_dir.name, _from_items(read_colmap(model_dir, image_dir)))
+    """A COLMAP sparse model (text or binary), images sorted by name.
+
+    Raises:
+        ValueError: an image's camera is implausible (its ground truth cannot be trusted).
+    """
+    colmap = read_colmap(model_dir, image_dir)
+    if colmap.rejected:
+        first = colmap.rejected[0]
+        raise ValueError(
+            f"{model_dir}: {len(colmap.rejected)} images refused, "
+            f"first {first.name}: {first.reason}"
+        )
+    return Dataset(model_dir.name, _from_items(colmap.items))
 
 
 def csv_dataset(path: Path) -> Dataset:
