@@ -12,6 +12,7 @@ from app.api.deps import (
     AdmissionDep,
     ClientKey,
     LocalizerDep,
+    MetricsDep,
     ReferenceCacheDep,
     RetrievalCacheDep,
     SessionsDep,
@@ -42,6 +43,7 @@ def geopose(
     admission: AdmissionDep,
     trainer: TrainerDep,
     features_cache: ReferenceCacheDep,
+    metrics: MetricsDep,
 ) -> GeoPoseResp:
     """A GeoPose Protocol request (``GeoPoseReq``: the first camera reading's image and
     intrinsics, the first geolocation reading as a retrieval hint) answered with a
@@ -76,6 +78,7 @@ def geopose(
     )
     with admission.admit():
         result, answer = geo.localize_on_globe(sessions, map_id, request, gps, run)
+    metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     if answer is None:
         raise ProblemError(
             404, "not-localized", "Not localized", f"the image was not localized: {result.reason}"

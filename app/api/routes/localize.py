@@ -102,6 +102,8 @@ def localize(
                 slots=admission.slots,
                 trainer=trainer,
             )
+        joint = session_result.result
+        metrics.observe_localization(joint.estimator, joint.reason, joint.timings_ms)
         return LocalizeResult.from_session_result(
             session_result,
             body.return_inliers,
