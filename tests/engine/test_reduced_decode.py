@@ -129,7 +129,8 @@ def test_upscaled_queries_and_references_localize_exactly(
     query_views: list[SyntheticView],
 ) -> None:
     """References and queries as ×4 JPEGs with ×4 intrinsics: poses as accurate as the
-    640×480 pipeline's (tests/engine/test_pipeline_estimators.py)."""
+    640×480 pipeline's (tests/engine/test_pipeline_estimators.py). The references are decoded
+    reduced; a single-image query is decoded in full (the upright-turn search's image)."""
     big_localizer, recorder = recording(localizer, max_side)
     store = MemoryReferenceStore()
     for view in reference_views:
@@ -137,6 +138,7 @@ def test_upscaled_queries_and_references_localize_exactly(
             upscaled_jpeg(view.image), upscaled_camera(view.camera)
         )
         store.add(view.name, upscaled_camera(view.camera), view.cam_from_world, data)
+    assert all(max_side <= max(size) < 2 * max_side for size in recorder.sizes)
     for view in query_views[:3]:
         result = big_localizer.localize(
             upscaled_jpeg(view.image), LocalizeParams(camera=upscaled_camera(view.camera)), store
@@ -145,4 +147,3 @@ def test_upscaled_queries_and_references_localize_exactly(
         assert result.cam_from_world is not None
         dt, dr = pose_error(result.cam_from_world, view.cam_from_world)
         assert dt < 0.01 * scene.extent and dr < 0.5, (view.name, dt, dr)
-    assert all(max_side <= max(size) < 2 * max_side for size in recorder.sizes)
