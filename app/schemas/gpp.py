@@ -10,7 +10,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic.alias_generators import to_camel
 
-from app.schemas.geo import GeoPositionSchema, QuaternionXyzwSchema
+from app.schemas.geo import GeoPoseSchema
 
 
 class _Lenient(BaseModel):
@@ -61,11 +61,6 @@ class GeoPoseAccuracy(BaseModel):
     orientation: float = Field(description="degrees")
 
 
-class GeoPoseBQ(BaseModel):
-    position: GeoPositionSchema
-    quaternion: QuaternionXyzwSchema
-
-
 class GeoPoseReq(_Lenient):
     id: str = Field(max_length=255)
     timestamp: float | None = None
@@ -79,4 +74,4 @@ class GeoPoseResp(BaseModel):
     timestamp: float = Field(description="milliseconds since the Unix epoch")
     accuracy: GeoPoseAccuracy
     type: str = "geopose"
-    geopose: GeoPoseBQ
+    geopose: GeoPoseSchema

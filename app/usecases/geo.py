@@ -3,7 +3,6 @@ queries, and the GeoPose of a localized query."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -149,26 +148,6 @@ def gps_prior(registration: GeoRegistration | None, fix: GpsFix) -> PositionPrio
     radius_m += GPS_PRIOR_SIGMAS * registration.position_sigma_m
     position = registration.map_from_geodetic(fix.geodetic().array()[None])[0]
     return PositionPrior(position, radius_m / registration.scale, up=registration.map_up())
-
-
-def localize_on_globe(
-    sessions: sessionmaker[Session],
-    map_id: str,
-    request: LocalizeRequest,
-    gps: GpsFix | None,
-    run: Callable[[LocalizeRequest], LocalizationResult],
-) -> tuple[LocalizationResult, tuple[GeoPose, GeoPoseAccuracy] | None]:
-    """``run`` (a localize of the map) on ``request`` narrowed by the GPS hint, and the
-    GeoPose of its answer when the map is geo-registered.
-
-    Raises:
-        NotFoundError: unknown map.
-        InvalidInputError: a GPS hint on a map without a registration, or with a map-frame
-            prior too.
-    """
-    request, registration = with_gps_hint(sessions, map_id, request, gps)
-    result = run(request)
-    return result, geopose_answer(registration, result)
 
 
 def with_gps_hint(

@@ -4,7 +4,7 @@ geo-registered map unchanged."""
 from __future__ import annotations
 
 import time
-from functools import partial
+from dataclasses import replace
 
 from fastapi import APIRouter
 
@@ -20,7 +20,8 @@ from app.api.deps import (
     TrainerDep,
 )
 from app.errors import ProblemError, problem_responses
-from app.schemas.gpp import GeoPoseAccuracy, GeoPoseBQ, GeoPoseReq, GeoPoseResp
+from app.schemas.geo import GeoPoseSchema
+from app.schemas.gpp import GeoPoseAccuracy, GeoPoseReq, GeoPoseResp
 from app.usecases import geo, gpp
 from app.usecases.localize import localize as localize_image
 
@@ -54,7 +55,8 @@ def geopose(
     reading = body.sensor_readings.camera_readings[0]
     image_bytes = gpp.image_bytes(reading, settings.max_image_pixels)
     request, gps = gpp.localize_request(body)
-    if geo.map_registration(sessions, map_id) is None:
+    registration = geo.map_registration(sessions, map_id)
+    if registration is None:
         raise ProblemError(
             422,
             "not-geo-registered",
@@ -62,43 +64,35 @@ def geopose(
             "a GeoPose needs the map's geo-registration: PUT or POST "
             f"/v1/maps/{map_id}/geo-registration…",
         )
-    run = partial(
-        localize_image,
-        sessions,
-        localizer,
-        map_id,
-        image_bytes=image_bytes,
-        max_top_k=settings.max_top_k,
-        max_time_budget_s=settings.localize_time_budget_s,
-        cache=cache,
-        vlad=settings.global_model is None,
-        slots=admission.slots,
-        trainer=trainer,
-        features_cache=features_cache,
-    )
+    if gps is not None:
+        request = replace(request, prior=geo.gps_prior(registration, gps))
     with admission.admit():
-        result, answer = geo.localize_on_globe(sessions, map_id, request, gps, run)
+        result = localize_image(
+            sessions,
+            localizer,
+            map_id,
+            request,
+            image_bytes,
+            max_top_k=settings.max_top_k,
+            max_time_budget_s=settings.localize_time_budget_s,
+            cache=cache,
+            vlad=settings.global_model is None,
+            slots=admission.slots,
+            trainer=trainer,
+            features_cache=features_cache,
+        )
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
+    answer = geo.geopose_answer(registration, result)
     if answer is None:
         raise ProblemError(
             404, "not-localized", "Not localized", f"the image was not localized: {result.reason}"
         )
     pose, accuracy = answer
-    x, y, z, w = (float(v) for v in pose.quaternion_xyzw)
     return GeoPoseResp(
         id=body.id,
         timestamp=time.time() * 1000.0,
         accuracy=GeoPoseAccuracy(
             position=(accuracy.horizontal_m + accuracy.vertical_m) / 2, orientation=accuracy.yaw_deg
         ),
-        geopose=GeoPoseBQ.model_validate(
-            {
-                "position": {
-                    "lat": pose.position.latitude,
-                    "lon": pose.position.longitude,
-                    "h": pose.position.height,
-                },
-                "quaternion": {"x": x, "y": y, "z": z, "w": w},
-            }
-        ),
+        geopose=GeoPoseSchema.from_geopose(pose),
     )
