@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Install the viewer's browser dependencies (web/package-lock.json, from the npm registry) and
-# copy the modules the page loads into app/web/vendor/ (ignored by git). Without npm it says
-# so and exits 0: the service runs without them (the viewer's 3D view is then off).
+# Install the viewer's browser dependencies and the compose-spec schema the deployment test
+# reads (web/package-lock.json, from the npm registry) and copy the modules the page loads into
+# app/web/vendor/ (ignored by git). Without npm it says so and exits 0: the service runs
+# without them (the viewer's 3D view is then off).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 vendor=app/web/vendor
