@@ -52,8 +52,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
         app.state.localizer = localizer or build_localizer(settings)
+        app.state.ann_builder = BackgroundTrainer("retrieval index")
         app.state.retrieval_cache = RetrievalIndexCache(
-            AnnOptions(settings.ann_min_references, settings.ann_nprobe)
+            AnnOptions(settings.ann_min_references, settings.ann_nprobe),
+            builder=app.state.ann_builder,
         )
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
@@ -65,6 +67,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
         yield
         app.state.vocabulary_trainer.shutdown()
+        app.state.ann_builder.shutdown()
         engine.dispose()
 
     # /docs and /redoc load Swagger UI and ReDoc from the service itself (no CDN, no fonts).

@@ -131,6 +131,16 @@ class _StateCollector(Collector):
                 "Bytes of the descriptor and position arrays of the cached retrieval indexes",
                 size.nbytes,
             )
+        jobs = GaugeMetricFamily(
+            "slloc_background_jobs",
+            "Training jobs queued or running off the request path, by what they train",
+            labels=("kind",),
+        )
+        for attribute in ("vocabulary_trainer", "ann_builder"):
+            trainer = getattr(self.state, attribute, None)
+            if trainer is not None:
+                jobs.add_metric((trainer.name,), trainer.pending())
+        yield jobs
         sessions = getattr(self.state, "sessions", None)
         if sessions is not None:
             maps = GaugeMetricFamily(

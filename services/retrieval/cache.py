@@ -11,6 +11,7 @@ import numpy as np
 
 from services.retrieval.ann import AnnOptions, AnnView
 from services.retrieval.contracts import EMPTY_INDEX, RetrievalIndex, VocabularyState, empty_index
+from services.retrieval.training import BackgroundTrainer
 
 
 class IndexSource(Protocol):
@@ -62,11 +63,17 @@ class RetrievalIndexCache:
     racing with the catch-up leaves the cache at most one request behind, never wrong for good.
 
     With ``ann`` options, an index of at least ``ann.min_references`` references also keeps an
-    approximate faiss index (``RetrievalIndex.ann``), updated by the same catch-up.
+    approximate faiss index (``RetrievalIndex.ann``), updated by the same catch-up. With a
+    ``builder``, that index is trained in the background (minutes at a million references)
+    while requests go on with exact search, or with the index the map outgrew; without one, in
+    the request that needs it.
     """
 
-    def __init__(self, ann: AnnOptions | None = None) -> None:
+    def __init__(
+        self, ann: AnnOptions | None = None, builder: BackgroundTrainer | None = None
+    ) -> None:
         self.ann = ann
+        self.builder = builder
         self._entries: dict[tuple[str, str, str], _CachedIndex] = {}
         self._lock = threading.Lock()
 
@@ -87,9 +94,42 @@ class RetrievalIndexCache:
                     index = store.load_index(vocabulary)
                 else:
                     index = _catch_up(entry.index, store, vocabulary)
-                entry.index = _with_ann(index, self.ann)
+                entry.index = self._with_ann(key, entry, index)
                 entry.revision = revision
             return entry.index
+
+    def _with_ann(
+        self, key: tuple[str, str, str], entry: _CachedIndex, index: RetrievalIndex
+    ) -> RetrievalIndex:
+        """``index`` with an approximate index when it is large enough: the one it has, unless
+        it has none yet or outgrew it; then a new one is built (in the background with a
+        builder). A small index searches exactly."""
+        options = self.ann
+        if options is None or len(index.image_ids) < options.min_references:
+            return index if index.ann is None else replace(index, ann=None)
+        if index.ann is not None and not index.ann.stale():
+            return index
+        if self.builder is None:
+            return replace(index, ann=AnnView.build(index.descriptors, options))
+        self.builder.schedule(key, lambda: self._build_ann(entry, index, options))
+        return index
+
+    @staticmethod
+    def _build_ann(entry: _CachedIndex, snapshot: RetrievalIndex, options: AnnOptions) -> None:
+        """Train an approximate index on ``snapshot`` and hand it to the entry's current index,
+        caught up with the adds and deletes made meanwhile (dropped when the descriptors were
+        replaced or the map shrank below the threshold)."""
+        view = AnnView.build(snapshot.descriptors, options)
+        row_before = {image_id: row for row, image_id in enumerate(snapshot.image_ids)}
+        with entry.lock:
+            current = entry.index
+            if (
+                current.vocabulary_version != snapshot.vocabulary_version
+                or len(current.image_ids) < options.min_references
+            ):
+                return
+            previous_rows = np.array([row_before.get(i, -1) for i in current.image_ids], np.int64)
+            entry.index = replace(current, ann=view.updated(previous_rows, current.descriptors))
 
     def size(self) -> CacheSize:
         with self._lock:
@@ -104,16 +144,6 @@ class RetrievalIndexCache:
                 for index in indexes
             ),
         )
-
-
-def _with_ann(index: RetrievalIndex, options: AnnOptions | None) -> RetrievalIndex:
-    """``index`` with an approximate index when it is large enough, built anew when it has
-    none yet or outgrew the one it has; a small one searches exactly."""
-    if options is None or len(index.image_ids) < options.min_references:
-        return index if index.ann is None else replace(index, ann=None)
-    if index.ann is None or index.ann.stale():
-        return replace(index, ann=AnnView.build(index.descriptors, options))
-    return index
 
 
 def _catch_up(
@@ -131,13 +161,17 @@ def _catch_up(
     parts = [(index.descriptors[keep], index.centers[keep])] if keep else []
     if added.image_ids:
         parts.append((added.descriptors, added.centers))
+    descriptors = np.concatenate([d for d, _ in parts])
     ann = index.ann
     if ann is not None:
-        ann = ann.updated(np.asarray(keep, np.int64), added.descriptors)
+        previous_rows = np.concatenate(
+            [np.asarray(keep, np.int64), np.full(len(added.image_ids), -1, np.int64)]
+        )
+        ann = ann.updated(previous_rows, descriptors)
     return replace(
         index,
         image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
-        descriptors=np.concatenate([d for d, _ in parts]),
+        descriptors=descriptors,
         centers=np.concatenate([c for _, c in parts]),
         ann=ann,
     )

@@ -77,10 +77,10 @@ def search_index(
     if index.ann is None or k <= 0:
         return top_k(query, index.descriptors, k, index.centers, prior)
     if prior is None:
-        return index.ann.search(query, k)
+        return index.ann.search(query, k, index.descriptors)
     inside = prior.distances(index.centers) <= prior.radius
     rows = np.flatnonzero(inside)
     if rows.size < index.ann.index.options.min_references:
         chosen, scores = top_k(query, index.descriptors[rows], k)
         return rows[chosen], scores
-    return index.ann.search(query, k, inside)
+    return index.ann.search(query, k, index.descriptors, inside)

@@ -1,6 +1,6 @@
-"""Runs vocabulary training off the request path: one background worker at the lowest CPU
-priority, so requests running meanwhile keep their speed, and one pending job per map, so a
-burst of adds that crosses the threshold trains once."""
+"""Runs training off the request path (VLAD vocabularies, approximate retrieval indexes): one
+background worker at the lowest CPU priority, so requests running meanwhile keep their speed,
+and one pending job per key, so a burst of adds that crosses a threshold trains once."""
 
 from __future__ import annotations
 
@@ -17,9 +17,11 @@ class BackgroundTrainer:
     """Schedules training jobs on one worker thread; a job already pending or running for the
     same key is not scheduled twice. Failures are logged, never raised into a request."""
 
-    def __init__(self) -> None:
+    def __init__(self, name: str = "vocabulary") -> None:
+        """``name``: what the jobs train, for the worker thread's name and the logs."""
+        self.name = name
         self._executor = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="vocabulary", initializer=_lowest_priority
+            max_workers=1, thread_name_prefix=name.replace(" ", "-"), initializer=_lowest_priority
         )
         self._pending: dict[Hashable, Future[None]] = {}
         self._lock = threading.Lock()
@@ -36,7 +38,7 @@ class BackgroundTrainer:
         try:
             job()
         except Exception:
-            logger.exception("background vocabulary training for %s failed", key)
+            logger.exception("background %s training for %s failed", self.name, key)
         finally:
             with self._lock:
                 self._pending.pop(key, None)
@@ -64,4 +66,4 @@ def _lowest_priority() -> None:
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         except OSError:
-            logger.info("could not lower the vocabulary trainer's priority")
+            logger.info("could not lower a background trainer's priority")

@@ -111,6 +111,9 @@ def test_metrics_after_localize(
     assert capacity == workers + Settings().max_queued
     assert value(metrics["slloc_admission_admitted"], "slloc_admission_admitted") == 0
     assert value(metrics["slloc_admission_queue_depth"], "slloc_admission_queue_depth") == 0
+    jobs = metrics["slloc_background_jobs"]
+    for kind in ("vocabulary", "retrieval index"):
+        assert value(jobs, "slloc_background_jobs", kind=kind) == 0
 
 
 @pytest.mark.parametrize("require_key", [False, True])
