@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.schemas.images import ImageMetadata
 from app.usecases.errors import NotFoundError
 from app.usecases.images import add_reference_image
-from app.usecases.localize import LocalizeRequest, localize
+from app.usecases.localize import LocalizeContext, LocalizeRequest, localize
 from db.migrate import upgrade
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from db.repositories.maps import MapRepository
@@ -115,12 +115,10 @@ def test_localize_training_inline_survives_the_delete(
     delete_map_before(monkeypatch, step)
     try:
         result = localize(
-            sessions,
-            localizer,
+            LocalizeContext(sessions, localizer, max_top_k=10),
             map_id,
             LocalizeRequest(),
             encode_png(query_views[0].image),
-            max_top_k=10,
         )
     except NotFoundError:
         pass  # the map went before the localize read it: as good an answer
@@ -148,12 +146,10 @@ def test_localize_encoding_new_references_survives_the_delete(
     )  # not encoded yet
     delete_map_before(monkeypatch, step)
     result = localize(
-        sessions,
-        localizer,
+        LocalizeContext(sessions, localizer, max_top_k=10),
         map_id,
         LocalizeRequest(),
         encode_png(query_views[0].image),
-        max_top_k=10,
     )
     assert not result.localized and result.reason == FailureReason.NO_REFERENCES.value
     assert_nothing_left(sessions)

@@ -13,9 +13,9 @@ from app.auth import RoleCheck
 from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
+from app.usecases.localize import LocalizeContext
 from services.pipeline import Localizer
 from services.reference_cache import ReferenceFeatureCache
-from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
 
 
@@ -32,11 +32,6 @@ async def get_sessions(request: Request) -> sessionmaker[Session]:
 async def get_localizer(request: Request) -> Localizer:
     localizer: Localizer = request.app.state.localizer
     return localizer
-
-
-async def get_retrieval_cache(request: Request) -> RetrievalIndexCache:
-    cache: RetrievalIndexCache = request.app.state.retrieval_cache
-    return cache
 
 
 async def get_reference_cache(request: Request) -> ReferenceFeatureCache:
@@ -58,6 +53,23 @@ async def get_admission(request: Request) -> Admission:
     return admission
 
 
+async def get_localize_context(request: Request) -> LocalizeContext:
+    """The database, engine, limits, caches and worker slots every localize shares."""
+    state = request.app.state
+    settings: Settings = state.settings
+    return LocalizeContext(
+        sessions=state.sessions,
+        localizer=state.localizer,
+        max_top_k=settings.max_top_k,
+        max_time_budget_s=settings.localize_time_budget_s,
+        cache=state.retrieval_cache,
+        vlad=settings.global_model is None,
+        slots=state.admission.slots,
+        trainer=state.vocabulary_trainer,
+        features_cache=state.reference_cache,
+    )
+
+
 async def get_metrics(request: Request) -> ServiceMetrics:
     metrics: ServiceMetrics = request.app.state.metrics
     return metrics
@@ -66,11 +78,11 @@ async def get_metrics(request: Request) -> ServiceMetrics:
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
-RetrievalCacheDep = Annotated[RetrievalIndexCache, Depends(get_retrieval_cache)]
 ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache)]
 AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
+LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)
 MAX_OFFSET = 2**31 - 1

@@ -83,52 +83,89 @@ def engine_params(
     )
 
 
-def localize(
-    sessions: sessionmaker[Session],
-    localizer: Localizer,
-    map_id: str,
-    request: LocalizeRequest,
-    image_bytes: bytes,
-    depth_bytes: bytes | None = None,
-    *,
-    max_top_k: int,
-    max_time_budget_s: float | None = None,
-    cache: RetrievalIndexCache | None = None,
-    vlad: bool = True,
-    slots: AbstractContextManager[object] = nullcontext(),
-    trainer: BackgroundTrainer | None = None,
-    features_cache: ReferenceFeatureCache | None = None,
-) -> LocalizationResult:
-    """Localize the query against the map's references. A query that cannot be localized is
-    a result with ``localized`` False and a reason, not an error.
+@dataclass(frozen=True)
+class LocalizeContext:
+    """What every localize shares besides its request: the database, the engine, the
+    service's limits and the state kept between requests.
 
-    Args:
+    Attributes:
+        sessions: the database.
+        localizer: the engine (set up for each map by ``for_map``).
         max_top_k: the largest ``top_k`` a request may ask for.
         max_time_budget_s: the time budget, and the largest a request may ask for (None:
             unbounded).
-        cache: keeps the map's retrieval index in memory between calls.
+        cache: keeps maps' retrieval indexes in memory between calls.
         vlad: retrieve by the map's VLAD vocabulary once it has one (False: the localizer's
             global descriptor).
         slots: held while the engine runs (bounds concurrent engine work).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
         features_cache: keeps the decoded features of references between calls.
+    """
+
+    sessions: sessionmaker[Session]
+    localizer: Localizer
+    max_top_k: int
+    max_time_budget_s: float | None = None
+    cache: RetrievalIndexCache | None = None
+    vlad: bool = True
+    slots: AbstractContextManager[object] = field(default_factory=nullcontext)
+    trainer: BackgroundTrainer | None = None
+    features_cache: ReferenceFeatureCache | None = None
+
+    def map_engine(
+        self, map_id: str, request: LocalizeRequest, default_estimator: str | None = None
+    ) -> tuple[Localizer, LocalizeParams, SqlReferenceStore]:
+        """The localizer set up for the map's feature options, the engine's parameters for
+        ``request`` (``default_estimator``, else the map's, where it names none) and the
+        map's references.
+
+        Raises:
+            NotFoundError: unknown map.
+            InvalidInputError: ``top_k`` or ``time_budget_s`` over the limits.
+        """
+        with self.sessions() as session:
+            map_row = require_map(session, map_id)
+            localizer = self.localizer.for_map(map_row.max_keypoints, map_row.max_side)
+            params = engine_params(
+                request,
+                default_estimator or map_row.default_estimator,
+                self.max_top_k,
+                self.max_time_budget_s,
+            )
+        store = reference_store(
+            self.sessions,
+            map_id,
+            localizer,
+            self.cache,
+            self.vlad,
+            self.trainer,
+            self.features_cache,
+        )
+        return localizer, params, store
+
+
+def localize(
+    context: LocalizeContext,
+    map_id: str,
+    request: LocalizeRequest,
+    image_bytes: bytes,
+    depth_bytes: bytes | None = None,
+) -> LocalizationResult:
+    """Localize the query against the map's references. A query that cannot be localized is
+    a result with ``localized`` False and a reason, not an error.
 
     Raises:
         NotFoundError: unknown map.
         InvalidInputError: the image, depth, camera or parameters are unusable, or the
             estimator needs depth and none was uploaded.
     """
-    with sessions() as session:
-        map_row = require_map(session, map_id)
-        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
-        params = engine_params(request, map_row.default_estimator, max_top_k, max_time_budget_s)
+    localizer, params, store = context.map_engine(map_id, request)
     if depth_bytes is None and get_estimator(params.estimator).needs_depth:
         raise InvalidInputError(
             f"depth: estimator {params.estimator} needs the query's depth map (the depth "
             "upload); the references need depth too"
         )
-    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer, features_cache)
-    with slots:
+    with context.slots:
         return localizer.localize(image_bytes, params, store, depth_bytes)
 
 

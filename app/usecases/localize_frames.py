@@ -4,20 +4,13 @@ more are localized jointly as a rig (``services.rig_localizer``)."""
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 
-from sqlalchemy.orm import Session, sessionmaker
-
-from app.usecases.localize import LocalizeRequest, engine_params, localize, reference_store
-from app.usecases.maps import require_map
+from app.usecases.localize import LocalizeContext, LocalizeRequest, localize
 from services.errors import InvalidInputError
 from services.estimators.rig_pose import RIG_METHOD
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.pipeline import Localizer
-from services.retrieval.cache import RetrievalIndexCache
-from services.retrieval.training import BackgroundTrainer
 from services.rig_localizer import (
     QueryFrame,
     SessionLocalizationResult,
@@ -36,8 +29,7 @@ class SessionFrame:
 
 
 def localize_with_session(
-    sessions: sessionmaker[Session],
-    localizer: Localizer,
+    context: LocalizeContext,
     map_id: str,
     request: LocalizeRequest,
     frames: list[SessionFrame],
@@ -45,18 +37,11 @@ def localize_with_session(
     depth_bytes: bytes | None = None,
     *,
     max_frames: int,
-    max_top_k: int,
-    max_time_budget_s: float | None = None,
-    cache: RetrievalIndexCache | None = None,
-    vlad: bool = True,
-    slots: AbstractContextManager[object] = nullcontext(),
-    trainer: BackgroundTrainer | None = None,
 ) -> SessionLocalizationResult:
     """Localize ``images`` (frame ``i`` described by ``frames[i]``) against the map.
 
     Args:
         max_frames: the most frames a request may send.
-        The others: as for ``app.usecases.localize.localize``.
 
     Raises:
         NotFoundError: unknown map.
@@ -74,11 +59,7 @@ def localize_with_session(
     if len(frames) == 1:
         frame = frames[0]
         single = replace(request, camera=frame.camera or request.camera)
-        result = localize(
-            sessions, localizer, map_id, single, images[0], depth_bytes,
-            max_top_k=max_top_k, max_time_budget_s=max_time_budget_s, cache=cache,
-            vlad=vlad, slots=slots, trainer=trainer,
-        )  # fmt: skip
+        result = localize(context, map_id, single, images[0], depth_bytes)
         return align_single_frame(result, frame.cam_from_session)
     if depth_bytes is not None:
         raise InvalidInputError("depth: a query of several frames takes no depth upload")
@@ -87,14 +68,10 @@ def localize_with_session(
             f"estimator: several frames are localized jointly by {RIG_METHOD} (local "
             f"triangulation, generalized absolute pose); {request.estimator} takes one frame"
         )
-    with sessions() as session:
-        map_row = require_map(session, map_id)
-        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
-        params = engine_params(request, RIG_METHOD, max_top_k, max_time_budget_s)
-    store = reference_store(sessions, map_id, localizer, cache, vlad, trainer)
+    localizer, params, store = context.map_engine(map_id, request, RIG_METHOD)
     query_frames = [
         QueryFrame(image, frame.camera, frame.cam_from_session)
         for image, frame in zip(images, frames, strict=True)
     ]
-    with slots:
+    with context.slots:
         return localize_frames(localizer, query_frames, params, store)

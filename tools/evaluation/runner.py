@@ -27,7 +27,7 @@ from app.schemas.localize import LocalizeParamsIn
 from app.usecases.compare_estimators import localize_with_each
 from app.usecases.errors import ConflictError
 from app.usecases.images import add_reference_image
-from app.usecases.localize import localize
+from app.usecases.localize import LocalizeContext, localize
 from app.usecases.maps import create_map
 from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
@@ -132,7 +132,9 @@ class InProcessRunner:
         self.map_id = create_map(
             self.sessions, self.localizer, "eval", None, DEFAULT_ESTIMATOR, max_keypoints, max_side
         ).id
-        self._cache = RetrievalIndexCache()
+        self._context = LocalizeContext(
+            self.sessions, self.localizer, max_top_k=1_000_000, cache=RetrievalIndexCache()
+        )
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
         add_reference_image(
@@ -153,14 +155,11 @@ class InProcessRunner:
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
         result = localize(
-            self.sessions,
-            self.localizer,
+            self._context,
             self.map_id,
             LocalizeParamsIn.model_validate(params).to_request(),
             image,
             depth,
-            max_top_k=1_000_000,
-            cache=self._cache,
         )
         return _outcome(result, (time.perf_counter() - start) * 1000.0)
 
@@ -175,15 +174,12 @@ class InProcessRunner:
         estimator's own."""
         start = time.perf_counter()
         results = localize_with_each(
-            self.sessions,
-            self.localizer,
+            self._context,
             self.map_id,
             LocalizeParamsIn.model_validate(params).to_request(),
             estimators,
             image,
             depth if any(name in DEPTH_USING_ESTIMATORS for name in estimators) else None,
-            max_top_k=1_000_000,
-            cache=self._cache,
         )
         elapsed_ms = (time.perf_counter() - start) * 1000.0
         estimates_ms = sum(r.timings_ms["estimate"] for r in results)

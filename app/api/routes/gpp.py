@@ -11,13 +11,10 @@ from fastapi import APIRouter
 from app.api.deps import (
     AdmissionDep,
     ClientKey,
-    LocalizerDep,
+    LocalizeContextDep,
     MetricsDep,
-    ReferenceCacheDep,
-    RetrievalCacheDep,
     SessionsDep,
     SettingsDep,
-    TrainerDep,
 )
 from app.errors import ProblemError, problem_responses
 from app.schemas.geo import GeoPoseSchema
@@ -38,12 +35,9 @@ def geopose(
     map_id: str,
     body: GeoPoseReq,
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    context: LocalizeContextDep,
     settings: SettingsDep,
-    cache: RetrievalCacheDep,
     admission: AdmissionDep,
-    trainer: TrainerDep,
-    features_cache: ReferenceCacheDep,
     metrics: MetricsDep,
 ) -> GeoPoseResp:
     """A GeoPose Protocol request (``GeoPoseReq``: the first camera reading's image and
@@ -67,20 +61,7 @@ def geopose(
     if gps is not None:
         request = replace(request, prior=geo.gps_prior(registration, gps))
     with admission.admit():
-        result = localize_image(
-            sessions,
-            localizer,
-            map_id,
-            request,
-            image_bytes,
-            max_top_k=settings.max_top_k,
-            max_time_budget_s=settings.localize_time_budget_s,
-            cache=cache,
-            vlad=settings.global_model is None,
-            slots=admission.slots,
-            trainer=trainer,
-            features_cache=features_cache,
-        )
+        result = localize_image(context, map_id, request, image_bytes)
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     answer = geo.geopose_answer(registration, result)
     if answer is None:

@@ -9,13 +9,10 @@ from fastapi import APIRouter, File, Form, UploadFile
 from app.api.deps import (
     AdmissionDep,
     ClientKey,
-    LocalizerDep,
+    LocalizeContextDep,
     MetricsDep,
-    ReferenceCacheDep,
-    RetrievalCacheDep,
     SessionsDep,
     SettingsDep,
-    TrainerDep,
     json_form_schema,
     parse_json_form,
     read_upload,
@@ -47,12 +44,9 @@ PARAMS_HELP = (
 def localize(
     map_id: str,
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    context: LocalizeContextDep,
     settings: SettingsDep,
-    cache: RetrievalCacheDep,
     admission: AdmissionDep,
-    trainer: TrainerDep,
-    features_cache: ReferenceCacheDep,
     image: Annotated[
         list[UploadFile],
         File(
@@ -87,20 +81,13 @@ def localize(
     if frames is not None:
         with admission.admit():
             session_result = localize_with_session(
-                sessions,
-                localizer,
+                context,
                 map_id,
                 request,
                 frames,
                 images,
                 depth_bytes,
                 max_frames=settings.max_frames,
-                max_top_k=settings.max_top_k,
-                max_time_budget_s=settings.localize_time_budget_s,
-                cache=cache,
-                vlad=settings.global_model is None,
-                slots=admission.slots,
-                trainer=trainer,
             )
         joint = session_result.result
         metrics.observe_localization(joint.estimator, joint.reason, joint.timings_ms)
@@ -111,21 +98,7 @@ def localize(
             body.output,
         )
     with admission.admit():
-        result = localize_image(
-            sessions,
-            localizer,
-            map_id,
-            request,
-            images[0],
-            depth_bytes,
-            max_top_k=settings.max_top_k,
-            max_time_budget_s=settings.localize_time_budget_s,
-            cache=cache,
-            vlad=settings.global_model is None,
-            slots=admission.slots,
-            trainer=trainer,
-            features_cache=features_cache,
-        )
+        result = localize_image(context, map_id, request, images[0], depth_bytes)
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(
         result, body.return_inliers, geo.geopose_answer(registration, result), body.output
