@@ -21,7 +21,7 @@ import numpy as np
 
 from services.types import BoolArray, Float32Array, IntArray
 
-TRAINING_POINTS_PER_LIST = 40  # k-means sample per inverted list (faiss warns below 39)
+TRAINING_POINTS_PER_LIST = 256  # k-means sample per inverted list (faiss samples 256 at most)
 REBUILD_GROWTH = 4  # retrain the coarse quantizer when the index grew this many times
 
 
@@ -32,7 +32,7 @@ class AnnOptions:
     wanted result that are rescored exactly."""
 
     min_references: int = 50_000
-    nprobe: int = 256
+    nprobe: int = 128
     rerank: int = 4
 
 
