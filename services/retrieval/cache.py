@@ -64,7 +64,7 @@ class RetrievalIndexCache:
 
     With ``ann`` options, an index of at least ``ann.min_references`` references also keeps an
     approximate faiss index (``RetrievalIndex.ann``), updated by the same catch-up. With a
-    ``builder``, that index is trained in the background (minutes at a million references)
+    ``builder``, that index is trained in the background (50 s at a million references here)
     while requests go on with exact search, or with the index the map outgrew; without one, in
     the request that needs it.
     """
