@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
@@ -157,7 +158,10 @@ def subset(samples: Samples, keep: BoolArray) -> Samples:
 
 
 def cross_validated_l2(
-    samples: Samples, folds: int = 5, grid: tuple[float, ...] = L2_GRID
+    samples: Samples,
+    folds: int = 5,
+    grid: tuple[float, ...] = L2_GRID,
+    features: Sequence[str] = tuple(FEATURES),
 ) -> float:
     """The penalty of ``grid`` with the best mean log-likelihood of the localized answers of
     held-in folds; folds by query (a hash of its name, so the choice is reproducible)."""
@@ -169,7 +173,7 @@ def cross_validated_l2(
             train, test = subset(samples, fold != k), subset(samples, fold == k)
             if not test.localized.any() or train.correct.all() or not train.correct.any():
                 continue
-            model = fit_model(train, l2)
+            model = fit_model(train, l2, features=features)
             p = np.array(
                 [
                     model.confidence(s, e)
@@ -185,9 +189,15 @@ def cross_validated_l2(
     return best
 
 
-def fit_model(samples: Samples, l2: float = 1.0, description: str = "") -> ConfidenceModel:
-    """The confidence model of the localized answers of ``samples``."""
-    names = tuple(FEATURES)
+def fit_model(
+    samples: Samples,
+    l2: float = 1.0,
+    description: str = "",
+    features: Sequence[str] = tuple(FEATURES),
+) -> ConfidenceModel:
+    """The confidence model of the localized answers of ``samples`` over ``features`` (keys
+    of ``FEATURES``)."""
+    names = tuple(features)
     chosen = np.flatnonzero(samples.localized)
     raw = np.stack([feature_vector(samples.stats[i], names) for i in chosen])
     mean, scale = raw.mean(axis=0), raw.std(axis=0)
@@ -253,6 +263,16 @@ def calibrate_main(args: argparse.Namespace) -> int:
     except (OSError, ValueError, KeyError) as exc:
         print(f"slloc calibrate: {exc}", file=sys.stderr)
         return 2
+    features = tuple(FEATURES)
+    if args.features:
+        features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+        unknown = [f for f in features if f not in FEATURES]
+        if unknown or not features:
+            print(
+                f"slloc calibrate: unknown features {unknown}; known: {', '.join(FEATURES)}",
+                file=sys.stderr,
+            )
+            return 2
     if samples.correct.all() or not samples.correct[samples.localized].any():
         print("slloc calibrate: the fit needs correct and wrong answers", file=sys.stderr)
         return 2
@@ -261,9 +281,9 @@ def calibrate_main(args: argparse.Namespace) -> int:
         f"{int(samples.localized.sum())} localized answers"
         + (f" ({args.note})" if args.note else "")
     )
-    l2 = cross_validated_l2(samples) if args.l2 is None else args.l2
+    l2 = cross_validated_l2(samples, features=features) if args.l2 is None else args.l2
     print(f"L2 penalty {l2:g}" + (" (cross-validated on the fit runs)" if args.l2 is None else ""))
-    model = fit_model(samples, l2, f"{description}, L2 penalty {l2:g}")
+    model = fit_model(samples, l2, f"{description}, L2 penalty {l2:g}", features)
     print(json.dumps(model.to_json(), indent=1))
     _report("fit", model, samples)
     if held_out is not None:
