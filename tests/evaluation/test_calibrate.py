@@ -68,6 +68,7 @@ def _samples(n: int, seed: int) -> Samples:
         np.zeros(n, bool),
         np.zeros(n, bool),
         [f"q{i}" for i in range(n)],
+        ["auto"] * n,
     )
 
 

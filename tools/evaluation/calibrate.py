@@ -40,12 +40,14 @@ class Samples:
 
     Attributes:
         stats: each answer's stats.
-        estimators: each answer's estimator name.
+        estimators: the estimator whose answer it is, the name the service scores it with
+            (for ``auto``, the estimator it chose: ``estimator_used``).
         localized: (N,) the answer has a pose.
         correct: (N,) its pose is within the target.
         unrelated: (N,) the query is an image of another scene (no ground truth).
         wrong_intrinsics: (N,) the query was sent with a wrong focal length.
         queries: each answer's query, as ``<results file>:<query name>``.
+        configs: each answer's estimator as asked (``auto`` for all of auto's answers).
     """
 
     stats: list[dict[str, float]]
@@ -55,6 +57,7 @@ class Samples:
     unrelated: BoolArray
     wrong_intrinsics: BoolArray
     queries: list[str]
+    configs: list[str]
 
     @property
     def positives(self) -> int:
@@ -66,13 +69,15 @@ def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Sam
     """The answers in the ``results.json`` files of in-process ``slloc eval`` runs."""
     stats, estimators, localized, correct, unrelated, wrong = [], [], [], [], [], []
     queries: list[str] = []
+    configs: list[str] = []
     max_m, max_deg = target
     for path in paths:
         for q in json.loads(path.read_text())["queries"]:
             queries.append(f"{path}:{q['query']}")
             pos, rot = q["position_error_m"], q["rotation_error_deg"]
             stats.append({k: float(v) for k, v in q.get("stats", {}).items()})
-            estimators.append(q["config"].split("/")[-1])
+            configs.append(q["config"].split("/")[-1])
+            estimators.append(q.get("estimator_used") or configs[-1])
             localized.append(bool(q["localized"]))
             correct.append(
                 bool(q["localized"])
@@ -91,6 +96,7 @@ def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Sam
         np.array(unrelated, bool),
         np.array(wrong, bool),
         queries,
+        configs,
     )
 
 
@@ -154,6 +160,7 @@ def subset(samples: Samples, keep: BoolArray) -> Samples:
         samples.unrelated[index],
         samples.wrong_intrinsics[index],
         [samples.queries[i] for i in index],
+        [samples.configs[i] for i in index],
     )
 
 
@@ -291,6 +298,12 @@ def calibrate_main(args: argparse.Namespace) -> int:
         if held_out.wrong_intrinsics.any():
             right = subset(held_out, ~held_out.wrong_intrinsics)
             _report("held out, right intrinsics", model, right)
+        auto = np.array([c == "auto" for c in held_out.configs], bool)
+        if auto.any() and not auto.all():
+            _report("held out, auto's answers", model, subset(held_out, auto))
+            if held_out.wrong_intrinsics[auto].any():
+                right = auto & ~held_out.wrong_intrinsics
+                _report("held out, auto's answers, right intrinsics", model, subset(held_out, right))
     if args.out is not None:
         model.save(args.out)
         print(f"wrote {args.out}")
