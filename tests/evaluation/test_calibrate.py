@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tools.evaluation.calibrate import Samples, curve_with, fit_logistic, fit_model
+from tools.evaluation.calibrate import (
+    Samples,
+    answered_confidence,
+    curve_with,
+    fit_logistic,
+    fit_model,
+)
 
 
 def _sample(weights: np.ndarray, intercept: float, n: int, seed: int) -> tuple:
@@ -92,3 +98,16 @@ def test_fit_model_on_chosen_features_learns_uncertainty_and_agreement() -> None
         band = (p >= low) & (p < high)
         assert band.sum() > 100
         assert abs(held_out.correct[band].mean() - p[band].mean()) < 0.06
+
+
+def test_answered_confidence_is_capped_by_the_uncertainty_like_the_service() -> None:
+    model = fit_model(_samples(2000, seed=5), l2=1e-3, features=("position_precision", "agreement"))
+    sure = {"position_sigma_m": 0.003, "rotation_sigma_deg": 0.1, "auto_other_position_m": 0.005}
+    sure["auto_other_rotation_deg"] = 0.1
+    assert answered_confidence(model, sure, "e5p1") == model.confidence(sure, "e5p1") > 0.9
+    # 3σ above 5°: capped at 0.5, whatever the model says
+    turned = {**sure, "rotation_sigma_deg": 2.0}
+    assert model.confidence(turned, "e5p1") > 0.5
+    assert answered_confidence(model, turned, "e5p1") == 0.5
+    # an estimated focal length without an uncertainty: capped too
+    assert answered_confidence(model, {"focal_px": 500.0}, "e5p1") <= 0.5

@@ -30,6 +30,8 @@ from services.confidence.model import (
     base_estimator,
     feature_vector,
 )
+from services.estimators.options import UncertaintyOptions
+from services.pose_uncertainty import PoseUncertainty, capped_confidence
 from services.types import BoolArray, FloatArray
 from tools.evaluation.confidence_curve import TARGET, ConfidenceCurve, precision_recall
 
@@ -232,11 +234,29 @@ def fit_model(
     )
 
 
+def answered_confidence(model: ConfidenceModel, stats: dict[str, float], estimator: str) -> float:
+    """The confidence the service answers for a localized result with ``stats``: the model's,
+    capped by the pose uncertainty in the stats (``capped_confidence``, default options; the
+    focal length counts as estimated when the stats have ``focal_px``)."""
+    uncertainty = None
+    if "position_sigma_m" in stats and "rotation_sigma_deg" in stats:
+        uncertainty = PoseUncertainty(
+            stats["position_sigma_m"],
+            stats["rotation_sigma_deg"],
+            int(stats.get("uncertainty_points", 0)),
+            stats.get("uncertainty_sigma_px", 0.0),
+        )
+    return capped_confidence(
+        model.confidence(stats, estimator), uncertainty, UncertaintyOptions(), "focal_px" in stats
+    )
+
+
 def curve_with(model: ConfidenceModel, samples: Samples) -> ConfidenceCurve:
-    """The precision/recall curve of ``samples`` under ``model``'s confidence."""
+    """The precision/recall curve of ``samples`` under the confidence the service would answer
+    with ``model`` (``answered_confidence``)."""
     confidence = np.array(
         [
-            model.confidence(s, e) if ok else 0.0
+            answered_confidence(model, s, e) if ok else 0.0
             for s, e, ok in zip(samples.stats, samples.estimators, samples.localized, strict=True)
         ]
     )
@@ -303,7 +323,9 @@ def calibrate_main(args: argparse.Namespace) -> int:
             _report("held out, auto's answers", model, subset(held_out, auto))
             if held_out.wrong_intrinsics[auto].any():
                 right = auto & ~held_out.wrong_intrinsics
-                _report("held out, auto's answers, right intrinsics", model, subset(held_out, right))
+                _report(
+                    "held out, auto's answers, right intrinsics", model, subset(held_out, right)
+                )
     if args.out is not None:
         model.save(args.out)
         print(f"wrote {args.out}")
