@@ -322,10 +322,8 @@ def calibrate_main(args: argparse.Namespace) -> int:
         if auto.any() and not auto.all():
             _report("held out, auto's answers", model, subset(held_out, auto))
             if held_out.wrong_intrinsics[auto].any():
-                right = auto & ~held_out.wrong_intrinsics
-                _report(
-                    "held out, auto's answers, right intrinsics", model, subset(held_out, right)
-                )
+                auto_right = subset(held_out, auto & ~held_out.wrong_intrinsics)
+                _report("held out, auto's answers, right intrinsics", model, auto_right)
     if args.out is not None:
         model.save(args.out)
         print(f"wrote {args.out}")
