@@ -48,8 +48,8 @@ def answer_pose(
     """Estimate and verify the query pose with ``camera``, or, when ``focal_estimated``, with
     the camera estimated from the matches (``camera`` gives only the image size then); a
     depth estimator without depth fails as ``missing_depth`` before any focal estimation. The
-    confidence is ``confidence_model``'s (of the estimator ``auto`` chose, for ``auto``), then
-    capped by the uncertainty."""
+    confidence is ``confidence_model``'s (of the estimator ``auto`` chose, for ``auto``) over
+    the result's stats, the uncertainty's included, then capped by the uncertainty."""
     focal_stats: dict[str, float] = {}
     if focal_estimated and not (estimator.needs_depth and missing_depth(references)):
         focal = estimate_focal(camera.width, camera.height, references, options, deadline)
@@ -62,13 +62,12 @@ def answer_pose(
     verified = verify_pose(
         estimator.estimate(camera, references, options), camera, references, options
     )
-    scored = rescore(
-        verified,
-        camera,
-        references,
-        options,
-        verified.estimator_used or estimator.name,
-        confidence_model,
+    name = verified.estimator_used or estimator.name
+
+    def score(result: EstimateResult) -> EstimateResult:
+        return rescore(result, camera, references, options, name, confidence_model)
+
+    result, uncertainty = with_uncertainty(
+        verified, camera, references, options, focal_estimated, score
     )
-    result, uncertainty = with_uncertainty(scored, camera, references, options, focal_estimated)
     return PoseAnswer(replace(result, stats={**result.stats, **focal_stats}), camera, uncertainty)

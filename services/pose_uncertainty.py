@@ -11,6 +11,7 @@ the pose's). Reported as root-mean-square errors: ``position_m = sqrt(trace Σ_C
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -112,14 +113,19 @@ def with_uncertainty(
     references: list[ReferenceObservation],
     options: EstimatorOptions,
     focal_estimated: bool,
+    score: Callable[[EstimateResult], EstimateResult] | None = None,
 ) -> tuple[EstimateResult, PoseUncertainty | None]:
-    """``result`` with its confidence capped by its uncertainty and the uncertainty in its
-    stats; and the uncertainty (None without a pose or without enough verified points)."""
+    """``result`` with the uncertainty in its stats, scored by ``score`` (which may read
+    them: the calibrated confidence, ``services.confidence``) and its confidence then capped
+    by the uncertainty; and the uncertainty (None without a pose or without enough verified
+    points)."""
     if result.cam_from_world is None:
         return result, None
     uncertainty = pose_uncertainty(result, query_camera, references, options, focal_estimated)
+    result = replace(result, stats={**result.stats, **uncertainty_stats(uncertainty)})
+    if score is not None:
+        result = score(result)
     confidence = capped_confidence(
         result.confidence, uncertainty, options.uncertainty, focal_estimated
     )
-    stats = {**result.stats, **uncertainty_stats(uncertainty)}
-    return replace(result, confidence=confidence, stats=stats), uncertainty
+    return replace(result, confidence=confidence), uncertainty

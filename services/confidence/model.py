@@ -35,6 +35,37 @@ def _ratio(stats: Mapping[str, float], num: str, den: str) -> float:
     return stats.get(num, 0.0) / max(stats.get(den, 0.0), 1.0)
 
 
+# the pose uncertainty's clamps (``services.pose_uncertainty``; no uncertainty reads as the
+# largest); map units and degrees
+POSITION_SIGMA_RANGE_M = (1e-3, 1.0)
+ROTATION_SIGMA_RANGE_DEG = (1e-2, 10.0)
+# the scale of disagreement between ``auto``'s verified poses at which agreement reads 0 (no
+# evidence either way), and the clamp of its log
+AGREEMENT_SCALE = (0.25, 5.0)
+AGREEMENT_CLAMP = 3.0
+
+
+def _precision(stats: Mapping[str, float], key: str, bounds: tuple[float, float]) -> float:
+    """−log of the stat clamped to ``bounds`` (absent: the upper bound)."""
+    low, high = bounds
+    return -math.log(min(max(stats.get(key, high), low), high))
+
+
+def agreement(stats: Mapping[str, float]) -> float:
+    """How well the other verified poses of ``auto`` agree with its answer:
+    ``−log max(Δposition / 0.25, Δrotation / 5°)`` clamped to ±3 — positive when they lie
+    closer than 25 cm and 5°, negative farther — and 0 without another pose (another
+    estimator, or only one of ``auto``'s verified)."""
+    if "auto_other_position_m" not in stats or "auto_other_rotation_deg" not in stats:
+        return 0.0
+    ratio = max(
+        stats["auto_other_position_m"] / AGREEMENT_SCALE[0],
+        stats["auto_other_rotation_deg"] / AGREEMENT_SCALE[1],
+        1e-12,
+    )
+    return min(max(-math.log(ratio), -AGREEMENT_CLAMP), AGREEMENT_CLAMP)
+
+
 # name → how it is computed from the stats of a result; each grows with the evidence for the
 # pose except ``residual`` (the inliers' median error over the inlier threshold) and
 # ``radial_residual`` (log of how much larger the errors are far from the principal point)
@@ -48,6 +79,11 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     "residual": lambda s: s.get("inlier_residual_ratio", 0.0),
     "tight_inliers": lambda s: s.get("inlier_tight_fraction", 0.0),
     "radial_residual": lambda s: math.log(max(s.get("radial_residual_ratio", 1.0), 1e-3)),
+    # −log of the pose's predicted RMS position / rotation error (``position_sigma_m``,
+    # ``rotation_sigma_deg``); no uncertainty reads as the largest
+    "position_precision": lambda s: _precision(s, "position_sigma_m", POSITION_SIGMA_RANGE_M),
+    "rotation_precision": lambda s: _precision(s, "rotation_sigma_deg", ROTATION_SIGMA_RANGE_DEG),
+    "agreement": agreement,
 }
 # features whose weight the fit keeps >= 0: more of them never lowers the confidence
 MONOTONE_INCREASING = (
@@ -57,6 +93,9 @@ MONOTONE_INCREASING = (
     "references_with_inliers",
     "inlier_area",
     "tight_inliers",
+    "position_precision",
+    "rotation_precision",
+    "agreement",
 )
 
 

@@ -21,6 +21,11 @@ Choosing between verified poses (``choose``): the pose of local triangulation, w
 the other — then its triangulated structure went wrong (on redkitchen: four queries where
 ``local_tri_all`` was 0.4–1 m off with 11–16 % fewer inliers than ``e5p1``).
 
+When two or more poses verified, the answer's stats carry how far the others lie from it
+(``agreement_stats``: ``auto_other_position_m``, ``auto_other_rotation_deg``, the largest over
+the others): two estimators that agree are evidence for the pose, which the confidence model
+reads (``services.confidence.model``).
+
 Every pose goes through the 3D verification (``services.verification``); every estimator gets
 what is left of the time budget. The answer names the estimator whose pose it is and why
 (``EstimateResult.estimator_used`` and ``estimator_reason``); when every estimator fails, the
@@ -45,6 +50,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import ReferenceLayout, reference_layout
 from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
+from services.geometry.rigid import rotation_error_deg
 from services.verification import verify_pose
 
 # local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
@@ -118,6 +124,25 @@ def choose(verified: dict[str, EstimateResult]) -> tuple[str, str]:
     return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
 
 
+def agreement_stats(verified: dict[str, EstimateResult], chosen: str) -> dict[str, float]:
+    """How far the other verified poses lie from ``chosen``'s: ``auto_verified_poses`` and,
+    with another pose, ``auto_other_position_m`` (camera centres, map units) and
+    ``auto_other_rotation_deg``, each the largest over the others."""
+    stats = {"auto_verified_poses": float(len(verified))}
+    pose = verified[chosen].cam_from_world
+    others = [r.cam_from_world for n, r in verified.items() if n != chosen]
+    others_posed = [o for o in others if o is not None]
+    if pose is None or not others_posed:
+        return stats
+    stats["auto_other_position_m"] = max(
+        float(np.linalg.norm(o.center - pose.center)) for o in others_posed
+    )
+    stats["auto_other_rotation_deg"] = max(
+        rotation_error_deg(o.rotation, pose.rotation) for o in others_posed
+    )
+    return stats
+
+
 class AutoEstimator:
     """Runs the estimators of ``plan_estimators`` and answers the pose ``choose`` keeps.
 
@@ -166,7 +191,7 @@ class AutoEstimator:
             tried = f"; failed: {', '.join(failed)}" if failed else ""
             return replace(
                 verified[name],
-                stats=verified[name].stats | attempts,
+                stats=verified[name].stats | attempts | agreement_stats(verified, name),
                 estimator_used=name,
                 estimator_reason=f"{plan.reason}; {name}: {why}{tried}",
             )

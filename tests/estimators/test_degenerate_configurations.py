@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.estimators.auto import AutoEstimator, choose, plan_estimators
+from services.estimators.auto import AutoEstimator, agreement_stats, choose, plan_estimators
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import (
@@ -193,6 +193,35 @@ def test_auto_falls_back_and_says_why(scene: SyntheticCorrespondences) -> None:
     assert result.cam_from_world is not None
     position, rotation = pose_error(result.cam_from_world, scene.query_pose)
     assert position < 0.01 * scene.scene_depth and rotation < 0.5
+
+
+def test_auto_reports_how_far_its_verified_poses_agree(scene: SyntheticCorrespondences) -> None:
+    """Both first-stage estimators verify on a clean scene: the answer carries their
+    disagreement, small against the scene; with one pose verified there is none."""
+    refs = [replace(ref, query_depth=None, reference_depth=None) for ref in scene.references]
+    candidates = {n: get_estimator(n) for n in ("e5p1", "local_tri_all", "motion_averaging")}
+    result = AutoEstimator(candidates).estimate(scene.query_camera, refs, TEST_OPTIONS)
+    assert result.stats["auto_verified_poses"] == 2.0
+    assert 0.0 <= result.stats["auto_other_position_m"] < 0.01 * scene.scene_depth
+    assert 0.0 <= result.stats["auto_other_rotation_deg"] < 0.5
+    alone = AutoEstimator({**candidates, "e5p1": _AlwaysDegenerate()})
+    stats = alone.estimate(scene.query_camera, refs, TEST_OPTIONS).stats
+    assert stats["auto_verified_poses"] == 1.0 and "auto_other_position_m" not in stats
+
+
+def test_agreement_stats_are_the_largest_over_the_other_poses() -> None:
+    turned = Rigid3d(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.zeros(3))
+    verified = {
+        "local_tri_all": _with_inliers(100),
+        "e5p1": replace(
+            _with_inliers(90), cam_from_world=Rigid3d(np.eye(3), np.array([3.0, 4.0, 0.0]))
+        ),
+        "e3p1": replace(_with_inliers(80), cam_from_world=turned),
+    }
+    stats = agreement_stats(verified, "local_tri_all")
+    assert stats["auto_verified_poses"] == 3.0
+    assert stats["auto_other_position_m"] == pytest.approx(5.0)
+    assert stats["auto_other_rotation_deg"] == pytest.approx(90.0)
 
 
 def test_auto_reports_the_first_failure_when_all_fail(scene: SyntheticCorrespondences) -> None:

@@ -147,5 +147,10 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         help="L2 penalty of the weights (default: cross-validated on the fit runs)",
     )
+    parser.add_argument(
+        "--features",
+        help="comma-separated confidence features to fit (default: all of "
+        "services.confidence.model.FEATURES)",
+    )
     parser.add_argument("--note", default="", help="what the runs were, for the file")
     parser.add_argument("--out", type=Path, help="write the coefficients file here")

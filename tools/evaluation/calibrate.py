@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
@@ -29,6 +30,8 @@ from services.confidence.model import (
     base_estimator,
     feature_vector,
 )
+from services.estimators.options import UncertaintyOptions
+from services.pose_uncertainty import PoseUncertainty, capped_confidence
 from services.types import BoolArray, FloatArray
 from tools.evaluation.confidence_curve import TARGET, ConfidenceCurve, precision_recall
 
@@ -39,12 +42,14 @@ class Samples:
 
     Attributes:
         stats: each answer's stats.
-        estimators: each answer's estimator name.
+        estimators: the estimator whose answer it is, the name the service scores it with
+            (for ``auto``, the estimator it chose: ``estimator_used``).
         localized: (N,) the answer has a pose.
         correct: (N,) its pose is within the target.
         unrelated: (N,) the query is an image of another scene (no ground truth).
         wrong_intrinsics: (N,) the query was sent with a wrong focal length.
         queries: each answer's query, as ``<results file>:<query name>``.
+        configs: each answer's estimator as asked (``auto`` for all of auto's answers).
     """
 
     stats: list[dict[str, float]]
@@ -54,6 +59,7 @@ class Samples:
     unrelated: BoolArray
     wrong_intrinsics: BoolArray
     queries: list[str]
+    configs: list[str]
 
     @property
     def positives(self) -> int:
@@ -65,13 +71,15 @@ def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Sam
     """The answers in the ``results.json`` files of in-process ``slloc eval`` runs."""
     stats, estimators, localized, correct, unrelated, wrong = [], [], [], [], [], []
     queries: list[str] = []
+    configs: list[str] = []
     max_m, max_deg = target
     for path in paths:
         for q in json.loads(path.read_text())["queries"]:
             queries.append(f"{path}:{q['query']}")
             pos, rot = q["position_error_m"], q["rotation_error_deg"]
             stats.append({k: float(v) for k, v in q.get("stats", {}).items()})
-            estimators.append(q["config"].split("/")[-1])
+            configs.append(q["config"].split("/")[-1])
+            estimators.append(q.get("estimator_used") or configs[-1])
             localized.append(bool(q["localized"]))
             correct.append(
                 bool(q["localized"])
@@ -90,6 +98,7 @@ def load_samples(paths: list[Path], target: tuple[float, float] = TARGET) -> Sam
         np.array(unrelated, bool),
         np.array(wrong, bool),
         queries,
+        configs,
     )
 
 
@@ -153,11 +162,15 @@ def subset(samples: Samples, keep: BoolArray) -> Samples:
         samples.unrelated[index],
         samples.wrong_intrinsics[index],
         [samples.queries[i] for i in index],
+        [samples.configs[i] for i in index],
     )
 
 
 def cross_validated_l2(
-    samples: Samples, folds: int = 5, grid: tuple[float, ...] = L2_GRID
+    samples: Samples,
+    folds: int = 5,
+    grid: tuple[float, ...] = L2_GRID,
+    features: Sequence[str] = tuple(FEATURES),
 ) -> float:
     """The penalty of ``grid`` with the best mean log-likelihood of the localized answers of
     held-in folds; folds by query (a hash of its name, so the choice is reproducible)."""
@@ -169,7 +182,7 @@ def cross_validated_l2(
             train, test = subset(samples, fold != k), subset(samples, fold == k)
             if not test.localized.any() or train.correct.all() or not train.correct.any():
                 continue
-            model = fit_model(train, l2)
+            model = fit_model(train, l2, features=features)
             p = np.array(
                 [
                     model.confidence(s, e)
@@ -185,9 +198,15 @@ def cross_validated_l2(
     return best
 
 
-def fit_model(samples: Samples, l2: float = 1.0, description: str = "") -> ConfidenceModel:
-    """The confidence model of the localized answers of ``samples``."""
-    names = tuple(FEATURES)
+def fit_model(
+    samples: Samples,
+    l2: float = 1.0,
+    description: str = "",
+    features: Sequence[str] = tuple(FEATURES),
+) -> ConfidenceModel:
+    """The confidence model of the localized answers of ``samples`` over ``features`` (keys
+    of ``FEATURES``)."""
+    names = tuple(features)
     chosen = np.flatnonzero(samples.localized)
     raw = np.stack([feature_vector(samples.stats[i], names) for i in chosen])
     mean, scale = raw.mean(axis=0), raw.std(axis=0)
@@ -215,11 +234,29 @@ def fit_model(samples: Samples, l2: float = 1.0, description: str = "") -> Confi
     )
 
 
+def answered_confidence(model: ConfidenceModel, stats: dict[str, float], estimator: str) -> float:
+    """The confidence the service answers for a localized result with ``stats``: the model's,
+    capped by the pose uncertainty in the stats (``capped_confidence``, default options; the
+    focal length counts as estimated when the stats have ``focal_px``)."""
+    uncertainty = None
+    if "position_sigma_m" in stats and "rotation_sigma_deg" in stats:
+        uncertainty = PoseUncertainty(
+            stats["position_sigma_m"],
+            stats["rotation_sigma_deg"],
+            int(stats.get("uncertainty_points", 0)),
+            stats.get("uncertainty_sigma_px", 0.0),
+        )
+    return capped_confidence(
+        model.confidence(stats, estimator), uncertainty, UncertaintyOptions(), "focal_px" in stats
+    )
+
+
 def curve_with(model: ConfidenceModel, samples: Samples) -> ConfidenceCurve:
-    """The precision/recall curve of ``samples`` under ``model``'s confidence."""
+    """The precision/recall curve of ``samples`` under the confidence the service would answer
+    with ``model`` (``answered_confidence``)."""
     confidence = np.array(
         [
-            model.confidence(s, e) if ok else 0.0
+            answered_confidence(model, s, e) if ok else 0.0
             for s, e, ok in zip(samples.stats, samples.estimators, samples.localized, strict=True)
         ]
     )
@@ -253,6 +290,16 @@ def calibrate_main(args: argparse.Namespace) -> int:
     except (OSError, ValueError, KeyError) as exc:
         print(f"slloc calibrate: {exc}", file=sys.stderr)
         return 2
+    features = tuple(FEATURES)
+    if args.features:
+        features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+        unknown = [f for f in features if f not in FEATURES]
+        if unknown or not features:
+            print(
+                f"slloc calibrate: unknown features {unknown}; known: {', '.join(FEATURES)}",
+                file=sys.stderr,
+            )
+            return 2
     if samples.correct.all() or not samples.correct[samples.localized].any():
         print("slloc calibrate: the fit needs correct and wrong answers", file=sys.stderr)
         return 2
@@ -261,9 +308,9 @@ def calibrate_main(args: argparse.Namespace) -> int:
         f"{int(samples.localized.sum())} localized answers"
         + (f" ({args.note})" if args.note else "")
     )
-    l2 = cross_validated_l2(samples) if args.l2 is None else args.l2
+    l2 = cross_validated_l2(samples, features=features) if args.l2 is None else args.l2
     print(f"L2 penalty {l2:g}" + (" (cross-validated on the fit runs)" if args.l2 is None else ""))
-    model = fit_model(samples, l2, f"{description}, L2 penalty {l2:g}")
+    model = fit_model(samples, l2, f"{description}, L2 penalty {l2:g}", features)
     print(json.dumps(model.to_json(), indent=1))
     _report("fit", model, samples)
     if held_out is not None:
@@ -271,6 +318,12 @@ def calibrate_main(args: argparse.Namespace) -> int:
         if held_out.wrong_intrinsics.any():
             right = subset(held_out, ~held_out.wrong_intrinsics)
             _report("held out, right intrinsics", model, right)
+        auto = np.array([c == "auto" for c in held_out.configs], bool)
+        if auto.any() and not auto.all():
+            _report("held out, auto's answers", model, subset(held_out, auto))
+            if held_out.wrong_intrinsics[auto].any():
+                auto_right = subset(held_out, auto & ~held_out.wrong_intrinsics)
+                _report("held out, auto's answers, right intrinsics", model, auto_right)
     if args.out is not None:
         model.save(args.out)
         print(f"wrote {args.out}")
