@@ -79,13 +79,14 @@ def localize(
             f"{len(image)} image parts: several frames need params.frames (one session pose "
             "per image)"
         )
-    images = read_uploads(image, settings.max_upload_bytes, "image")
-    depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    request, registration = geo.with_gps_hint(
-        sessions, map_id, body.to_request(), body.gps.to_fix() if body.gps else None
-    )
-    if frames is not None:
-        with admission.admit():
+    # admitted before the uploads are read: only admitted requests hold them in memory
+    with admission.admit():
+        images = read_uploads(image, settings.max_upload_bytes, "image")
+        depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
+        request, registration = geo.with_gps_hint(
+            sessions, map_id, body.to_request(), body.gps.to_fix() if body.gps else None
+        )
+        if frames is not None:
             session_result = localize_with_session(
                 sessions,
                 localizer,
@@ -102,6 +103,23 @@ def localize(
                 slots=admission.slots,
                 trainer=trainer,
             )
+        else:
+            result = localize_image(
+                sessions,
+                localizer,
+                map_id,
+                request,
+                images[0],
+                depth_bytes,
+                max_top_k=settings.max_top_k,
+                max_time_budget_s=settings.localize_time_budget_s,
+                cache=cache,
+                vlad=settings.global_model is None,
+                slots=admission.slots,
+                trainer=trainer,
+                features_cache=features_cache,
+            )
+    if frames is not None:
         joint = session_result.result
         metrics.observe_localization(joint.estimator, joint.reason, joint.timings_ms)
         return LocalizeResult.from_session_result(
@@ -109,22 +127,6 @@ def localize(
             body.return_inliers,
             geo.geopose_answer(registration, session_result.result),
             body.output,
-        )
-    with admission.admit():
-        result = localize_image(
-            sessions,
-            localizer,
-            map_id,
-            request,
-            images[0],
-            depth_bytes,
-            max_top_k=settings.max_top_k,
-            max_time_budget_s=settings.localize_time_budget_s,
-            cache=cache,
-            vlad=settings.global_model is None,
-            slots=admission.slots,
-            trainer=trainer,
-            features_cache=features_cache,
         )
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(
