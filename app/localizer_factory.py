@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from app.settings import Settings
 from services.components import build_localizer as build_engine_localizer
+from services.components import resolve_features
+from services.features.configs import get_feature_config
 from services.pipeline import Localizer
+from services.runtime.manifest import read_manifest
+from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
 from services.runtime.onnx import OnnxOptions
 from services.runtime.threads import ThreadPlan, plan_threads
 
@@ -41,3 +45,39 @@ def build_localizer(settings: Settings) -> Localizer:
         onnx_options(settings),
         settings.global_model,
     )
+
+
+def model_file_bytes(settings: Settings) -> int:
+    """The sizes of the ONNX files the settings' feature configuration (and global
+    descriptor model) load; models not built count 0 (the server then refuses to start or
+    falls back to weight-free features)."""
+    config = get_feature_config(resolve_features(settings.models_dir, settings.features))
+    entries = read_manifest(settings.models_dir)
+    paths = [settings.models_dir / entries[m].file for m in config.models if m in entries]
+    if settings.global_model is not None:
+        paths.append(settings.global_model)
+    return sum(path.stat().st_size for path in paths if path.is_file())
+
+
+def memory_inputs(settings: Settings, plan: ThreadPlan | None = None) -> MemoryInputs:
+    """What the memory bound depends on, from the settings (``plan``: the thread plan, by
+    default the settings')."""
+    plan = plan or thread_plan(settings)
+    return MemoryInputs(
+        model_file_bytes=model_file_bytes(settings),
+        workers=plan.workers,
+        queued=settings.max_queued,
+        connections=settings.limit_concurrency,
+        max_upload_bytes=settings.max_upload_bytes,
+        max_image_pixels=settings.max_image_pixels,
+        max_side=settings.max_side,
+        max_keypoints=settings.max_keypoints,
+        max_top_k=settings.max_top_k,
+        reference_cache_mib=settings.reference_cache_mib,
+    )
+
+
+def service_memory_bound(settings: Settings, plan: ThreadPlan | None = None) -> MemoryBound:
+    """The bound on the server's resident memory that the settings give
+    (``services.runtime.memory``), retrieval indexes not included."""
+    return memory_bound(memory_inputs(settings, plan))

@@ -16,7 +16,7 @@ from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
-from app.localizer_factory import build_localizer, thread_plan
+from app.localizer_factory import build_localizer, service_memory_bound, thread_plan
 from app.logs import install_request_id_records
 from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
@@ -60,6 +60,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.admission = Admission(plan.workers, settings.max_queued)
+        app.state.memory_bound = bound = service_memory_bound(settings, plan)
+        logger.info(
+            "memory bound: %s; plus the retrieval indexes, which grow with the references "
+            "(README, Memory)",
+            bound.describe(),
+        )
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:

@@ -117,7 +117,11 @@ class Settings(BaseSettings):
         4096, gt=0, description="Largest keypoint budget a map's feature options may ask for"
     )
     max_side: int = Field(
-        2048, ge=64, description="Largest image side (px) a map's feature options may ask for"
+        1024,
+        ge=64,
+        description="Largest image side (px) a map's feature options may ask for; one aliked "
+        "extraction at S px takes ~2.9 GiB per megapixel of S² (3 GiB at 1024, 11.3 GiB at "
+        "2048: README, Memory)",
     )
     localize_time_budget_s: float = Field(
         10.0,

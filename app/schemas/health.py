@@ -13,8 +13,9 @@ class ModelsOut(BaseModel):
 
 
 class RuntimeOut(BaseModel):
-    """The thread policy and the reference-feature cache (``SLLOC_LOCALIZE_WORKERS``,
-    ``SLLOC_ONNX_THREADS``, ``SLLOC_CPU_CORES``, ``SLLOC_REFERENCE_CACHE_MIB``)."""
+    """The thread policy, the reference-feature cache and the memory bound
+    (``SLLOC_LOCALIZE_WORKERS``, ``SLLOC_ONNX_THREADS``, ``SLLOC_CPU_CORES``,
+    ``SLLOC_REFERENCE_CACHE_MIB``; the bound: ``services/runtime/memory.py``)."""
 
     cores: int = Field(description="Cores the thread policy divides")
     localize_workers: int = Field(description="Localize and add requests computing at once")
@@ -23,6 +24,15 @@ class RuntimeOut(BaseModel):
     )
     reference_cache_mib: float = Field(description="Bound of the reference-feature cache")
     reference_cache_used_mib: float = Field(description="Decoded features it holds now")
+    memory_bound_mib: float = Field(
+        description="What the server's resident memory can reach with these settings: the "
+        "sum of memory_terms_mib (README, Memory)"
+    )
+    memory_terms_mib: dict[str, float] = Field(
+        description="The bound's terms, MiB: runtime, models, reference_cache, extraction, "
+        "decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the "
+        "retrieval indexes held now; they grow with the references)"
+    )
 
 
 class HealthOut(BaseModel):

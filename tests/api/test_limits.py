@@ -32,7 +32,7 @@ def _localize(
     ("features", "fragment"),
     [
         ({"max_keypoints": 4097}, "features.max_keypoints may be at most 4096"),
-        ({"max_side": 2049}, "features.max_side may be at most 2048"),
+        ({"max_side": 1025}, "features.max_side may be at most 1024"),
     ],
 )
 def test_feature_options_above_the_settings_are_422(
@@ -43,7 +43,7 @@ def test_feature_options_above_the_settings_are_422(
     assert response.headers["content-type"] == PROBLEM
     assert fragment in response.json()["detail"]
     assert client.get("/v1/maps").json()["total"] == 0
-    at_limit = {"max_keypoints": 4096, "max_side": 2048}
+    at_limit = {"max_keypoints": 4096, "max_side": 1024}
     assert client.post("/v1/maps", json={"name": "ok", "features": at_limit}).status_code == 201
 
 
@@ -114,6 +114,22 @@ def test_full_queue_refuses_localize_and_add_with_503(
         assert one_worker.get("/v1/health").status_code == 200
     assert upload_view(one_worker, map_id, reference_views[0]).status_code == 201  # type: ignore[attr-defined]
     assert _localize(one_worker, map_id, query_views[0], {}).status_code == 200  # type: ignore[attr-defined]
+
+
+def test_a_refused_request_is_not_read(
+    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+) -> None:
+    """Admission comes before the uploads are read into memory (the memory bound counts
+    the uploads of admitted requests only): over its upload limit but busy, a request is
+    503, not 413."""
+    small = {"localize_workers": 1, "max_queued": 0, "max_upload_bytes": 1000}
+    with make_client(database_url, localizer, **small) as c:
+        map_id = create_map(c)
+        admission: Admission = c.app.state.admission  # type: ignore[attr-defined]
+        with admission.admit():
+            _assert_busy(upload_view(c, map_id, reference_views[0]))
+        too_large = upload_view(c, map_id, reference_views[0])
+        assert too_large.status_code == 413, too_large.text  # type: ignore[attr-defined]
 
 
 def test_queued_requests_are_admitted_up_to_the_bound() -> None:

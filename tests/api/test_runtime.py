@@ -12,6 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 import db.store
+from app.localizer_factory import service_memory_bound
 from app.usecases.images import delete_image
 from app.usecases.localize import reference_store
 from services.pipeline import Localizer
@@ -155,3 +156,38 @@ def test_the_cache_bound_holds_while_localizing(
             assert response.status_code == 200, response.text
             stats = cache.stats()
             assert 0 < stats.bytes <= 2**20 and stats.entries >= 1
+
+
+def test_health_reports_the_memory_bound(tmp_path: Path, localizer: Localizer) -> None:
+    """The bound's terms in /v1/health are the settings' (services/runtime/memory.py), their
+    sum is the bound, and a smaller setting gives a smaller bound."""
+    url = f"sqlite:///{tmp_path / 'slloc.db'}"
+    bounds = []
+    for max_side in (1024, 512):
+        settings = {"cpu_cores": 2, "localize_workers": 2, "max_side": max_side}
+        with make_client(url, localizer, **settings) as c:
+            runtime = c.get("/v1/health").json()["runtime"]
+            expected = service_memory_bound(c.app.state.settings)  # type: ignore[attr-defined]
+        terms = runtime["memory_terms_mib"]
+        assert terms.pop("retrieval_index") == 0  # nothing localized yet
+        assert terms == pytest.approx(expected.terms)
+        assert runtime["memory_bound_mib"] == pytest.approx(expected.total_mib, abs=0.1)
+        bounds.append(runtime["memory_bound_mib"])
+    assert bounds[1] < bounds[0]
+
+
+def test_health_counts_the_retrieval_indexes(
+    client: TestClient, small_map: tuple[str, list[str]], query_views: list[SyntheticView]
+) -> None:
+    map_id, _ = small_map
+    response = client.post(
+        f"/v1/maps/{map_id}/localize",
+        files={"image": ("q.png", encode_png(query_views[0].image), "image/png")},
+    )
+    assert response.status_code == 200, response.text
+    runtime = client.get("/v1/health").json()["runtime"]
+    index_mib = runtime["memory_terms_mib"]["retrieval_index"]
+    assert index_mib > 0
+    assert runtime["memory_bound_mib"] == pytest.approx(
+        sum(runtime["memory_terms_mib"].values()), abs=0.1
+    )

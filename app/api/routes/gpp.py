@@ -47,7 +47,6 @@ def geopose(
     an image that cannot be localized is 404 ``not-localized`` with the reason, since the
     protocol's answer has no way to say it."""
     reading = body.sensor_readings.camera_readings[0]
-    image_bytes = gpp.image_bytes(reading, settings.max_image_pixels)
     request, gps = gpp.localize_request(body)
     registration = geo.map_registration(sessions, map_id)
     if registration is None:
@@ -60,7 +59,8 @@ def geopose(
         )
     if gps is not None:
         request = replace(request, prior=geo.gps_prior(registration, gps))
-    with admission.admit():
+    with admission.admit():  # before the image is decoded from base64: bounded copies
+        image_bytes = gpp.image_bytes(reading, settings.max_image_pixels)
         result = localize_image(context, map_id, request, image_bytes)
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     answer = geo.geopose_answer(registration, result)

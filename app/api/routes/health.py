@@ -8,11 +8,14 @@ from anyio import to_thread
 from fastapi import APIRouter, Request
 from sqlalchemy import text
 from sqlalchemy.orm import Session, sessionmaker
+from starlette.datastructures import State
 
 from app.api.deps import LocalizerDep, SessionsDep
 from app.schemas.health import HealthOut, ModelsOut, RuntimeOut
 from services.estimators.registry import estimator_names
 from services.reference_cache import ReferenceFeatureCache
+from services.retrieval.cache import RetrievalIndexCache
+from services.runtime.memory import MemoryBound
 from services.runtime.threads import ThreadPlan
 
 router = APIRouter(prefix="/v1", tags=["health"])
@@ -32,11 +35,15 @@ async def health(request: Request, sessions: SessionsDep, localizer: LocalizerDe
             global_descriptor=localizer.global_descriptor.name,
             estimators=estimator_names(),
         ),
-        runtime=_runtime(request.app.state.thread_plan, request.app.state.reference_cache),
+        runtime=_runtime(request.app.state),
     )
 
 
-def _runtime(plan: ThreadPlan, cache: ReferenceFeatureCache) -> RuntimeOut:
+def _runtime(state: State) -> RuntimeOut:
+    plan: ThreadPlan = state.thread_plan
+    cache: ReferenceFeatureCache = state.reference_cache
+    retrieval: RetrievalIndexCache = state.retrieval_cache
+    bound: MemoryBound = state.memory_bound.with_retrieval_index(retrieval.size().nbytes)
     stats = cache.stats()
     return RuntimeOut(
         cores=plan.cores,
@@ -44,6 +51,8 @@ def _runtime(plan: ThreadPlan, cache: ReferenceFeatureCache) -> RuntimeOut:
         threads_per_worker=plan.threads_per_worker,
         reference_cache_mib=stats.max_bytes / 2**20,
         reference_cache_used_mib=round(stats.bytes / 2**20, 3),
+        memory_bound_mib=round(bound.total_mib, 1),
+        memory_terms_mib={**bound.terms, "retrieval_index": round(bound.retrieval_index_mib, 3)},
     )
 
 

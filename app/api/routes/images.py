@@ -58,9 +58,10 @@ def add_image(
     ] = None,
 ) -> ImageOut:
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
-    image_bytes = read_upload(image, settings.max_upload_bytes, "image")
-    depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
+    # admitted before the uploads are read: only admitted requests hold them in memory
     with admission.admit():
+        image_bytes = read_upload(image, settings.max_upload_bytes, "image")
+        depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
         stored = images.add_reference_image(
             sessions,
             localizer,

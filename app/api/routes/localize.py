@@ -73,13 +73,14 @@ def localize(
             f"{len(image)} image parts: several frames need params.frames (one session pose "
             "per image)"
         )
-    images = read_uploads(image, settings.max_upload_bytes, "image")
-    depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
-    request, registration = geo.with_gps_hint(
-        sessions, map_id, body.to_request(), body.gps.to_fix() if body.gps else None
-    )
-    if frames is not None:
-        with admission.admit():
+    # admitted before the uploads are read: only admitted requests hold them in memory
+    with admission.admit():
+        images = read_uploads(image, settings.max_upload_bytes, "image")
+        depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
+        request, registration = geo.with_gps_hint(
+            sessions, map_id, body.to_request(), body.gps.to_fix() if body.gps else None
+        )
+        if frames is not None:
             session_result = localize_with_session(
                 context,
                 map_id,
@@ -89,6 +90,9 @@ def localize(
                 depth_bytes,
                 max_frames=settings.max_frames,
             )
+        else:
+            result = localize_image(context, map_id, request, images[0], depth_bytes)
+    if frames is not None:
         joint = session_result.result
         metrics.observe_localization(joint.estimator, joint.reason, joint.timings_ms)
         return LocalizeResult.from_session_result(
@@ -97,8 +101,6 @@ def localize(
             geo.geopose_answer(registration, session_result.result),
             body.output,
         )
-    with admission.admit():
-        result = localize_image(context, map_id, request, images[0], depth_bytes)
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     return LocalizeResult.from_result(
         result, body.return_inliers, geo.geopose_answer(registration, result), body.output
