@@ -5,6 +5,7 @@ background while adds and deletes go on."""
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -35,6 +36,12 @@ def scene() -> RetrievalIndex:
     return RetrievalIndex([f"r{i}" for i in range(20_000)], vectors, centers)
 
 
+@pytest.fixture(scope="module")
+def approximate(scene: RetrievalIndex) -> RetrievalIndex:
+    """``scene`` searched through a faiss index (1000 references and up)."""
+    return replace(scene, ann=AnnView.build(scene.descriptors, AnnOptions(1000, nprobe=16)))
+
+
 def recall_at_10(index: RetrievalIndex, queries: np.ndarray, prior: PositionPrior | None) -> float:
     hits = 0
     for query in queries:
@@ -44,14 +51,9 @@ def recall_at_10(index: RetrievalIndex, queries: np.ndarray, prior: PositionPrio
     return hits / (10 * len(queries))
 
 
-def test_recall_against_exact_search(scene: RetrievalIndex) -> None:
+def test_recall_against_exact_search(approximate: RetrievalIndex) -> None:
     rng = np.random.default_rng(1)
-    index = RetrievalIndex(
-        scene.image_ids,
-        scene.descriptors,
-        scene.centers,
-        ann=AnnView.build(scene.descriptors, AnnOptions(1000, nprobe=16)),
-    )
+    index = approximate
     queries = queries_of(rng, 50)
     assert recall_at_10(index, queries, None) >= 0.95
     rows, scores = search_index(index, queries[0], 10)
@@ -60,21 +62,16 @@ def test_recall_against_exact_search(scene: RetrievalIndex) -> None:
     np.testing.assert_allclose(scores, exact_scores, rtol=1e-6)  # rescored exactly
 
 
-def test_prior_is_respected(scene: RetrievalIndex) -> None:
+def test_prior_is_respected(approximate: RetrievalIndex) -> None:
     """A prior holding more references than ``min_references`` goes through faiss with an id
     filter; every answer lies inside it."""
     rng = np.random.default_rng(2)
-    index = RetrievalIndex(
-        scene.image_ids,
-        scene.descriptors,
-        scene.centers,
-        ann=AnnView.build(scene.descriptors, AnnOptions(1000, nprobe=16)),
-    )
+    index = approximate
     prior = PositionPrior(np.zeros(3), 60.0, up=np.array([0.0, 0.0, 1.0]))
     inside = prior.distances(index.centers) <= prior.radius
     assert 1000 < inside.sum() < 20_000
     outside_rows = np.flatnonzero(~inside)
-    queries = np.concatenate([queries_of(rng, 20), scene.descriptors[outside_rows[:10]]])
+    queries = np.concatenate([queries_of(rng, 20), index.descriptors[outside_rows[:10]]])
     for query in queries:
         rows, _ = search_index(index, query, 10, prior)
         assert rows.size == 10 and inside[rows].all()
