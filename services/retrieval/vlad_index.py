@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
-from services.retrieval.policy import NUM_CENTERS, TRAINING_IMAGES, training_due
+from services.retrieval.policy import TRAINING_IMAGES, num_centers, training_due
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode, train_vocabulary
 from services.types import Float32Array
@@ -99,12 +99,13 @@ class VladIndexer:
         picked = [ids[i] for i in np.sort(rng.permutation(len(ids))[:TRAINING_IMAGES])]
         stored = self.store.descriptors(picked) if picked else {}
         descriptors = [stored[i] for i in picked if i in stored]  # in insertion order
-        if sum(d.shape[0] for d in descriptors) < NUM_CENTERS:
+        centers = num_centers(descriptors[0].shape[1]) if descriptors else 1
+        if sum(d.shape[0] for d in descriptors) < centers:
             raise VocabularyError(
                 f"map {self.store.map_id} has too few {self.store.feature_model} descriptors to "
                 f"train a vocabulary ({len(ids)} reference images)"
             )
-        vocabulary = train_vocabulary(descriptors, num_centers=NUM_CENTERS)
+        vocabulary = train_vocabulary(descriptors, num_centers=centers)
 
         def encoder(d: Float32Array) -> Float32Array:
             return encode(d, vocabulary)
@@ -121,7 +122,7 @@ class VladIndexer:
             self.store.map_id,
             state.version,
             self.store.feature_model,
-            NUM_CENTERS,
+            centers,
             len(descriptors),
             len(ids),
             seconds,
