@@ -35,9 +35,8 @@ BUILDS = {
     "disk": ("disk-1024-640", "lightglue-disk-top3+mnn-ratio-0.95"),
     "disk-fast": ("disk-1024-640", "mnn-ratio-0.95"),
     "sift": ("sift-rootsift-2048-1024-c0.02", "mnn-ratio-0.8"),
-    "xfeat": ("xfeat-1024-640", "lighterglue-xfeat-512kp-top2+mnn-ratio-0.95"),
+    "xfeat": ("xfeat-2048-640", "mnn-ratio-0.95"),
     "xfeat-full": ("xfeat-1024-640", "lighterglue-xfeat-512kp-all+mnn-ratio-0.95"),
-    "xfeat-nn": ("xfeat-1024-640", "mnn-ratio-0.95"),
 }
 
 
