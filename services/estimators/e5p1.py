@@ -5,7 +5,7 @@ query is a single pinhole camera. PoseLib's 5+1 solver in LO-RANSAC (with Sampso
 refinement) gives the query's ``cam_from_world`` directly, metric scale from the references'
 known baselines.
 
-Speed: LO-RANSAC's cost is its iterations (at least ``min_iterations``, 1000 by default) times the
+Speed: LO-RANSAC's cost is its iterations (at least ``min_iterations``, 100 by default) times the
 correspondences each hypothesis is scored on. The hypotheses are therefore scored on a seeded random
 sample of at most ``RANSAC_SAMPLE_PER_PAIR`` matches per reference; the winning pose is then
 re-scored and refined on every match (generalized Sampson refinement,

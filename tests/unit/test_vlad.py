@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from services.retrieval.policy import num_centers
 from services.retrieval.vlad import encode, kmeans, raw_vlad, train_vocabulary
 
 
@@ -95,3 +96,9 @@ class TestTrainingDeterminism:
         a = train_vocabulary(images, num_centers=8, dimension=None, seed=7)
         b = train_vocabulary(images, num_centers=8, dimension=None, seed=8)
         assert not np.array_equal(a.centers, b.centers)
+
+
+def test_vocabulary_size_follows_the_descriptor_length() -> None:
+    # 128-D descriptors (SIFT, ALIKED, DISK) keep 1024-D VLAD; XFeat's 64-D ones get 64 centres
+    assert num_centers(128) * 128 == 1024
+    assert num_centers(64) * 64 == 4096

@@ -5,9 +5,10 @@
    queries, and the index memory.
 2. Recall@k (k = 1, 5, 10) on redkitchen's suggested split (references frames 0…499 every
    5th, queries 500…999 every 10th) of the thumbnail (small maps) and of VLAD over the map's
-   own vocabulary of SIFT descriptors (``db/vocabulary.py``: K = 8 in the service; 16 for
-   comparison): a query counts when a top-k reference lies within 0.5 m and 30° of it, over
-   the queries that have such a reference at all.
+   own vocabulary of SIFT descriptors (K = 8 in the service; 16 for comparison) and, when
+   ``xfeat`` is built in ``--models``, of XFeat's 2048 64-D descriptors (K = 8 … 64; the
+   service uses ``policy.num_centers``): a query counts when a top-k reference lies within
+   0.5 m and 30° of it, over the queries that have such a reference at all.
 
 Run from the repository root: ``.venv/bin/python -m tools.benchmarks.retrieval [--dataset DIR]``
 """
@@ -23,7 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.components import ModelsMissingError, ModelStore, build_features
 from services.features.base import LocalFeatures
+from services.features.configs import get_feature_config
 from services.features.sift import SiftExtractor
 from services.geometry.rigid import rotation_error_deg
 from services.retrieval.policy import NUM_CENTERS
@@ -64,7 +67,7 @@ def _load(path: Path) -> UInt8Array:
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
-def recall(dataset: Path) -> None:
+def recall(dataset: Path, models: Path) -> None:
     images = redkitchen_dataset(dataset).images
     references = images[0:500:5]
     queries = images[500:1000:10]
@@ -75,11 +78,18 @@ def recall(dataset: Path) -> None:
     describers: dict[str, Callable[[str], Float32Array]] = {
         thumbnail.name: lambda name: thumbnail.compute(rgb[name], features[name])
     }
-    for centers in (NUM_CENTERS, 16):
-        vocabulary = train_vocabulary(
-            [features[r.name].descriptors for r in references], num_centers=centers
-        )
-        describers[f"vlad-sift-k{centers}"] = partial(_vlad, features, vocabulary)
+    sweeps = [("sift", features, (NUM_CENTERS, 16))]
+    try:
+        xfeat, _ = build_features(get_feature_config("xfeat"), ModelStore(models))
+        sweeps.append(("xfeat", {n: xfeat.extract(i) for n, i in rgb.items()}, (8, 16, 32, 64)))
+    except ModelsMissingError as exc:
+        print(f"xfeat left out: {exc}")
+    for label, described, centers_tried in sweeps:
+        for centers in centers_tried:
+            vocabulary = train_vocabulary(
+                [described[r.name].descriptors for r in references], num_centers=centers
+            )
+            describers[f"vlad-{label}-k{centers}"] = partial(_vlad, described, vocabulary)
 
     near = [
         np.array(
@@ -121,9 +131,10 @@ def main() -> None:
     parser.add_argument(
         "--dataset", type=Path, default=root / ".." / "shared" / "datasets" / "redkitchen"
     )
+    parser.add_argument("--models", type=Path, default=root / "models")
     args = parser.parse_args()
     search_times(np.random.default_rng(0))
-    recall(args.dataset)
+    recall(args.dataset, args.models)
 
 
 if __name__ == "__main__":
