@@ -77,7 +77,7 @@ def build_features(config: FeatureConfig, models: ModelStore) -> tuple[FeatureEx
     Raises:
         ModelsMissingError: a model ``config`` needs is not built.
     """
-    nearest = NearestNeighborMatcher(ratio=config.ratio)
+    nearest = NearestNeighborMatcher(config.ratio, config.min_similarity)
     if config.extractor == SIFT:
         return SiftExtractor(SiftOptions(config.max_keypoints, config.max_side)), nearest
     entry = models.entry(config.extractor)

@@ -20,7 +20,8 @@ def _features(config: FeatureConfig) -> str:
 
 
 def _matching(config: FeatureConfig) -> str:
-    nearest = f"mutual nearest neighbours (ratio {config.ratio:g})"
+    floor = "" if config.min_similarity is None else f", cosine > {config.min_similarity:g}"
+    nearest = f"mutual nearest neighbours (ratio {config.ratio:g}{floor})"
     if config.lightglue is None:
         return nearest
     lightglue = f"`{config.lightglue}`"

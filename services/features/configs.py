@@ -16,8 +16,11 @@ AUTO = "auto"  # the preferred configuration when its models are built, else the
 SIFT = "sift"  # the extractor that needs no exported model
 DISK_KEYPOINTS = 1024
 # XFeat's exported budget: on redkitchen, 2048 keypoints with nearest neighbours localize more
-# queries than 1024 with or without LighterGlue (56 / 78 / 52 % against 52 / 76 / 46 %)
+# queries than 1024 with or without LighterGlue (56 / 78 / 52 % against 52 / 76 / 46 %, e5p1)
 XFEAT_KEYPOINTS = 2048
+# XFeat's own matcher's floor on the cosine similarity: with 2048 keypoints and the ratio test
+# alone, images of another scene kept ~1700 matches a query and some localized
+XFEAT_MIN_SIMILARITY = 0.82
 
 
 @dataclass(frozen=True)
@@ -29,7 +32,8 @@ class FeatureConfig:
     the retrieved pairs with the most nearest-neighbour matches, this many (None: every pair;
     the others keep their nearest-neighbour matches). lightglue_keypoints: each image's best
     keypoints LightGlue sees (None: all). ratio: the nearest neighbours' ratio test (LightGlue's
-    first pass included). description: one line on when to choose it.
+    first pass included). min_similarity: the nearest neighbours' least cosine similarity (None:
+    no floor). description: one line on when to choose it.
     """
 
     name: str
@@ -41,6 +45,7 @@ class FeatureConfig:
     lightglue_pairs: int | None = None
     lightglue_keypoints: int | None = None
     ratio: float = 0.95
+    min_similarity: float | None = None
 
     def __post_init__(self) -> None:
         if self.lightglue is None and (
@@ -97,6 +102,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
             "xfeat",
             "fast learned features: ~0.27 s a query, as sift; below its accuracy on redkitchen",
             max_keypoints=XFEAT_KEYPOINTS,
+            min_similarity=XFEAT_MIN_SIMILARITY,
         ),
         FeatureConfig(
             "xfeat-full",

@@ -60,6 +60,22 @@ class TestNearestNeighborMatcher:
         m = NearestNeighborMatcher(0.8).match(self._features(ref[:1]), self._features(ref_dup))
         assert len(m) == 0
 
+    def test_min_similarity_drops_distinct_but_dissimilar_pairs(self) -> None:
+        # orthogonal-ish descriptors are each other's mutual best with a clear margin, yet far
+        # apart: the ratio test keeps them, the cosine floor does not
+        rng = np.random.default_rng(1)
+        ref = rng.normal(size=(40, 64))
+        near = ref[:20] + 0.05 * rng.normal(size=(20, 64))
+        far = ref[20:] + 1.2 * rng.normal(size=(20, 64))
+        query = self._features(np.vstack([near, far]))
+        loose = NearestNeighborMatcher(0.95).match(query, self._features(ref))
+        floored = NearestNeighborMatcher(0.95, 0.82).match(query, self._features(ref))
+        assert (loose[:, 0] >= 20).sum() > 0  # some far pairs pass the ratio test alone
+        assert set(floored[:, 0]) == set(range(20))
+        assert np.array_equal(floored[:, 1], floored[:, 0])
+        with pytest.raises(ValueError, match="min_similarity"):
+            NearestNeighborMatcher(0.95, 1.0)
+
     def test_too_few_keypoints(self) -> None:
         one = self._features(np.ones((1, 4)))
         assert NearestNeighborMatcher().match(one, one).shape == (0, 2)
