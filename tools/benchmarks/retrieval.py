@@ -78,7 +78,9 @@ def recall(dataset: Path, models: Path) -> None:
     describers: dict[str, Callable[[str], Float32Array]] = {
         thumbnail.name: lambda name: thumbnail.compute(rgb[name], features[name])
     }
-    sweeps = [("sift", features, (NUM_CENTERS, 16))]
+    sweeps: list[tuple[str, dict[str, LocalFeatures], tuple[int, ...]]] = [
+        ("sift", features, (NUM_CENTERS, 16))
+    ]
     try:
         xfeat, _ = build_features(get_feature_config("xfeat"), ModelStore(models))
         sweeps.append(("xfeat", {n: xfeat.extract(i) for n, i in rgb.items()}, (8, 16, 32, 64)))
