@@ -31,6 +31,7 @@ from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.spare_workers import SpareWorkers
 from services.runtime.threads import apply_thread_plan
 
 logger = logging.getLogger(__name__)
@@ -60,6 +61,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.admission = Admission(plan.workers, settings.max_queued)
+        # a request alone matches on every worker's core: the idle slots are lent to it
+        app.state.spare_workers = SpareWorkers(app.state.admission.slots, plan.workers - 1)
         app.state.memory_bound = bound = service_memory_bound(settings, plan)
         logger.info(
             "memory bound: %s; plus the retrieval indexes, which grow with the references "
@@ -73,6 +76,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
         yield
         app.state.vocabulary_trainer.shutdown()
+        app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()
         engine.dispose()
 

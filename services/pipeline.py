@@ -40,6 +40,7 @@ from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior, search_index
 from services.retrieval.vlad import encode
+from services.runtime.spare_workers import SpareWorkers
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
 
 logger = logging.getLogger(__name__)
@@ -180,8 +181,11 @@ class Localizer:
         params: LocalizeParams,
         store: ReferenceStore,
         depth_bytes: bytes | None = None,
+        spare: SpareWorkers | None = None,
     ) -> LocalizationResult:
-        return self.localize_each(image_bytes, params, [params.estimator], store, depth_bytes)[0]
+        return self.localize_each(
+            image_bytes, params, [params.estimator], store, depth_bytes, spare
+        )[0]
 
     def localize_each(
         self,
@@ -190,6 +194,7 @@ class Localizer:
         estimators: Sequence[str],
         store: ReferenceStore,
         depth_bytes: bytes | None = None,
+        spare: SpareWorkers | None = None,
     ) -> list[LocalizationResult]:
         """Describe, retrieve and match the query once, then run each of ``estimators`` (names;
         ``params.estimator`` is not used) on the same matches: one result per estimator, as
@@ -204,7 +209,10 @@ class Localizer:
         answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times more than
         every turn estimated before (learned descriptors match a wrongly turned image 5-10x
         less, rotation-invariant SIFT about as much: estimating it again would not change the
-        answer). Past one attempt, every result has the stages summed over the attempts."""
+        answer). Past one attempt, every result has the stages summed over the attempts.
+
+        ``spare``: the idle workers the query's matching may borrow (None: it runs on the
+        calling thread alone)."""
         chosen = [get_estimator(name) for name in estimators]
         clock = _StageClock(params.time_budget_s)
         try:
@@ -217,7 +225,9 @@ class Localizer:
                 else None
             )
             clock.lap("decode")
-            matched = self._match(image, frame.turns[0], camera, query_depth, params, store, clock)
+            matched = self._match(
+                image, frame.turns[0], camera, query_depth, params, store, clock, spare
+            )
         except _OutOfTimeError:
             timings = clock.finish()
             return [_out_of_time(estimator.name, timings) for estimator in chosen]
@@ -229,7 +239,7 @@ class Localizer:
             if all(_confident(r) for r in results) or clock.deadline.expired():
                 break
             try:
-                matched = self._match(image, turn, camera, query_depth, params, store, clock)
+                matched = self._match(image, turn, camera, query_depth, params, store, clock, spare)
             except _OutOfTimeError:
                 break
             attempts += 1
@@ -263,6 +273,7 @@ class Localizer:
         params: LocalizeParams,
         store: ReferenceStore,
         clock: _StageClock,
+        spare: SpareWorkers | None,
     ) -> _MatchedQuery:
         """Extract, retrieve and match with the upload turned clockwise by ``turn`` degrees;
         keypoints go back to the upload before estimation (the pose is the upload's)."""
@@ -281,7 +292,10 @@ class Localizer:
         score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
         lap("retrieve")
         pairs = self.matcher.match_many(
-            query, [ref.features for ref in references], stop=clock.deadline.expired
+            query,
+            [ref.features for ref in references],
+            stop=clock.deadline.expired,
+            spread=spare.split if spare is not None else None,
         )
         lap("match")  # before the pairs are used: a stopped matcher returns fewer
         in_upload = features_in_upload(query, turn)

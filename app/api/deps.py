@@ -65,6 +65,7 @@ async def get_localize_context(request: Request) -> LocalizeContext:
         cache=state.retrieval_cache,
         vlad=settings.global_model is None,
         slots=state.admission.slots,
+        spare=state.spare_workers,
         trainer=state.vocabulary_trainer,
         features_cache=state.reference_cache,
     )

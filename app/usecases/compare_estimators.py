@@ -27,4 +27,6 @@ def localize_with_each(
     """
     localizer, params, store = context.map_engine(map_id, request)
     with context.slots:
-        return localizer.localize_each(image_bytes, params, estimators, store, depth_bytes)
+        return localizer.localize_each(
+            image_bytes, params, estimators, store, depth_bytes, context.spare
+        )

@@ -22,6 +22,7 @@ from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer, searchable_vocabulary
+from services.runtime.spare_workers import SpareWorkers
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,7 @@ class LocalizeContext:
         vlad: retrieve by the map's VLAD vocabulary once it has one (False: the localizer's
             global descriptor).
         slots: held while the engine runs (bounds concurrent engine work).
+        spare: the idle worker slots a request's matching may borrow (None: none lent).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
         features_cache: keeps the decoded features of references between calls.
     """
@@ -109,6 +111,7 @@ class LocalizeContext:
     cache: RetrievalIndexCache | None = None
     vlad: bool = True
     slots: AbstractContextManager[object] = field(default_factory=nullcontext)
+    spare: SpareWorkers | None = None
     trainer: BackgroundTrainer | None = None
     features_cache: ReferenceFeatureCache | None = None
 
@@ -166,7 +169,7 @@ def localize(
             "upload); the references need depth too"
         )
     with context.slots:
-        return localizer.localize(image_bytes, params, store, depth_bytes)
+        return localizer.localize(image_bytes, params, store, depth_bytes, context.spare)
 
 
 def reference_store(

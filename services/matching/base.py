@@ -6,6 +6,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol
 
 from services.features.base import LocalFeatures
+from services.runtime.spare_workers import Spread
 from services.types import IntArray
 
 
@@ -21,10 +22,12 @@ class Matcher(Protocol):
         query: LocalFeatures,
         references: Sequence[LocalFeatures],
         stop: Callable[[], bool] | None = None,
+        spread: Spread | None = None,
     ) -> list[IntArray]:
         """``match(query, r)`` for every reference, in order; backends may share work.
         ``stop`` is asked before each reference: once it answers True the rest is skipped
-        (the list may then be shorter, or hold first-pass matches only)."""
+        (the list may then be shorter, or hold first-pass matches only). ``spread``: how
+        work that is independent per reference may run on several threads."""
         ...
 
 
@@ -33,11 +36,17 @@ def match_each(
     query: LocalFeatures,
     references: Sequence[LocalFeatures],
     stop: Callable[[], bool] | None = None,
+    spread: Spread | None = None,
 ) -> list[IntArray]:
-    """``match(query, r)`` for the references in order, until ``stop`` answers True."""
-    out = []
-    for reference in references:
-        if stop is not None and stop():
-            break
-        out.append(match(query, reference))
-    return out
+    """``match(query, r)`` for the references in order, until ``stop`` answers True; through
+    ``spread`` when given."""
+
+    def run(run_references: Sequence[LocalFeatures]) -> list[IntArray]:
+        out = []
+        for reference in run_references:
+            if stop is not None and stop():
+                break
+            out.append(match(query, reference))
+        return out
+
+    return spread(run, references) if spread is not None else run(references)

@@ -20,6 +20,7 @@ import numpy as np
 from services.features.base import LocalFeatures
 from services.matching.base import match_each
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.runtime.spare_workers import Spread
 from services.types import IntArray
 
 _NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
@@ -70,13 +71,14 @@ class OnnxLightGlueMatcher:
         query: LocalFeatures,
         references: Sequence[LocalFeatures],
         stop: Callable[[], bool] | None = None,
+        spread: Spread | None = None,
     ) -> list[IntArray]:
         if self.lightglue_pairs is None:
-            return match_each(self.match, query, references, stop)
-        out = self.first_pass.match_many(query, references, stop)
+            return match_each(self.match, query, references, stop, spread)
+        out = self.first_pass.match_many(query, references, stop, spread)
         ranked = np.argsort([-len(m) for m in out], kind="stable")
-        for i in ranked[: self.lightglue_pairs]:
-            if stop is not None and stop():
-                break
-            out[i] = self.match(query, references[i])
+        best = [int(i) for i in ranked[: self.lightglue_pairs]]
+        refined = match_each(self.match, query, [references[i] for i in best], stop, spread)
+        for i, matches in zip(best, refined, strict=False):  # fewer when stopped
+            out[i] = matches
         return out

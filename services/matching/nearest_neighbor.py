@@ -8,6 +8,7 @@ import numpy as np
 
 from services.features.base import LocalFeatures
 from services.matching.base import match_each
+from services.runtime.spare_workers import Spread
 from services.types import IntArray
 
 
@@ -56,5 +57,6 @@ class NearestNeighborMatcher:
         query: LocalFeatures,
         references: Sequence[LocalFeatures],
         stop: Callable[[], bool] | None = None,
+        spread: Spread | None = None,
     ) -> list[IntArray]:
-        return match_each(self.match, query, references, stop)
+        return match_each(self.match, query, references, stop, spread)

@@ -1,0 +1,125 @@
+"""Idle worker slots lent to a request's matching: only the free ones, given back after, the
+results in order (issue #13)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+import pytest
+
+from services.features.base import LocalFeatures
+from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.runtime.spare_workers import SpareWorkers
+
+
+@pytest.fixture
+def slots() -> threading.BoundedSemaphore:
+    return threading.BoundedSemaphore(3)
+
+
+@pytest.fixture
+def spare(slots: threading.BoundedSemaphore) -> Iterator[SpareWorkers]:
+    workers = SpareWorkers(slots, most=2)
+    yield workers
+    workers.shutdown()
+
+
+def _free(slots: threading.BoundedSemaphore) -> int:
+    taken = 0
+    while slots.acquire(blocking=False):
+        taken += 1
+    for _ in range(taken):
+        slots.release()
+    return taken
+
+
+def test_borrows_only_free_slots_and_gives_them_back(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    slots.acquire()  # the request itself
+    with spare.borrow() as lent:
+        assert lent == 2
+        assert _free(slots) == 0
+    assert _free(slots) == 2
+    slots.acquire()  # a second request computing
+    with spare.borrow() as lent:
+        assert lent == 1
+    with spare.borrow() as lent, spare.borrow() as more:
+        assert (lent, more) == (1, 0)
+    assert _free(slots) == 1
+
+
+def test_slots_come_back_when_the_work_raises(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    def fails(items: Sequence[int]) -> list[int]:
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        spare.split(fails, list(range(10)))
+    assert _free(slots) == 3
+
+
+@pytest.mark.parametrize("count", [0, 1, 2, 3, 10])
+def test_split_runs_at_once_and_keeps_the_order(spare: SpareWorkers, count: int) -> None:
+    # every run waits until all have started: the split finishes only if they run at once
+    together = threading.Barrier(max(1, min(count, 3)), timeout=10)
+    threads: set[int] = set()
+
+    def square(items: Sequence[int]) -> list[int]:
+        threads.add(threading.get_ident())
+        together.wait()
+        return [i * i for i in items]
+
+    assert spare.split(square, list(range(count))) == [i * i for i in range(count)]
+    assert len(threads) == together.parties
+
+
+def test_split_ends_after_a_stopped_run(spare: SpareWorkers) -> None:
+    def second_run_stops(items: Sequence[int]) -> list[int]:
+        return list(items[:1]) if items[0] == 4 else list(items)
+
+    # runs [0..3], [4..6], [7..9]: the second stops after its first item
+    assert spare.split(second_run_stops, list(range(10))) == [0, 1, 2, 3, 4]
+
+
+def test_no_slot_free_runs_on_the_caller(slots: threading.BoundedSemaphore) -> None:
+    spare = SpareWorkers(slots, most=0)
+    caller = threading.get_ident()
+    seen: list[int] = []
+
+    def record(items: Sequence[int]) -> list[int]:
+        seen.append(threading.get_ident())
+        return list(items)
+
+    assert spare.split(record, [1, 2, 3]) == [1, 2, 3]
+    assert seen == [caller]
+    with pytest.raises(ValueError, match="at least 0"):
+        SpareWorkers(slots, most=-1)
+
+
+def test_matching_spread_equals_matching_alone(spare: SpareWorkers) -> None:
+    rng = np.random.default_rng(0)
+
+    def features(n: int) -> LocalFeatures:
+        d = rng.normal(size=(n, 64)).astype(np.float32)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        xy = rng.uniform(0, 100, size=(n, 2)).astype(np.float32)
+        return LocalFeatures(xy, d, np.ones(n, np.float32), (100, 100))
+
+    query = features(300)
+    # references share part of the query's descriptors, so each has matches of its own
+    references = []
+    for k in range(7):
+        ref = features(250)
+        ref.descriptors[: 20 * (k + 1)] = query.descriptors[k : k + 20 * (k + 1)]
+        references.append(ref)
+    matcher = NearestNeighborMatcher(0.9, min_similarity=0.9)  # random pairs: cosine < 0.6
+    alone = matcher.match_many(query, references)
+    spread = matcher.match_many(query, references, spread=spare.split)
+    assert [len(m) for m in alone] == [20 * (k + 1) for k in range(7)]
+    assert len(spread) == len(alone)
+    for a, b in zip(alone, spread, strict=True):
+        np.testing.assert_array_equal(a, b)
