@@ -38,7 +38,8 @@ from services.query_frame import (
 )
 from services.references import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
-from services.retrieval.search import PositionPrior, search_index
+from services.retrieval.search import PositionPrior
+from services.retrieval.thinning import search_thinned
 from services.retrieval.vlad import encode
 from services.runtime.spare_workers import SpareWorkers
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
@@ -287,7 +288,7 @@ class Localizer:
             if index.vocabulary is not None
             else self.global_descriptor.compute(turned, query)
         )
-        rows, scores = search_index(index, query_global, params.top_k, params.prior)
+        rows, scores = search_thinned(index, query_global, params.top_k, params.prior)
         references = store.load_references([index.image_ids[i] for i in rows])
         score_of = {index.image_ids[i]: float(s) for i, s in zip(rows, scores, strict=True)}
         lap("retrieve")

@@ -28,7 +28,7 @@ from services.pipeline import (
     _StageClock,
 )
 from services.references import ReferenceStore
-from services.retrieval.search import search_index
+from services.retrieval.thinning import search_thinned
 from services.retrieval.vlad import encode
 from services.types import BoolArray
 
@@ -195,7 +195,7 @@ def _retrieve(
             if index.vocabulary is not None
             else localizer.global_descriptor.compute(image.rgb, query)
         )
-        rows, scores = search_index(index, query_global, params.top_k, params.prior)
+        rows, scores = search_thinned(index, query_global, params.top_k, params.prior)
         out.append([(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)])
     return out
 
