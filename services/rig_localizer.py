@@ -8,6 +8,7 @@ together: one time budget, and the pixel limit on the sum of the frames' pixels.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from services.errors import ImageTooLargeError
@@ -30,6 +31,7 @@ from services.pipeline import (
 from services.references import ReferenceStore
 from services.retrieval.thinning import search_thinned
 from services.retrieval.vlad import encode
+from services.runtime.spare_workers import SpareWorkers
 from services.types import BoolArray
 
 
@@ -93,10 +95,12 @@ def localize_frames(
     frames: list[QueryFrame],
     params: LocalizeParams,
     store: ReferenceStore,
+    spare: SpareWorkers | None = None,
 ) -> SessionLocalizationResult:
     """Localize ``frames`` (two or more) jointly. ``params.estimator`` is not used: the joint
     method is ``rig_pose`` (reported as ``RIG_METHOD``). A query that cannot be localized is a
-    result with ``localized`` False and a reason.
+    result with ``localized`` False and a reason. ``spare``: the idle workers the frames'
+    extraction and matching may borrow (None: all on the calling thread).
 
     Raises:
         InvalidInputError: an image is unusable or does not fit its camera.
@@ -104,7 +108,7 @@ def localize_frames(
     """
     clock = _StageClock(params.time_budget_s)
     try:
-        return _localize_frames(localizer, frames, params, store, clock)
+        return _localize_frames(localizer, frames, params, store, clock, spare)
     except _OutOfTimeError:
         empty = LocalizationResult(
             localized=False,
@@ -143,8 +147,10 @@ def _localize_frames(
     params: LocalizeParams,
     store: ReferenceStore,
     clock: _StageClock,
+    spare: SpareWorkers | None,
 ) -> SessionLocalizationResult:
     lap = clock.lap
+    spread = spare.split if spare is not None else None
     images = decode_frames(
         [frame.image_bytes for frame in frames], localizer.max_pixels, localizer.extractor.max_side
     )
@@ -154,7 +160,11 @@ def _localize_frames(
         _check_camera_matches(camera, image)
         cameras.append(camera)
     lap("decode")
-    features = [localizer.extract_features(image) for image in images]
+
+    def extract(run: Sequence[DecodedImage]) -> list[LocalFeatures]:
+        return [localizer.extract_features(image) for image in run]
+
+    features = spread(extract, images) if spread is not None else extract(images)
     lap("extract")
     retrieved_rows = _retrieve(localizer, images, features, params, store)
     all_ids = list(dict.fromkeys(image_id for rows in retrieved_rows for image_id, _ in rows))
@@ -164,7 +174,7 @@ def _localize_frames(
     for query, camera, frame, rows in zip(features, cameras, frames, retrieved_rows, strict=True):
         kept = [(loaded[image_id], score) for image_id, score in rows if image_id in loaded]
         pairs = localizer.matcher.match_many(
-            query, [ref.features for ref, _ in kept], stop=clock.deadline.expired
+            query, [ref.features for ref, _ in kept], stop=clock.deadline.expired, spread=spread
         )
         # a stopped matcher returns fewer pairs: the references it did not reach drop out
         observations = [

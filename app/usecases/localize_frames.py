@@ -74,4 +74,4 @@ def localize_with_session(
         for image, frame in zip(images, frames, strict=True)
     ]
     with context.slots:
-        return localize_frames(localizer, query_frames, params, store)
+        return localize_frames(localizer, query_frames, params, store, context.spare)

@@ -56,6 +56,7 @@ def test_health_reports_the_thread_policy(
         assert runtime["reference_cache_mib"] == 64 and runtime["reference_cache_used_mib"] == 0
         assert cv2.getNumThreads() == expected[2]
         assert c.app.state.admission.slots._value == expected[1]  # type: ignore[attr-defined]
+        assert runtime["idle_workers_lent"] == expected[1] - 1
 
 
 @pytest.fixture

@@ -49,6 +49,7 @@ def _runtime(state: State) -> RuntimeOut:
         cores=plan.cores,
         localize_workers=plan.workers,
         threads_per_worker=plan.threads_per_worker,
+        idle_workers_lent=state.spare_workers.most,
         reference_cache_mib=stats.max_bytes / 2**20,
         reference_cache_used_mib=round(stats.bytes / 2**20, 3),
         memory_bound_mib=round(bound.total_mib, 1),
