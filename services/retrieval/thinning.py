@@ -50,7 +50,8 @@ def thin_references(
             if len(kept) == k:
                 break
     if len(kept) < k:
-        skipped = [i for i in range(len(rows)) if i not in set(kept)]
+        taken = set(kept)
+        skipped = [i for i in range(len(rows)) if i not in taken]
         kept = sorted(kept + skipped[: k - len(kept)])
     order = np.asarray(kept, np.int64)
     return rows[order], scores[order]

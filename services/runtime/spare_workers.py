@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from typing import Protocol, TypeVar
 
@@ -45,11 +45,13 @@ class SpareWorkers:
         )
 
     @contextmanager
-    def borrow(self) -> Iterator[int]:
-        """Takes the slots free now (never waits) and yields how many; gives them back after."""
+    def borrow(self, wanted: int | None = None) -> Iterator[int]:
+        """Takes the slots free now, at most ``wanted`` (None: ``most``), never waiting, and
+        yields how many; gives them back after."""
+        limit = self.most if wanted is None else min(self.most, wanted)
         taken = 0
         try:
-            while taken < self.most and self._slots.acquire(blocking=False):
+            while taken < limit and self._slots.acquire(blocking=False):
                 taken += 1
             yield taken
         finally:
@@ -62,13 +64,19 @@ class SpareWorkers:
         """``work(items)``, with ``items`` cut into contiguous runs of about equal length, one
         for the caller and one for each borrowed slot, run at once. ``work`` may return fewer
         results than it was given items (it was stopped); the list then ends after the first
-        run that did."""
-        with self.borrow() as extra:
-            runs = _cut(items, 1 + extra)
-            if len(runs) < 2 or self._pool is None:
+        run that did. The slots go back only once every run has ended, raised or not."""
+        if self._pool is None or len(items) < 2:
+            return work(items)
+        with self.borrow(len(items) - 1) as extra:
+            if not extra:
                 return work(items)
+            runs = _cut(items, 1 + extra)
             others = [self._pool.submit(work, run) for run in runs[1:]]
-            done = [work(runs[0])] + [future.result() for future in others]
+            try:
+                first = work(runs[0])
+            finally:
+                wait(others)
+            done = [first] + [future.result() for future in others]
         out: list[Result] = []
         for run, results in zip(runs, done, strict=True):
             out.extend(results)

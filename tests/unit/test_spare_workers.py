@@ -4,6 +4,7 @@ results in order (issue #13)."""
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -49,6 +50,8 @@ def test_borrows_only_free_slots_and_gives_them_back(
     with spare.borrow() as lent, spare.borrow() as more:
         assert (lent, more) == (1, 0)
     assert _free(slots) == 1
+    with spare.borrow(wanted=0) as lent:
+        assert lent == 0 and _free(slots) == 1
 
 
 def test_slots_come_back_when_the_work_raises(
@@ -60,6 +63,37 @@ def test_slots_come_back_when_the_work_raises(
     with pytest.raises(RuntimeError, match="boom"):
         spare.split(fails, list(range(10)))
     assert _free(slots) == 3
+
+
+def test_slots_come_back_only_after_every_run_ended(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    ended: list[int] = []
+
+    def caller_run_fails_fast(items: Sequence[int]) -> list[int]:
+        if items[0] == 0:
+            raise RuntimeError("boom")
+        time.sleep(0.2)
+        ended.append(items[0])
+        return list(items)
+
+    with pytest.raises(RuntimeError, match="boom"):
+        spare.split(caller_run_fails_fast, list(range(9)))
+    assert sorted(ended) == [3, 6]  # the borrowed runs finished before the slots went back
+    assert _free(slots) == 3
+
+
+def test_a_single_item_borrows_nothing(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    seen: list[int] = []
+
+    def record(items: Sequence[int]) -> list[int]:
+        seen.append(_free(slots))
+        return list(items)
+
+    assert spare.split(record, [7]) == [7]
+    assert seen == [3]
 
 
 @pytest.mark.parametrize("count", [0, 1, 2, 3, 10])
