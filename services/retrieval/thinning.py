@@ -7,9 +7,10 @@ near-copies of one view give them little of it (E5+1 then answers ``degenerate_g
 a pose off along the cluster's line of sight) and spend the matching on redundant pairs.
 
 ``thin_references`` walks more candidates than are asked for, best first, and skips one whose
-camera centre lies closer to an already kept reference than ``factor`` × the candidates' own
-spacing (the median distance from each candidate to its nearest other candidate), so the
-rule needs no unit: it scales with how densely the map was captured where the query looks.
+camera centre lies closer to an already kept reference than ``SPACING_FACTOR`` × the
+candidates' own spacing (the median distance from each candidate to its nearest other
+candidate), so the rule needs no unit: it scales with how densely the map was captured where
+the query looks.
 """
 
 from __future__ import annotations
@@ -31,18 +32,17 @@ def thin_references(
     scores: Float32Array,
     centers: FloatArray,
     k: int,
-    factor: float = SPACING_FACTOR,
 ) -> tuple[IntArray, Float32Array]:
     """The first ``k`` of ``rows`` (ranked best first, with their ``scores``) that keep the
     spacing; ``centers``: (N, 3) camera centres indexed by ``rows``. When fewer keep it, the
     skipped ones fill up the rest in rank order (the result then has min(k, len(rows))).
     """
-    if len(rows) <= k or factor <= 0:
+    if len(rows) <= k:
         return rows[:k], scores[:k]
     points = centers[rows]
     distances = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
     np.fill_diagonal(distances, np.inf)
-    spacing = factor * float(np.median(distances.min(axis=1)))
+    spacing = SPACING_FACTOR * float(np.median(distances.min(axis=1)))
     kept: list[int] = []
     for i in range(len(rows)):
         if not kept or distances[i, kept].min() >= spacing:
