@@ -15,8 +15,9 @@ from services.errors import UnknownComponentError
 AUTO = "auto"  # the preferred configuration when its models are built, else the fallback
 SIFT = "sift"  # the extractor that needs no exported model
 DISK_KEYPOINTS = 1024
-# XFeat's exported budget: on redkitchen, 2048 keypoints with nearest neighbours localize more
-# queries than 1024 with or without LighterGlue (56 / 78 / 52 % against 52 / 76 / 46 %, e5p1)
+# XFeat's budget with nearest neighbours alone (``xfeat``): on redkitchen 2048 keypoints localize
+# more queries than 1024 (56 / 78 / 52 % against 52 / 76 / 46 %, e5p1); ``xfeat-lg`` keeps 1024,
+# whose VLAD retrieves better, and lets LighterGlue match its two best pairs
 XFEAT_KEYPOINTS = 2048
 # XFeat's own matcher's floor on the cosine similarity: with 2048 keypoints and the ratio test
 # alone, images of another scene kept ~1700 matches a query and some localized
@@ -67,7 +68,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "aliked",
             "aliked-n16",
-            "the learned default: ~0.2 s a LightGlue pair on two cores",
+            "the learned default, the most accurate: ~0.2 s a LightGlue pair, ~1.8 s a query",
             lightglue="lightglue-aliked",
             lightglue_pairs=3,
             lightglue_keypoints=512,
@@ -100,9 +101,17 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "xfeat",
             "xfeat",
-            "fast learned features: ~0.27 s a query, as sift; below its accuracy on redkitchen",
+            "XFeat without LighterGlue: as fast as sift, below its accuracy on redkitchen",
             max_keypoints=XFEAT_KEYPOINTS,
             min_similarity=XFEAT_MIN_SIMILARITY,
+        ),
+        FeatureConfig(
+            "xfeat-lg",
+            "xfeat",
+            "real time: ~0.3 s a query on two cores, below aliked's accuracy on redkitchen",
+            lightglue="lighterglue-xfeat",
+            lightglue_pairs=2,
+            lightglue_keypoints=512,
         ),
         FeatureConfig(
             "xfeat-full",

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from tools import cli
+from tools.evaluation.bench import round_sizes
 
 
 def test_bench_with_one_and_two_clients(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -52,18 +53,28 @@ def test_bench_with_one_and_two_clients(tmp_path: Path, capsys: pytest.CaptureFi
 def test_bench_configurations_side_by_side_counting_refusals(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Two configurations, a server each; one worker and no queue, so that three clients get
-    503 answers, which are counted and waited out."""
+    """Two configurations, a server each, their requests in two interleaved rounds; one
+    worker and no queue, so that three clients get 503 answers, which are counted and waited
+    out."""
     monkeypatch.setenv("SLLOC_LOCALIZE_WORKERS", "1")
     monkeypatch.setenv("SLLOC_MAX_QUEUED", "0")
     out = tmp_path / "bench.json"
     args = ["bench", "--synthetic-references", "6", "--clients", "1,3", "--requests", "6"]
-    code = cli.main([*args, "--features", "sift,aliked-nn", "--out", str(out)])
+    code = cli.main([*args, "--features", "sift,aliked-nn", "--rounds", "2", "--out", str(out)])
     assert code == 0
-    table = capsys.readouterr().out
+    captured = capsys.readouterr()
+    table = captured.out
+    rounds = [line.split(":")[0] for line in captured.err.splitlines() if ", round " in line]
+    assert rounds == [
+        f"{features}, {clients} client(s), round {r}/2"
+        for clients in (1, 3)
+        for r, order in ((1, ("sift", "aliked-nn")), (2, ("aliked-nn", "sift")))
+        for features in order
+    ]
     assert "## sift" in table and "## aliked-nn" in table
     assert "| features | clients | p50 ms | p90 ms | throughput (req/s) | refused (503)" in table
     result = json.loads(out.read_text())
+    assert result["rounds"] == 2
     by_name = {c["features"]: c for c in result["configurations"]}
     assert list(by_name) == ["sift", "aliked-nn"]
     for configuration in by_name.values():
@@ -75,6 +86,16 @@ def test_bench_configurations_side_by_side_counting_refusals(
     ratio = by_name["aliked-nn"]["levels"][0]["latency_p50_ms"] / sift_p50
     assert f"| sift | 1 | {sift_p50:.0f} |" in table and table.count("| 1.00 |") >= 1
     assert f"| {ratio:.2f} |" in table
+
+
+@pytest.mark.parametrize(
+    ("total", "rounds", "sizes"),
+    [(16, 4, [4, 4, 4, 4]), (6, 4, [2, 2, 1, 1]), (3, 4, [1, 1, 1]), (5, 1, [5])],
+)
+def test_rounds_split_every_request_into_non_empty_bursts(
+    total: int, rounds: int, sizes: list[int]
+) -> None:
+    assert round_sizes(total, rounds) == sizes
 
 
 def test_bench_refuses_unknown_features(capsys: pytest.CaptureFixture[str]) -> None:

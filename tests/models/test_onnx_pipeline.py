@@ -177,7 +177,8 @@ def test_lightglue_keypoint_cap_matches_the_leading_keypoints(
 
 
 @pytest.mark.parametrize(
-    "features", ["aliked", "aliked-fast", "aliked-nn", "disk", "disk-fast", "xfeat", "xfeat-full"]
+    "features",
+    ["aliked", "aliked-fast", "aliked-nn", "disk", "disk-fast", "xfeat", "xfeat-lg", "xfeat-full"],
 )
 def test_localizes_rendered_queries(
     features: str,

@@ -11,6 +11,13 @@ from services.features.configs import AUTO, feature_config_names
 from tools.evaluation.metrics import DEFAULT_THRESHOLDS
 
 
+def _positive_int(value: str) -> int:
+    number = int(value)
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return number
+
+
 def add_dataset_arguments(parser: argparse.ArgumentParser, required: bool) -> None:
     parser.add_argument(
         "dataset",
@@ -126,6 +133,13 @@ def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clients", default="1,2,4", help="concurrent clients per level")
     parser.add_argument("--requests", type=int, default=20, help="requests per level (at most)")
     parser.add_argument("--duration", type=float, default=120.0, help="seconds per level (at most)")
+    parser.add_argument(
+        "--rounds",
+        type=_positive_int,
+        default=4,
+        help="bursts each level's requests are sent in, visiting the --features servers in "
+        "turn so that a drifting machine weighs on them alike (default 4)",
+    )
     parser.add_argument("--estimator", default=DEFAULT_ESTIMATOR, choices=estimator_names())
     parser.add_argument("--top-k", type=int, default=10)
     parser.add_argument("--out", type=Path, default=Path("out/bench.json"), help="JSON output")

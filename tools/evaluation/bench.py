@@ -1,8 +1,9 @@
 """``slloc bench``: ``/localize`` latency percentiles and throughput with N concurrent clients
 on loopback, the server's peak memory, and the service overhead (latency minus the time
 inside feature extraction, matching and the estimator) as a share of the latency; with
-``--features``, several feature configurations side by side in one run (a server each, one
-after the other) with each one's p50 as a ratio of ``sift``'s."""
+``--features``, several feature configurations side by side in one run (a server each, all
+running, their requests sent in interleaved rounds) with each one's p50 as a ratio of
+``sift``'s."""
 
 from __future__ import annotations
 
@@ -76,7 +77,17 @@ def _synthetic(folder: Path, references: int) -> tuple[list[PosedImage], list[Po
     return out[0], out[1]
 
 
-def run_level(
+@dataclass
+class Sent:
+    """What one burst of requests got: the answered outcomes, the 503 refusals, its wall
+    time."""
+
+    outcomes: list[QueryOutcome]
+    refused: int
+    seconds: float
+
+
+def send_requests(
     url: str,
     api_key: str | None,
     map_id: str,
@@ -84,9 +95,11 @@ def run_level(
     clients: int,
     max_requests: int,
     max_seconds: float,
-) -> LevelResult:
+    first_query: int = 0,
+) -> Sent:
     """``clients`` threads, each with its own HTTP client, send queries (image, depth,
-    params) round-robin until ``max_requests`` were sent or ``max_seconds`` passed."""
+    params) round-robin from ``queries[first_query]`` on until ``max_requests`` were sent or
+    ``max_seconds`` passed."""
     outcomes: list[QueryOutcome] = []
     lock = threading.Lock()
     issued = refused = 0
@@ -100,7 +113,7 @@ def run_level(
                 with lock:
                     if issued >= max_requests or time.monotonic() >= deadline:
                         return
-                    image, depth, params = queries[issued % len(queries)]
+                    image, depth, params = queries[(first_query + issued) % len(queries)]
                     issued += 1
                 try:
                     outcome = runner.localize(image, depth, params)
@@ -120,7 +133,14 @@ def run_level(
         thread.start()
     for thread in threads:
         thread.join()
-    seconds = time.perf_counter() - start
+    return Sent(outcomes, refused, time.perf_counter() - start)
+
+
+def summarize(clients: int, bursts: list[Sent]) -> LevelResult:
+    """One level's figures over its bursts (rounds): percentiles of all answered latencies,
+    throughput as all answers over the bursts' summed wall time."""
+    outcomes = [o for burst in bursts for o in burst.outcomes]
+    seconds = sum(burst.seconds for burst in bursts)
     latency = np.array([o.timings_ms["client"] for o in outcomes])
     compute = np.array([sum(o.timings_ms[s] for s in COMPUTE_STAGES) for o in outcomes])
     total = np.array([o.timings_ms["total"] for o in outcomes])
@@ -129,7 +149,7 @@ def run_level(
         clients=clients,
         requests=len(outcomes),
         localized=sum(o.localized for o in outcomes),
-        refused=refused,
+        refused=sum(burst.refused for burst in bursts),
         seconds=seconds,
         throughput_rps=len(outcomes) / seconds,
         latency_p50_ms=float(p50),
@@ -143,6 +163,13 @@ def run_level(
             for stage in (outcomes[0].timings_ms if outcomes else {})
         },
     )
+
+
+def round_sizes(total: int, rounds: int) -> list[int]:
+    """``total`` requests cut into ``rounds`` near-equal bursts (the first ones larger), no
+    empty burst."""
+    rounds = max(1, min(rounds, total))
+    return [total // rounds + (i < total % rounds) for i in range(rounds)]
 
 
 @dataclass(frozen=True)
@@ -229,44 +256,102 @@ def _parse(args: argparse.Namespace) -> tuple[list[int], list[str | None]] | str
     return levels, list(features)
 
 
-def _bench_configuration(
+@dataclass
+class _Target:
+    """A running server with the benchmark's map loaded."""
+
+    label: str
+    url: str
+    pid: int | None
+    loader: HttpRunner
+    loading_peak_mb: float | None
+
+
+def _start(
+    stack: ExitStack,
     args: argparse.Namespace,
     features: str | None,
     references: list[PosedImage],
     queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
+) -> _Target:
+    """A server for ``features`` (or ``--url``), loaded with ``references``."""
+    url, pid = stack.enter_context(_server(args, features))
+    loader = HttpRunner(url, args.api_key, "slloc-bench")
+    stack.callback(loader.close)
+    label = features or loader.features
+    start = time.perf_counter()
+    for image in references:
+        depth = image.depth_path.read_bytes() if image.depth_path else None
+        loader.add_reference(image, depth)
+    print(
+        f"{label}: loaded {len(references)} references into map {loader.map_id} on {url} "
+        f"in {time.perf_counter() - start:.0f} s",
+        file=sys.stderr,
+        flush=True,
+    )
+    loading_peak = memory_mb(pid) if pid is not None else None
+    return _Target(label, url, pid, loader, loading_peak)
+
+
+def _bench_interleaved(
+    args: argparse.Namespace,
+    configurations: list[str | None],
+    references: list[PosedImage],
+    queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
     levels_wanted: list[int],
-) -> ConfigurationResult:
+    sizes: list[int],
+) -> list[ConfigurationResult]:
+    """Every configuration's server runs for the whole benchmark; each level's requests go out
+    in bursts of ``sizes`` requests (the rounds) that visit the configurations in turn, each
+    round starting one configuration later, so a machine whose speed drifts weighs on all of
+    them alike. Each burst follows one uncounted request, so that a server which sat idle while
+    the others ran is measured warm."""
     with ExitStack() as stack:
-        url, pid = stack.enter_context(_server(args, features))
-        loader = HttpRunner(url, args.api_key, "slloc-bench")
-        stack.callback(loader.close)
-        label = features or loader.features
-        start = time.perf_counter()
-        for image in references:
-            depth = image.depth_path.read_bytes() if image.depth_path else None
-            loader.add_reference(image, depth)
-        print(
-            f"{label}: loaded {len(references)} references into map {loader.map_id} on {url} "
-            f"in {time.perf_counter() - start:.0f} s",
-            file=sys.stderr,
-            flush=True,
-        )
-        loading_peak = memory_mb(pid) if pid is not None else None
-        loader.localize(*queries[0])  # warm-up, not counted
-        levels = []
+        targets = [
+            _start(stack, args, features, references, queries) for features in configurations
+        ]
+        levels: list[list[LevelResult]] = [[] for _ in targets]
         for clients in levels_wanted:
-            level = run_level(
-                url, args.api_key, loader.map_id, queries, clients, args.requests, args.duration
+            bursts: list[list[Sent]] = [[] for _ in targets]
+            for r, size in enumerate(sizes):
+                for j in range(len(targets)):
+                    i = (r + j) % len(targets)
+                    target = targets[i]
+                    target.loader.localize(*queries[0])  # warm-up after the others ran
+                    burst = send_requests(
+                        target.url,
+                        args.api_key,
+                        target.loader.map_id,
+                        queries,
+                        clients,
+                        size,
+                        args.duration / len(sizes),
+                        first_query=sum(sizes[:r]),
+                    )
+                    bursts[i].append(burst)
+                    print(
+                        f"{target.label}, {clients} client(s), round {r + 1}/{len(sizes)}: "
+                        f"{len(burst.outcomes)} answered, {burst.refused} refused",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+            for i, target in enumerate(targets):
+                level = summarize(clients, bursts[i])
+                print(
+                    f"{target.label}, {clients} client(s): p50 {level.latency_p50_ms:.0f} ms",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                levels[i].append(level)
+        return [
+            ConfigurationResult(
+                target.label,
+                memory_mb(target.pid) if target.pid is not None else None,
+                levels[i],
+                target.loading_peak_mb,
             )
-            print(
-                f"{label}, {clients} client(s): {level.requests} answered, {level.refused} "
-                f"refused, p50 {level.latency_p50_ms:.0f} ms",
-                file=sys.stderr,
-                flush=True,
-            )
-            levels.append(level)
-        peak = memory_mb(pid) if pid is not None else None
-    return ConfigurationResult(label, peak, levels, loading_peak)
+            for i, target in enumerate(targets)
+        ]
 
 
 def bench_main(args: argparse.Namespace) -> int:
@@ -276,6 +361,7 @@ def bench_main(args: argparse.Namespace) -> int:
         print(f"slloc bench: {parsed}", file=sys.stderr)
         return 2
     levels_wanted, configurations = parsed
+    sizes = round_sizes(args.requests, args.rounds if len(configurations) > 1 else 1)
     with tempfile.TemporaryDirectory(prefix="slloc-bench-") as tmp:
         if args.dataset is not None:
             try:
@@ -297,10 +383,9 @@ def bench_main(args: argparse.Namespace) -> int:
             )
             for q in query_images
         ]
-        results = [
-            _bench_configuration(args, features, references, queries, levels_wanted)
-            for features in configurations
-        ]
+        results = _bench_interleaved(
+            args, configurations, references, queries, levels_wanted, sizes
+        )
     for result in results:
         print(f"## {result.features}\n\n{markdown(result.levels, result.peak_rss_mb)}")
         if result.loading_peak_rss_mb is not None:
@@ -315,6 +400,7 @@ def bench_main(args: argparse.Namespace) -> int:
                 "url": args.url or "local server",
                 "estimator": args.estimator,
                 "references": len(references),
+                "rounds": len(sizes),
                 "configurations": [asdict(result) for result in results],
             },
             indent=1,
