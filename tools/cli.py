@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     models_sub = models.add_subparsers(dest="models_command", required=True)
     build = models_sub.add_parser(
         "build",
-        help="export ALIKED, DISK, XFeat, LightGlue and LighterGlue to ONNX (needs scripts/build_models.sh's tools)",
+        help="export ALIKED, DISK, XFeat, LightGlue and LighterGlue to ONNX (needs "
+        "scripts/build_models.sh's tools)",
     )
     build.add_argument("--models-dir", type=Path, default=None, help="default: SLLOC_MODELS_DIR")
     build.add_argument(
