@@ -204,10 +204,11 @@ class Localizer:
         estimator gets what is left of the time budget after matching.
 
         The query is matched turned upright (``QueryFrame.turns``, best guess first); the other
-        turns are tried, while the budget lasts, for the estimators without a confident answer
+        turns are tried, while the budget lasts, for the estimators without a settled answer
         yet (confidence below ``SEARCH_CONFIDENCE``: a sideways image can give a pose from
-        chance matches, which the confidence reads as wrong), and each keeps its most confident
-        answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times more than
+        chance matches, which the confidence reads as wrong; and fewer than ``UPRIGHT_INLIERS``
+        inliers, which a wrongly turned query does not reach), and each keeps its most
+        confident answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times more than
         every turn estimated before (learned descriptors match a wrongly turned image 5-10x
         less, rotation-invariant SIFT about as much: estimating it again would not change the
         answer). Past one attempt, every result has the stages summed over the attempts.
@@ -237,7 +238,7 @@ class Localizer:
         attempts = 1
         most_matches = matched.num_matches
         for turn in frame.turns[1:]:  # other turns only while unsure, within the budget
-            if all(_confident(r) for r in results) or clock.deadline.expired():
+            if all(_settled(r) for r in results) or clock.deadline.expired():
                 break
             try:
                 matched = self._match(image, turn, camera, query_depth, params, store, clock, spare)
@@ -249,7 +250,7 @@ class Localizer:
             most_matches = matched.num_matches
             results = [
                 r
-                if _confident(r)
+                if _settled(r)
                 else _better(r, self._estimate(matched, frame, params, e, clock.branch()))
                 for r, e in zip(results, chosen, strict=True)
             ]
@@ -390,15 +391,25 @@ class _MatchedQuery(NamedTuple):
         return sum(len(o.query_xy) for o in self.observations)
 
 
-SEARCH_CONFIDENCE = 0.5  # an answer below it lets the other turns of the query be tried
+SEARCH_CONFIDENCE = 0.5  # an answer below it lets the other turns of the query be tried...
+# ...unless it has this many inliers. Redkitchen, 25 queries, e5p1, search off: upright, the
+# localized answers had 331-3587 inliers (xfeat-lg), 288-3885 (aliked-nn), 254-3570 (sift);
+# turned a quarter, none of the xfeat-lg or aliked-nn queries localized (sift, rotation
+# invariant, localized 11 with 208-1622, turned or not). Before this floor, 30-52 % of the
+# redkitchen queries (upright, with 224-3238 inliers) paid for up to three more turns.
+UPRIGHT_INLIERS = 200
 # another turn is estimated only with this many times the matches of every turn estimated before
 # (redkitchen, query against its best reference: XFeat 544-997 matches upright, 89-164 at the
 # other turns; ALIKED 225-535 and 31-63; SIFT within 2 % at every turn)
 TURN_MATCH_GAIN = 1.5
 
 
-def _confident(result: LocalizationResult) -> bool:
-    return result.localized and result.confidence >= SEARCH_CONFIDENCE
+def _settled(result: LocalizationResult) -> bool:
+    """No other turn of the query needs trying for this answer: it is confident, or has so
+    many inliers that the query was matched the right way up."""
+    return result.localized and (
+        result.confidence >= SEARCH_CONFIDENCE or result.num_inliers >= UPRIGHT_INLIERS
+    )
 
 
 def _better(a: LocalizationResult, b: LocalizationResult) -> LocalizationResult:
