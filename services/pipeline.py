@@ -208,10 +208,10 @@ class Localizer:
         yet (confidence below ``SEARCH_CONFIDENCE``: a sideways image can give a pose from
         chance matches, which the confidence reads as wrong; and fewer than ``UPRIGHT_INLIERS``
         inliers, which a wrongly turned query does not reach), and each keeps its most
-        confident answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times more than
-        every turn estimated before (learned descriptors match a wrongly turned image 5-10x
-        less, rotation-invariant SIFT about as much: estimating it again would not change the
-        answer). Past one attempt, every result has the stages summed over the attempts.
+        confident answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times
+        more than every turn estimated before (learned descriptors match a wrongly turned image
+        5-10x less, rotation-invariant SIFT about as much: estimating it again would not change
+        the answer). Past one attempt, every result has the stages summed over the attempts.
 
         ``spare``: the idle workers the query's matching may borrow (None: it runs on the
         calling thread alone)."""
