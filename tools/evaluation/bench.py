@@ -274,7 +274,10 @@ def _start(
     references: list[PosedImage],
     queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
 ) -> _Target:
-    """A server for ``features`` (or ``--url``), loaded with ``references``."""
+    """A server for ``features`` (or ``--url``), loaded with ``references`` and their retrieval
+    vocabulary trained on all of them (as ``slloc eval`` does and an admin after a bulk load;
+    left to the background trainer, the vocabulary of the first references made retrieval
+    fail queries that eval localizes)."""
     url, pid = stack.enter_context(_server(args, features))
     loader = HttpRunner(url, args.api_key, "slloc-bench")
     stack.callback(loader.close)
@@ -283,6 +286,7 @@ def _start(
     for image in references:
         depth = image.depth_path.read_bytes() if image.depth_path else None
         loader.add_reference(image, depth)
+    loader.index_references(len(references))  # the retrieval slloc eval measures accuracy with
     print(
         f"{label}: loaded {len(references)} references into map {loader.map_id} on {url} "
         f"in {time.perf_counter() - start:.0f} s",
