@@ -272,7 +272,6 @@ def _start(
     args: argparse.Namespace,
     features: str | None,
     references: list[PosedImage],
-    queries: list[tuple[bytes, bytes | None, dict[str, Any]]],
 ) -> _Target:
     """A server for ``features`` (or ``--url``), loaded with ``references`` and their retrieval
     vocabulary trained on all of them (as ``slloc eval`` does and an admin after a bulk load;
@@ -311,9 +310,7 @@ def _bench_interleaved(
     them alike. Each burst follows one uncounted request, so that a server which sat idle while
     the others ran is measured warm."""
     with ExitStack() as stack:
-        targets = [
-            _start(stack, args, features, references, queries) for features in configurations
-        ]
+        targets = [_start(stack, args, features, references) for features in configurations]
         levels: list[list[LevelResult]] = [[] for _ in targets]
         for clients in levels_wanted:
             bursts: list[list[Sent]] = [[] for _ in targets]
