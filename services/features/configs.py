@@ -16,8 +16,8 @@ AUTO = "auto"  # the preferred configuration when its models are built, else the
 SIFT = "sift"  # the extractor that needs no exported model
 DISK_KEYPOINTS = 1024
 # XFeat's budget with nearest neighbours alone (``xfeat``): on redkitchen 2048 keypoints localize
-# more queries than 1024 (56 / 78 / 52 % against 52 / 76 / 46 %, e5p1); ``xfeat-lg`` keeps 1024,
-# whose VLAD retrieves better, and lets LighterGlue match its two best pairs
+# more queries than 1024 (56 / 78 / 52 % against 52 / 76 / 46 %, e5p1); ``xfeat-lg`` keeps 1024
+# and lets LighterGlue match its two best pairs
 XFEAT_KEYPOINTS = 2048
 # XFeat's own matcher's floor on the cosine similarity: with 2048 keypoints and the ratio test
 # alone, images of another scene kept ~1700 matches a query and some localized
@@ -108,7 +108,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "xfeat-lg",
             "xfeat",
-            "real time: ~0.3 s a query on two cores, below aliked's accuracy on redkitchen",
+            "real time: ~0.3 s a query on two cores; about aliked's accuracy on redkitchen",
             lightglue="lighterglue-xfeat",
             lightglue_pairs=2,
             lightglue_keypoints=512,
