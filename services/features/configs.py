@@ -68,7 +68,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "aliked",
             "aliked-n16",
-            "the learned default, the most accurate: ~0.2 s a LightGlue pair, ~1.8 s a query",
+            "the learned default: ~0.2 s a LightGlue pair, ~1.8 s a query on two cores",
             lightglue="lightglue-aliked",
             lightglue_pairs=3,
             lightglue_keypoints=512,
