@@ -5,7 +5,7 @@ from __future__ import annotations
 from app.settings import Settings
 from services.components import build_localizer as build_engine_localizer
 from services.components import resolve_features
-from services.features.configs import get_feature_config
+from services.features.configs import SIFT, get_feature_config
 from services.pipeline import Localizer
 from services.runtime.manifest import read_manifest
 from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
@@ -37,6 +37,12 @@ def onnx_options(settings: Settings) -> OnnxOptions:
     )
 
 
+def wide_threads(plan: ThreadPlan) -> int | None:
+    """The threads of a query extraction that borrows every idle worker: all the workers'
+    (None with one worker: nothing to borrow)."""
+    return plan.workers * plan.threads_per_worker if plan.workers > 1 else None
+
+
 def build_localizer(settings: Settings) -> Localizer:
     return build_engine_localizer(
         settings.models_dir,
@@ -44,16 +50,21 @@ def build_localizer(settings: Settings) -> Localizer:
         settings.features,
         onnx_options(settings),
         settings.global_model,
+        wide_threads(thread_plan(settings)),
     )
 
 
-def model_file_bytes(settings: Settings) -> int:
+def model_file_bytes(settings: Settings, plan: ThreadPlan | None = None) -> int:
     """The sizes of the ONNX files the settings' feature configuration (and global
-    descriptor model) load; models not built count 0 (the server then refuses to start or
-    falls back to weight-free features)."""
+    descriptor model) load, the extractor's twice when it has a wide session as well
+    (``plan``: the thread plan, by default the settings'); models not built count 0 (the
+    server then refuses to start or falls back to weight-free features)."""
     config = get_feature_config(resolve_features(settings.models_dir, settings.features))
     entries = read_manifest(settings.models_dir)
-    paths = [settings.models_dir / entries[m].file for m in config.models if m in entries]
+    loaded = list(config.models)
+    if config.extractor != SIFT and wide_threads(plan or thread_plan(settings)) is not None:
+        loaded.append(config.extractor)
+    paths = [settings.models_dir / entries[m].file for m in loaded if m in entries]
     if settings.global_model is not None:
         paths.append(settings.global_model)
     return sum(path.stat().st_size for path in paths if path.is_file())
@@ -64,7 +75,7 @@ def memory_inputs(settings: Settings, plan: ThreadPlan | None = None) -> MemoryI
     default the settings')."""
     plan = plan or thread_plan(settings)
     return MemoryInputs(
-        model_file_bytes=model_file_bytes(settings),
+        model_file_bytes=model_file_bytes(settings, plan),
         workers=plan.workers,
         queued=settings.max_queued,
         connections=settings.limit_concurrency,

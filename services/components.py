@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -44,11 +44,12 @@ class ModelsMissingError(RuntimeError):
 
 @dataclass
 class ModelStore:
-    """The exported models of a directory, with one shared onnxruntime session per model."""
+    """The exported models of a directory, with one shared onnxruntime session per model and
+    thread count."""
 
     models_dir: Path
     onnx: OnnxOptions = field(default_factory=OnnxOptions)
-    _sessions: dict[str, Any] = field(default_factory=dict)
+    _sessions: dict[tuple[str, int], Any] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def entry(self, name: str) -> ModelEntry:
@@ -60,19 +61,27 @@ class ModelStore:
             )
         return entry
 
-    def session(self, name: str) -> Any:
+    def session(self, name: str, threads: int | None = None) -> Any:
+        """The session of model ``name`` with ``threads`` intra-op threads (None: the
+        store's ``onnx.intra_op_threads``)."""
+        options = self.onnx if threads is None else replace(self.onnx, intra_op_threads=threads)
+        key = (name, options.intra_op_threads)
         with self._lock:
-            if name not in self._sessions:
+            if key not in self._sessions:
                 entry = self.entry(name)
                 path = verified_path(self.models_dir, entry)
-                self._sessions[name] = create_session(
-                    path, self.onnx, list(entry.inputs), list(entry.outputs)
+                self._sessions[key] = create_session(
+                    path, options, list(entry.inputs), list(entry.outputs)
                 )
-            return self._sessions[name]
+            return self._sessions[key]
 
 
-def build_features(config: FeatureConfig, models: ModelStore) -> tuple[FeatureExtractor, Matcher]:
+def build_features(
+    config: FeatureConfig, models: ModelStore, wide_threads: int | None = None
+) -> tuple[FeatureExtractor, Matcher]:
     """The extractor and matcher of ``config``, on the sessions of ``models``.
+    ``wide_threads``: the threads of the extractor's second session, run when a request's
+    extraction borrows every idle worker (None: no second session).
 
     Raises:
         ModelsMissingError: a model ``config`` needs is not built.
@@ -87,6 +96,7 @@ def build_features(config: FeatureConfig, models: ModelStore) -> tuple[FeatureEx
         entry.keypoint_budget or config.max_keypoints,
         ResizeOptions(config.max_keypoints, config.max_side),
         int(entry.config.get("side_multiple", 1)),
+        models.session(config.extractor, wide_threads) if wide_threads is not None else None,
     )
     if config.lightglue is None:
         return extractor, nearest
@@ -128,9 +138,13 @@ def build_localizer(
     features: str | None = None,
     onnx: OnnxOptions | None = None,
     global_model: Path | None = None,
+    wide_threads: int | None = None,
 ) -> Localizer:
     """The localizer with feature configuration ``features``; retrieval by the ONNX model at
     ``global_model`` (its contract: ``services/retrieval/onnx_global.py``) or by thumbnails.
+
+    ``wide_threads``: the threads of the extractor's session for requests that borrow every
+    idle worker (None: none; ``build_features``).
 
     ``None`` or ``"auto"`` takes ``PREFERRED_FEATURES`` when its models are in ``models_dir``
     and the weight-free ``FALLBACK_FEATURES`` otherwise (logged with the reason).
@@ -142,7 +156,7 @@ def build_localizer(
     name = resolve_features(models_dir, features)
     config = get_feature_config(name)
     onnx = onnx or OnnxOptions()
-    extractor, matcher = build_features(config, ModelStore(models_dir, onnx))
+    extractor, matcher = build_features(config, ModelStore(models_dir, onnx), wide_threads)
     global_descriptor: GlobalDescriptor = ThumbnailDescriptor()
     if global_model is not None:
         global_descriptor = OnnxGlobalDescriptor(create_session(global_model, onnx), global_model)

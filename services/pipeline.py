@@ -213,8 +213,8 @@ class Localizer:
         5-10x less, rotation-invariant SIFT about as much: estimating it again would not change
         the answer). Past one attempt, every result has the stages summed over the attempts.
 
-        ``spare``: the idle workers the query's matching may borrow (None: it runs on the
-        calling thread alone)."""
+        ``spare``: the idle workers the query's extraction and matching may borrow (None: they
+        run on the calling thread alone)."""
         chosen = [get_estimator(name) for name in estimators]
         clock = _StageClock(params.time_budget_s)
         try:
@@ -281,7 +281,7 @@ class Localizer:
         keypoints go back to the upload before estimation (the pose is the upload's)."""
         lap = clock.lap
         turned = turn_image(image, turn)
-        query = self.extractor.extract(turned)
+        query = self.extractor.extract(turned, spare)
         lap("extract")
         index = store.retrieval_index()
         query_global = (

@@ -23,8 +23,9 @@ class RuntimeOut(BaseModel):
         description="Threads one operation may use (onnxruntime intra-op, OpenCV, BLAS)"
     )
     idle_workers_lent: int = Field(
-        description="Worker slots a request may borrow while they are idle, for its matching "
-        "and a multi-frame query's extraction (localize_workers - 1)"
+        description="Worker slots a request may borrow while they are idle, for its matching, "
+        "a multi-frame query's extraction, and a query's ONNX extraction when all are idle "
+        "(localize_workers - 1)"
     )
     reference_cache_mib: float = Field(description="Bound of the reference-feature cache")
     reference_cache_used_mib: float = Field(description="Decoded features it holds now")

@@ -7,6 +7,7 @@ from typing import Protocol
 
 import numpy as np
 
+from services.runtime.spare_workers import SpareWorkers
 from services.types import Float32Array, UInt8Array
 
 
@@ -52,8 +53,9 @@ class FeatureExtractor(Protocol):
     # the longer side images are shrunk to before detection: a larger image brings nothing
     max_side: int
 
-    def extract(self, image: UInt8Array) -> LocalFeatures:
-        """Features of an (H, W, 3) RGB uint8 image."""
+    def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
+        """Features of an (H, W, 3) RGB uint8 image. ``spare``: idle workers the extraction
+        may borrow (extractors that cannot use more threads for one image ignore it)."""
         ...
 
     def with_budget(self, max_keypoints: int | None, max_side: int | None) -> FeatureExtractor:

@@ -9,6 +9,7 @@ padding (DISK finds fewer detections than K on a bland image) and are dropped.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from services.errors import InvalidInputError
 from services.features.base import LocalFeatures
+from services.runtime.spare_workers import SpareWorkers
 from services.types import UInt8Array
 
 MIN_SIDE = 64  # the graph's smallest input side (and enough candidates for its top-k)
@@ -35,7 +37,9 @@ class OnnxKeypointExtractor:
     """Runs a keypoint graph (the module docstring's contract); a smaller budget takes a
     prefix of its output. ``side_multiple``: the resized sides are rounded down to multiples
     of it (XFeat's graph resizes its input to multiples of 32 otherwise: one resampling
-    instead of two)."""
+    instead of two). ``wide_session``: the same graph with the threads of every localize
+    worker, run when the idle workers are lent to the extraction (XFeat at 640×480: 28 ms
+    on two threads against 41 ms on one)."""
 
     def __init__(
         self,
@@ -44,6 +48,7 @@ class OnnxKeypointExtractor:
         exported_budget: int,
         options: ResizeOptions,
         side_multiple: int = 1,
+        wide_session: Any | None = None,
     ) -> None:
         if not 0 < options.max_keypoints <= exported_budget:
             raise ValueError(
@@ -55,6 +60,7 @@ class OnnxKeypointExtractor:
         if side_multiple < 1:
             raise ValueError(f"side_multiple must be >= 1, got {side_multiple}")
         self.session = session
+        self.wide_session = wide_session
         self.side_multiple = side_multiple
         self.model_name = model_name
         self.max_side = options.max_side
@@ -69,10 +75,15 @@ class OnnxKeypointExtractor:
             max_keypoints or self.options.max_keypoints, max_side or self.options.max_side
         )
         return OnnxKeypointExtractor(
-            self.session, self.model_name, self.exported_budget, options, self.side_multiple
+            self.session,
+            self.model_name,
+            self.exported_budget,
+            options,
+            self.side_multiple,
+            self.wide_session,
         )
 
-    def extract(self, image: UInt8Array) -> LocalFeatures:
+    def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
         height, width = image.shape[:2]
         scale = min(1.0, self.options.max_side / max(height, width))
         new_w, new_h = round(width * scale), round(height * scale)
@@ -89,7 +100,10 @@ class OnnxKeypointExtractor:
             else image
         )
         tensor = resized.transpose(2, 0, 1)[None].astype(np.float32) / np.float32(255.0)
-        keypoints, scores, descriptors = self.session.run(None, {"image": tensor})
+        lend = spare.borrow_all() if spare is not None and self.wide_session is not None else None
+        with lend or nullcontext(False) as wide:
+            session: Any = self.wide_session if wide else self.session
+            keypoints, scores, descriptors = session.run(None, {"image": tensor})
         n = self.options.max_keypoints
         keep = np.isfinite(scores[:n])
         # graph pixels have centres at integers; COLMAP's at +0.5, where scaling about the

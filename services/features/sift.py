@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from services.features.base import LocalFeatures
+from services.runtime.spare_workers import SpareWorkers
 from services.types import UInt8Array
 
 
@@ -51,7 +52,8 @@ class SiftExtractor:
             )
         )
 
-    def extract(self, image: UInt8Array) -> LocalFeatures:
+    def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
+        """``spare`` is not used: OpenCV's threads are set for the whole process."""
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         height, width = gray.shape
         scale = min(1.0, self.options.max_side / max(height, width))

@@ -6,6 +6,8 @@ borrow the slots that are free at that moment and run its parts at once on them;
 slots go back when that work ends. A request alone on the machine then uses every core, while
 concurrent requests find no slot free and keep one worker each: threads never exceed the plan.
 A request arriving meanwhile waits for the borrowed slot at most one split's duration.
+Work that cannot be split but can run one operation on more threads (a network's forward
+pass) borrows every lendable slot or none (``borrow_all``).
 """
 
 from __future__ import annotations
@@ -54,6 +56,23 @@ class SpareWorkers:
             while taken < limit and self._slots.acquire(blocking=False):
                 taken += 1
             yield taken
+        finally:
+            for _ in range(taken):
+                self._slots.release()
+
+    @contextmanager
+    def borrow_all(self) -> Iterator[bool]:
+        """Takes all ``most`` lendable slots when every one is free now, never waiting, and
+        yields True; otherwise takes none and yields False. Gives them back after."""
+        taken = 0
+        try:
+            while taken < self.most and self._slots.acquire(blocking=False):
+                taken += 1
+            if taken < self.most:  # some slot is busy: holding the others would only block
+                for _ in range(taken):
+                    self._slots.release()
+                taken = 0
+            yield self.most > 0 and taken == self.most
         finally:
             for _ in range(taken):
                 self._slots.release()

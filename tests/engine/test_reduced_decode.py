@@ -13,6 +13,7 @@ from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
 from services.imaging import decode_image_reduced
 from services.pipeline import LocalizeParams, Localizer
+from services.runtime.spare_workers import SpareWorkers
 from services.types import UInt8Array
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
@@ -50,9 +51,9 @@ class RecordingExtractor:
         self.max_side = inner.max_side
         self.sizes: list[tuple[int, int]] = []
 
-    def extract(self, image: UInt8Array) -> LocalFeatures:
+    def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
         self.sizes.append((image.shape[1], image.shape[0]))
-        return self.inner.extract(image)
+        return self.inner.extract(image, spare)
 
     def with_budget(self, max_keypoints: int | None, max_side: int | None) -> FeatureExtractor:
         return RecordingExtractor(self.inner.with_budget(max_keypoints, max_side))

@@ -4,6 +4,7 @@ with exact ground truth."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from services.geometry.rigid import pose_error
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.pipeline import LocalizeParams
 from services.runtime.manifest import read_manifest
+from services.runtime.spare_workers import SpareWorkers
 from tests.models.conftest import MODELS_DIR
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
@@ -90,6 +92,28 @@ def test_sides_are_rounded_down_to_the_models_multiple() -> None:
     assert session.shapes == [(1, 3, 448, 576), (1, 3, 224, 288), (1, 3, 480, 640)]
     with pytest.raises(ValueError, match="side_multiple"):
         OnnxKeypointExtractor(session, "x", 8, ResizeOptions(8, 600), side_multiple=0)
+
+
+def test_wide_session_finds_the_same_features(
+    xfeat_models: ModelStore, reference_views: list[SyntheticView]
+) -> None:
+    """The extractor's session on every worker's threads (run when a request borrows the idle
+    workers) answers as the one-thread session does."""
+    localizer = build_localizer(MODELS_DIR, 40_000_000, "xfeat-lg", wide_threads=2)
+    extractor = localizer.extractor
+    assert isinstance(extractor, OnnxKeypointExtractor) and extractor.wide_session is not None
+    assert extractor.wide_session.get_session_options().intra_op_num_threads == 2
+    slots = threading.BoundedSemaphore(2)
+    spare = SpareWorkers(slots, most=1)
+    slots.acquire()  # the request itself
+    image = reference_views[0].image
+    try:
+        wide, narrow = extractor.extract(image, spare), extractor.extract(image)
+    finally:
+        spare.shutdown()
+    assert len(wide) == len(narrow) > 500
+    np.testing.assert_allclose(wide.keypoints, narrow.keypoints, atol=0.01)
+    np.testing.assert_allclose(wide.descriptors, narrow.descriptors, atol=1e-4)
 
 
 def test_xfeat_keypoints_are_scaled_back_to_the_original_image(

@@ -102,11 +102,14 @@ def test_models_term_is_the_configurations_files() -> None:
     if not all(m in entries for m in config.models):
         pytest.skip("aliked's models are not built (scripts/build_models.sh)")
     size = sum((MODELS / entries[m].file).stat().st_size for m in config.models)
-    settings = _settings(features="aliked")
+    settings = _settings(features="aliked", localize_workers=1)
     assert model_file_bytes(settings) == size
     mib = service_memory_bound(settings).terms["models"]
     assert mib == pytest.approx(MODEL_RESIDENT_PER_FILE_MIB * size / MIB, abs=0.06)
     assert 100 < mib < 200  # measured: 137 MiB resident for aliked + lightglue
+    # two workers: the extractor has a second session, on both workers' threads
+    extractor = (MODELS / entries[config.extractor].file).stat().st_size
+    assert model_file_bytes(_settings(features="aliked")) == size + extractor
 
 
 def test_retrieval_index_adds_to_the_total() -> None:

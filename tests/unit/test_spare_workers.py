@@ -1,5 +1,5 @@
-"""Idle worker slots lent to a request's matching: only the free ones, given back after, the
-results in order (issue #13)."""
+"""Idle worker slots lent to a request's matching and extraction: only the free ones, given
+back after, the results in order (issue #13)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from services.features.base import LocalFeatures
+from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.runtime.spare_workers import SpareWorkers
 
@@ -52,6 +53,54 @@ def test_borrows_only_free_slots_and_gives_them_back(
     assert _free(slots) == 1
     with spare.borrow(wanted=0) as lent:
         assert lent == 0 and _free(slots) == 1
+
+
+def test_borrow_all_takes_every_lendable_slot_or_none(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    slots.acquire()  # the request itself
+    with spare.borrow_all() as wide:
+        assert wide and _free(slots) == 0
+    assert _free(slots) == 2
+    slots.acquire()  # a second request computing: one slot free, not enough
+    with spare.borrow_all() as wide:
+        assert not wide and _free(slots) == 1  # the free slot is not held meanwhile
+    slots.release()
+    with pytest.raises(RuntimeError, match="boom"), spare.borrow_all():
+        raise RuntimeError("boom")
+    assert _free(slots) == 2
+    alone = SpareWorkers(slots, most=0)
+    with alone.borrow_all() as wide:
+        assert not wide
+
+
+class _Session:
+    """An extractor session that counts its runs (no detections)."""
+
+    def __init__(self) -> None:
+        self.runs = 0
+
+    def run(self, _: object, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        self.runs += 1
+        return [np.zeros((4, 2), np.float32), np.full(4, -np.inf, np.float32), np.zeros((4, 8))]
+
+
+def test_extraction_runs_the_wide_session_only_on_every_idle_worker(
+    slots: threading.BoundedSemaphore, spare: SpareWorkers
+) -> None:
+    narrow, wide = _Session(), _Session()
+    extractor = OnnxKeypointExtractor(narrow, "x", 4, ResizeOptions(4, 64), wide_session=wide)
+    image = np.zeros((64, 64, 3), np.uint8)
+    slots.acquire()  # the request itself
+    extractor.extract(image, spare)
+    assert (narrow.runs, wide.runs) == (0, 1)
+    extractor.with_budget(2, None).extract(image, spare)  # a map's budget keeps both sessions
+    assert (narrow.runs, wide.runs) == (0, 2)
+    slots.acquire()  # another request computing
+    extractor.extract(image, spare)
+    extractor.extract(image)  # nothing lent
+    assert (narrow.runs, wide.runs) == (2, 2)
+    assert _free(slots) == 1
 
 
 def test_slots_come_back_when_the_work_raises(
