@@ -5,7 +5,7 @@ from __future__ import annotations
 from app.settings import Settings
 from services.components import build_localizer as build_engine_localizer
 from services.components import resolve_features
-from services.features.configs import SIFT, get_feature_config
+from services.features.configs import get_feature_config
 from services.pipeline import Localizer
 from services.runtime.manifest import read_manifest
 from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
@@ -62,7 +62,7 @@ def model_file_bytes(settings: Settings, plan: ThreadPlan | None = None) -> int:
     config = get_feature_config(resolve_features(settings.models_dir, settings.features))
     entries = read_manifest(settings.models_dir)
     loaded = list(config.models)
-    if config.extractor != SIFT and wide_threads(plan or thread_plan(settings)) is not None:
+    if config.extractor in config.models and wide_threads(plan or thread_plan(settings)):
         loaded.append(config.extractor)
     paths = [settings.models_dir / entries[m].file for m in loaded if m in entries]
     if settings.global_model is not None:

@@ -64,18 +64,11 @@ class SpareWorkers:
     def borrow_all(self) -> Iterator[bool]:
         """Takes all ``most`` lendable slots when every one is free now, never waiting, and
         yields True; otherwise takes none and yields False. Gives them back after."""
-        taken = 0
-        try:
-            while taken < self.most and self._slots.acquire(blocking=False):
-                taken += 1
-            if taken < self.most:  # some slot is busy: holding the others would only block
-                for _ in range(taken):
-                    self._slots.release()
-                taken = 0
-            yield self.most > 0 and taken == self.most
-        finally:
-            for _ in range(taken):
-                self._slots.release()
+        with self.borrow() as taken:
+            if 0 < taken == self.most:
+                yield True
+                return
+        yield False  # some slot is busy: holding the others would only block
 
     def split(
         self, work: Callable[[Sequence[Item]], list[Result]], items: Sequence[Item]
