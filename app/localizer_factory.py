@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import logging
+
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
 from app.settings import Settings
+from db.repositories.images import ImageRepository
 from services.components import build_localizer as build_engine_localizer
 from services.components import resolve_features
 from services.features.configs import get_feature_config
@@ -11,6 +17,8 @@ from services.runtime.manifest import read_manifest
 from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
 from services.runtime.onnx import OnnxOptions
 from services.runtime.threads import ThreadPlan, plan_threads
+
+logger = logging.getLogger(__name__)
 
 
 def thread_plan(settings: Settings) -> ThreadPlan:
@@ -41,6 +49,19 @@ def wide_threads(plan: ThreadPlan) -> int | None:
     """The threads of a query extraction that borrows every idle worker: all the workers'
     (None with one worker: nothing to borrow)."""
     return plan.workers * plan.threads_per_worker if plan.workers > 1 else None
+
+
+def served_settings(settings: Settings, sessions: sessionmaker[Session]) -> Settings:
+    """``settings`` with ``features`` resolved (``auto`` becomes a configuration) against the
+    models built and the extractors that described the database's references."""
+    try:
+        with sessions() as session:
+            stored = ImageRepository(session).feature_models()
+    except SQLAlchemyError as exc:  # e.g. a database not migrated yet: no references
+        logger.warning("features: the stored references could not be read (%s)", exc)
+        stored = set()
+    features = resolve_features(settings.models_dir, settings.features, stored)
+    return settings.model_copy(update={"features": features})
 
 
 def build_localizer(settings: Settings) -> Localizer:

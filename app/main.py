@@ -16,7 +16,12 @@ from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
-from app.localizer_factory import build_localizer, service_memory_bound, thread_plan
+from app.localizer_factory import (
+    build_localizer,
+    served_settings,
+    service_memory_bound,
+    thread_plan,
+)
 from app.logs import install_request_id_records
 from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
@@ -47,12 +52,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         engine = make_engine(settings.database_url)
         if settings.auto_migrate:
             upgrade(engine)
-        app.state.settings = settings
-        app.state.thread_plan = plan = thread_plan(settings)
-        apply_thread_plan(plan)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
-        app.state.localizer = localizer or build_localizer(settings)
+        app.state.settings = served = served_settings(settings, app.state.sessions)
+        app.state.thread_plan = plan = thread_plan(served)
+        apply_thread_plan(plan)
+        app.state.localizer = localizer or build_localizer(served)
         app.state.ann_builder = BackgroundTrainer("retrieval index")
         app.state.retrieval_cache = RetrievalIndexCache(
             AnnOptions(settings.ann_min_references, settings.ann_nprobe),
@@ -63,7 +68,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.admission = Admission(plan.workers, settings.max_queued)
         # a request alone matches on every worker's core: the idle slots are lent to it
         app.state.spare_workers = SpareWorkers(app.state.admission.slots, plan.workers - 1)
-        app.state.memory_bound = bound = service_memory_bound(settings, plan)
+        app.state.memory_bound = bound = service_memory_bound(served, plan)
         logger.info(
             "memory bound: %s; plus the retrieval indexes, which grow with the references "
             "(README, Memory)",

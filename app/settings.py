@@ -11,8 +11,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.features.configs import (
     AUTO,
+    AUTO_CHOICES,
     FALLBACK_FEATURES,
-    PREFERRED_FEATURES,
     feature_config_names,
 )
 
@@ -39,8 +39,9 @@ class Settings(BaseSettings):
     )
     features: str = Field(
         AUTO,
-        description=f"Feature configuration: {AUTO} ({PREFERRED_FEATURES} when its models are "
-        f"built, else {FALLBACK_FEATURES}) or one of {', '.join(feature_config_names())}; "
+        description=f"Feature configuration: {AUTO} (the first of {', '.join(AUTO_CHOICES)} "
+        "whose models are built, the one the database's references hold before the others; "
+        f"else {FALLBACK_FEATURES}) or one of {', '.join(feature_config_names())}; "
         "`slloc features` lists what each runs and the models it needs",
     )
     onnx_providers: str = Field(

@@ -6,8 +6,9 @@ cd "$(dirname "$0")/.."
 scripts/setup.sh
 if ! scripts/build_models.sh; then
   echo "WARNING: the model export failed (see above). The server starts with the models that" \
-    "${SLLOC_MODELS_DIR:-./models} already holds; without ALIKED + LightGlue it serves the" \
-    "weight-free SIFT pipeline (GET /v1/health names the features in use)." >&2
+    "${SLLOC_MODELS_DIR:-./models} already holds; without XFeat + LighterGlue or ALIKED +" \
+    "LightGlue it serves the weight-free SIFT pipeline (GET /v1/health names the features" \
+    "in use)." >&2
 fi
 scripts/build_web.sh || echo "WARNING: the viewer's three.js could not be installed; /viewer/" \
   "works without its 3D view" >&2

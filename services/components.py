@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Collection
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -16,11 +17,12 @@ from typing import Any
 from services.features.base import FeatureExtractor
 from services.features.configs import (
     AUTO,
+    AUTO_CHOICES,
     FALLBACK_FEATURES,
-    PREFERRED_FEATURES,
     PREFERRED_MODELS,
     SIFT,
     FeatureConfig,
+    described_by,
     get_feature_config,
 )
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
@@ -110,26 +112,56 @@ def build_features(
     return extractor, matcher
 
 
-def resolve_features(models_dir: Path, name: str | None = None) -> str:
-    """``name``, or for ``None`` / ``"auto"`` the configuration auto picks: the preferred
-    one when its models are built and intact, else the weight-free fallback (logged)."""
+def resolve_features(
+    models_dir: Path, name: str | None = None, stored: Collection[str] = ()
+) -> str:
+    """``name``, or for ``None`` / ``"auto"`` the configuration auto picks (logged with the
+    reason): of ``AUTO_CHOICES`` whose models are built and intact, the first that described
+    references ``stored`` holds (the extractor names of a database's references), so that an
+    existing map keeps answering; else the first of them; else the weight-free fallback."""
     if name not in (None, AUTO):
         return name
+    missing = {choice: _missing_models(models_dir, choice) for choice in AUTO_CHOICES}
+    built = [choice for choice, reason in missing.items() if reason is None]
+    first = built[0] if built else FALLBACK_FEATURES
+    kept = next(
+        (
+            choice
+            for choice in (*built, FALLBACK_FEATURES)
+            if any(described_by(get_feature_config(choice), model) for model in stored)
+        ),
+        first,
+    )
+    if kept != first:
+        logger.warning(
+            "features: %s, the features the database's references hold (set SLLOC_FEATURES "
+            "and add the references again to change them)",
+            kept,
+        )
+        return kept
+    if built:
+        return first
+    logger.warning(
+        "features: using the weight-free %s pipeline (%s; `slloc models build` exports %s)",
+        FALLBACK_FEATURES,
+        "; ".join(f"{choice}: {reason}" for choice, reason in missing.items()),
+        " + ".join(PREFERRED_MODELS),
+    )
+    return FALLBACK_FEATURES
+
+
+def _missing_models(models_dir: Path, name: str) -> str | None:
+    """Why configuration ``name``'s models cannot be loaded from ``models_dir`` (not built, a
+    file missing or altered), or None when they can."""
     entries = read_manifest(models_dir)
     try:
-        for model in PREFERRED_MODELS:
+        for model in get_feature_config(name).models:
             if model not in entries:
-                raise ModelsMissingError(f"{model} is not built in {models_dir}")
+                return f"{model} is not built in {models_dir}"
             verified_path(models_dir, entries[model])
-    except (ModelsMissingError, OSError, ValueError) as exc:
-        logger.warning(
-            "features: using the weight-free %s pipeline (%s; `slloc models build` exports "
-            "ALIKED + LightGlue)",
-            FALLBACK_FEATURES,
-            exc,
-        )
-        return FALLBACK_FEATURES
-    return PREFERRED_FEATURES
+    except (OSError, ValueError) as exc:
+        return str(exc)
+    return None
 
 
 def build_localizer(
@@ -146,8 +178,7 @@ def build_localizer(
     ``wide_threads``: the threads of the extractor's session for requests that borrow every
     idle worker (None: none; ``build_features``).
 
-    ``None`` or ``"auto"`` takes ``PREFERRED_FEATURES`` when its models are in ``models_dir``
-    and the weight-free ``FALLBACK_FEATURES`` otherwise (logged with the reason).
+    ``None`` or ``"auto"``: the configuration ``resolve_features`` picks.
 
     Raises:
         UnknownComponentError: ``features`` names no feature configuration.

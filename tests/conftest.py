@@ -20,7 +20,9 @@ from sqlalchemy.engine import make_url
 from app.main import create_app
 from app.settings import Settings
 from services.components import build_localizer
+from services.features.configs import FEATURE_CONFIGS
 from services.pipeline import Localizer
+from services.runtime.manifest import ModelEntry, file_sha256, write_entry
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 POSTGRES_ADMIN_URL = os.environ.get(
@@ -81,6 +83,18 @@ def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str
         yield f"sqlite:///{tmp_path / 'slloc.db'}"
     else:
         yield from fresh_postgres_database(request.getfixturevalue("postgres_admin_url"))
+
+
+def write_model_files(models_dir: Path, *names: str) -> None:
+    """Manifest entries in ``models_dir`` with intact (not loadable) files for the models of
+    feature configurations ``names``: what ``auto`` reads as built."""
+    for model in {m for name in names for m in FEATURE_CONFIGS[name].models}:
+        path = models_dir / f"{model}.onnx"
+        path.write_bytes(model.encode())
+        write_entry(
+            models_dir,
+            ModelEntry(model, "extractor", path.name, file_sha256(path), "", "", {}, {}),
+        )
 
 
 def make_client(

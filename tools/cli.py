@@ -230,7 +230,7 @@ def _openapi(out: Path) -> int:
 
 
 def _reindex(map_name: str) -> int:
-    from app.localizer_factory import build_localizer
+    from app.localizer_factory import build_localizer, served_settings
     from app.usecases.errors import ConflictError, NotFoundError
     from app.usecases.reindex import reindex_map
     from db.migrate import upgrade
@@ -247,6 +247,7 @@ def _reindex(map_name: str) -> int:
             print(f"no map named {map_name!r}", file=sys.stderr)
             return 2
         map_id = row.id
+    settings = served_settings(settings, sessions)
     localizer = build_localizer(settings)
     try:
         out = reindex_map(sessions, localizer, map_id, settings.global_model is None)
@@ -261,7 +262,7 @@ def _reindex(map_name: str) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from app.localizer_factory import build_localizer
+    from app.localizer_factory import build_localizer, served_settings
     from app.usecases.errors import NameTakenError, NotFoundError
     from app.usecases.images import add_reference_image
     from app.usecases.maps import open_map
@@ -320,6 +321,7 @@ def _import(args: argparse.Namespace) -> int:
     )
     for refused in rejected:
         print(f"[refused] {refused.name}: FAILED: {refused.reason}", flush=True)
+    settings = served_settings(settings, sessions)
     localizer = build_localizer(settings)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = stored_meanwhile = 0

@@ -4,6 +4,7 @@ holds it verbatim), written from ``services/features/configs.py``."""
 from __future__ import annotations
 
 from services.features.configs import (
+    AUTO_CHOICES,
     FALLBACK_FEATURES,
     FEATURE_CONFIGS,
     PREFERRED_FEATURES,
@@ -11,7 +12,11 @@ from services.features.configs import (
     FeatureConfig,
 )
 
-_ROLES = {PREFERRED_FEATURES: "auto's choice", FALLBACK_FEATURES: "auto's fallback"}
+_ROLES = {
+    PREFERRED_FEATURES: "auto's choice",
+    AUTO_CHOICES[1]: "auto's second choice",
+    FALLBACK_FEATURES: "auto's fallback",
+}
 
 
 def _features(config: FeatureConfig) -> str:

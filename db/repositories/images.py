@@ -128,6 +128,10 @@ class ImageRepository:
             ).all()
         )
 
+    def feature_models(self) -> set[str]:
+        """The extractors that described the references of every map."""
+        return set(self.session.scalars(select(ReferenceImage.feature_model).distinct()).all())
+
     def page(self, map_id: str, offset: int, limit: int) -> tuple[list[ReferenceImage], int]:
         where = ReferenceImage.map_id == map_id
         total = self.session.scalar(select(func.count()).select_from(ReferenceImage).where(where))

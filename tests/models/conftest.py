@@ -13,10 +13,11 @@ from pathlib import Path
 import pytest
 
 from services.components import ModelStore
-from services.features.configs import PREFERRED_MODELS
+from services.features.configs import FEATURE_CONFIGS
 from services.runtime.manifest import read_manifest
 
 MODELS_DIR = Path(os.environ.get("SLLOC_TEST_MODELS_DIR", "models"))
+ALIKED_MODELS = FEATURE_CONFIGS["aliked"].models
 DISK_MODELS = ("disk", "lightglue-disk")
 XFEAT_MODELS = ("xfeat", "lighterglue-xfeat")
 
@@ -34,7 +35,7 @@ def _store(names: tuple[str, ...]) -> ModelStore:
 
 @pytest.fixture(scope="session")
 def models() -> ModelStore:
-    return _store(PREFERRED_MODELS)
+    return _store(ALIKED_MODELS)
 
 
 @pytest.fixture(scope="session")

@@ -88,7 +88,7 @@ def test_unknown_name_lists_the_known_ones() -> None:
 
 
 def test_auto_prefers_the_models_of_the_preferred_preset() -> None:
-    assert PREFERRED_MODELS == ("aliked-n16", "lightglue-aliked")
+    assert PREFERRED_MODELS == ("xfeat", "lighterglue-xfeat")
     assert FEATURE_CONFIGS[PREFERRED_FEATURES].models == PREFERRED_MODELS
 
 

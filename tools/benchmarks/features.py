@@ -19,7 +19,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from services.components import ModelStore, build_features
@@ -27,7 +26,8 @@ from services.features.base import LocalFeatures
 from services.features.configs import FEATURE_CONFIGS, FeatureConfig
 from services.geometry.epipolar import epipolar_errors
 from services.runtime.manifest import read_manifest
-from tools.evaluation.datasets import PosedImage, redkitchen_dataset
+from tools.benchmarks.images import load_rgb
+from tools.evaluation.datasets import redkitchen_dataset
 
 GAPS = (10, 20, 40)
 STARTS = range(0, 1000, 100)
@@ -53,13 +53,6 @@ def _presets(models: ModelStore, max_keypoints: int | None) -> dict[str, Feature
     return presets
 
 
-def _load(image: PosedImage) -> np.ndarray:
-    bgr = cv2.imread(str(image.image_path))
-    if bgr is None:
-        raise OSError(f"cannot read {image.image_path}")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     root = Path(__file__).resolve().parents[2]
@@ -74,7 +67,7 @@ def main() -> None:
     args = parser.parse_args()
     images = redkitchen_dataset(args.dataset).images
     frames = sorted({s + g for s in STARTS for g in (0, *GAPS) if s + g < len(images)})
-    pixels = {i: _load(images[i]) for i in frames}
+    pixels = {i: load_rgb(images[i].image_path) for i in frames}
     print(f"{len(frames)} frames, {len(STARTS)} pairs per gap; correct = epipolar error < 2 px")
     header = "| preset | extract ms/image | match ms/pair | " + " | ".join(
         f"gap {g}: matches / correct" for g in GAPS

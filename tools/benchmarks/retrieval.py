@@ -21,7 +21,6 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from services.components import ModelsMissingError, ModelStore, build_features
@@ -33,7 +32,8 @@ from services.retrieval.policy import NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.retrieval.vlad import Vocabulary, encode, train_vocabulary
-from services.types import Float32Array, UInt8Array
+from services.types import Float32Array
+from tools.benchmarks.images import load_rgb
 from tools.evaluation.datasets import redkitchen_dataset
 
 NEAR_M, NEAR_DEG = 0.5, 30.0
@@ -60,18 +60,11 @@ def search_times(rng: np.random.Generator) -> None:
             )
 
 
-def _load(path: Path) -> UInt8Array:
-    bgr = cv2.imread(str(path))
-    if bgr is None:
-        raise OSError(f"cannot read {path}")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
-
-
 def recall(dataset: Path, models: Path) -> None:
     images = redkitchen_dataset(dataset).images
     references = images[0:500:5]
     queries = images[500:1000:10]
-    rgb = {i.name: _load(i.image_path) for i in references + queries}
+    rgb = {i.name: load_rgb(i.image_path) for i in references + queries}
     sift = SiftExtractor()
     features = {name: sift.extract(image) for name, image in rgb.items()}
     thumbnail = ThumbnailDescriptor()
