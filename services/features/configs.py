@@ -68,7 +68,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "aliked",
             "aliked-n16",
-            "more accurate than xfeat-lg on some scenes, ~1.2 s a query on two cores",
+            "more accurate than xfeat-lg on some scenes, ~1.4 s a query on two cores",
             lightglue="lightglue-aliked",
             lightglue_pairs=3,
             lightglue_keypoints=512,
@@ -108,7 +108,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
         FeatureConfig(
             "xfeat-lg",
             "xfeat",
-            "the real-time default: ~0.15 s a query on two cores, about aliked's accuracy",
+            "the real-time default: ~0.2 s a query on two cores, about aliked's accuracy",
             lightglue="lighterglue-xfeat",
             lightglue_pairs=2,
             lightglue_keypoints=512,

@@ -46,7 +46,7 @@ class Pair:
     disagreement_deg: float  # image-based relative rotation against the ground truth's
 
 
-def _nearest(query: PosedImage, references: list[PosedImage], k: int) -> list[PosedImage]:
+def nearest(query: PosedImage, references: list[PosedImage], k: int) -> list[PosedImage]:
     def cost(reference: PosedImage) -> float:
         a, b = reference.cam_from_world, query.cam_from_world
         distance = np.linalg.norm(a.center - b.center)
@@ -66,7 +66,9 @@ def _relative(a: PosedImage, b: PosedImage) -> Rigid3d:
     return b.cam_from_world.compose(a.cam_from_world.inverse())
 
 
-class _Features:
+class FeatureCache:
+    """The features of each image, extracted once."""
+
     def __init__(self, extractor: FeatureExtractor) -> None:
         self.extractor = extractor
         self.cache: dict[Path, LocalFeatures] = {}
@@ -78,7 +80,7 @@ class _Features:
 
 
 def compare(
-    query: PosedImage, reference: PosedImage, features: _Features, matcher: Matcher
+    query: PosedImage, reference: PosedImage, features: FeatureCache, matcher: Matcher
 ) -> tuple[int, float] | None:
     """Inliers and the disagreement (°) of the image-based relative rotation with the ground
     truth's, or None below ``MIN_INLIERS``."""
@@ -129,11 +131,11 @@ def main() -> None:
     extractor, matcher = build_features(
         get_feature_config(args.features), ModelStore(args.models_dir)
     )
-    features = _Features(extractor)
+    features = FeatureCache(extractor)
     pairs: list[Pair] = []
     for query in split.queries:
         line = []
-        for reference in _nearest(query, split.references, args.pairs):
+        for reference in nearest(query, split.references, args.pairs):
             found = compare(query, reference, features, matcher)
             if found is None:
                 continue

@@ -54,6 +54,8 @@ class LocalServer:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = {
+            # the malloc arenas scripts/serve.sh and the Docker image run with, unless set
+            "MALLOC_ARENA_MAX": "2",
             **os.environ,
             "SLLOC_DATABASE_URL": f"sqlite:///{self._tmp.name}/slloc.db",
             "SLLOC_API_KEYS": "",
