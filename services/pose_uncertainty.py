@@ -11,7 +11,7 @@ the pose's). Reported as root-mean-square errors: ``position_m = sqrt(trace Σ_C
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -81,12 +81,21 @@ def capped_confidence(
     uncertainty: PoseUncertainty | None,
     options: UncertaintyOptions,
     focal_estimated: bool,
+    stats: Mapping[str, float] | None = None,
 ) -> float:
     """``confidence``, capped at ``options.capped_confidence`` when the 3σ uncertainty exceeds
-    the limits, or when the focal length was estimated and no uncertainty could be computed."""
-    if uncertainty is None:
-        return min(confidence, options.capped_confidence) if focal_estimated else confidence
-    if (
+    the limits, when the focal length was estimated and no uncertainty could be computed, or
+    when ``auto``'s other verified pose lies farther from the answer than the limits
+    (``auto_other_position_m`` / ``auto_other_rotation_deg`` in ``stats``: two poses from the
+    same matches that far apart were each right about half the time on redkitchen)."""
+    stats = stats or {}
+    disagree = (
+        stats.get("auto_other_position_m", 0.0) > options.max_position_3sigma_m
+        or stats.get("auto_other_rotation_deg", 0.0) > options.max_rotation_3sigma_deg
+    )
+    if disagree or (uncertainty is None and focal_estimated):
+        return min(confidence, options.capped_confidence)
+    if uncertainty is not None and (
         3.0 * uncertainty.position_m > options.max_position_3sigma_m
         or 3.0 * uncertainty.rotation_deg > options.max_rotation_3sigma_deg
     ):
@@ -126,6 +135,6 @@ def with_uncertainty(
     if score is not None:
         result = score(result)
     confidence = capped_confidence(
-        result.confidence, uncertainty, options.uncertainty, focal_estimated
+        result.confidence, uncertainty, options.uncertainty, focal_estimated, result.stats
     )
     return replace(result, confidence=confidence), uncertainty

@@ -102,7 +102,8 @@ class UncertaintyOptions:
     Attributes:
         min_points: fewer verified 3D points than this and no uncertainty is computed.
         max_position_3sigma_m: a 3σ (3 × RMS) position uncertainty above this, in map units
-            (metres on a metric map), caps the confidence at ``capped_confidence``.
+            (metres on a metric map), caps the confidence at ``capped_confidence``; so does
+            ``auto``'s other verified pose lying farther than this from the answer.
         max_rotation_3sigma_deg: the same for the rotation, degrees.
         capped_confidence: the cap; also applied when no uncertainty could be computed for a
             pose whose focal length was estimated.

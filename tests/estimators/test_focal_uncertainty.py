@@ -112,3 +112,17 @@ class TestCappedConfidence:
     def test_estimated_focal_without_uncertainty_caps(self) -> None:
         assert capped_confidence(0.97, None, self.OPTIONS, focal_estimated=True) == 0.5
         assert capped_confidence(0.97, None, self.OPTIONS, focal_estimated=False) == 0.97
+
+    @pytest.mark.parametrize(
+        ("position_m", "rotation_deg", "expected"),
+        [(0.24, 6.6, 0.5), (0.31, 1.0, 0.5), (0.12, 2.8, 0.97), (0.25, 5.0, 0.97)],
+    )
+    def test_auto_poses_farther_apart_than_the_limits_cap(
+        self, position_m: float, rotation_deg: float, expected: float
+    ) -> None:
+        small = PoseUncertainty(0.01, 0.2, 100, 1.0)
+        stats = {"auto_other_position_m": position_m, "auto_other_rotation_deg": rotation_deg}
+        capped = capped_confidence(0.97, small, self.OPTIONS, False, stats)
+        assert capped == expected
+        # without an uncertainty too, and whatever the other stats
+        assert capped_confidence(0.97, None, self.OPTIONS, False, {**stats, "x": 1.0}) == expected

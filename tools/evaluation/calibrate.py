@@ -236,8 +236,9 @@ def fit_model(
 
 def answered_confidence(model: ConfidenceModel, stats: dict[str, float], estimator: str) -> float:
     """The confidence the service answers for a localized result with ``stats``: the model's,
-    capped by the pose uncertainty in the stats (``capped_confidence``, default options; the
-    focal length counts as estimated when the stats have ``focal_px``)."""
+    capped by the pose uncertainty and ``auto``'s disagreement in the stats
+    (``capped_confidence``, default options; the focal length counts as estimated when the
+    stats have ``focal_px``)."""
     uncertainty = None
     if "position_sigma_m" in stats and "rotation_sigma_deg" in stats:
         uncertainty = PoseUncertainty(
@@ -247,7 +248,11 @@ def answered_confidence(model: ConfidenceModel, stats: dict[str, float], estimat
             stats.get("uncertainty_sigma_px", 0.0),
         )
     return capped_confidence(
-        model.confidence(stats, estimator), uncertainty, UncertaintyOptions(), "focal_px" in stats
+        model.confidence(stats, estimator),
+        uncertainty,
+        UncertaintyOptions(),
+        "focal_px" in stats,
+        stats,
     )
 
 
