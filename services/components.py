@@ -116,9 +116,10 @@ def resolve_features(
     models_dir: Path, name: str | None = None, stored: Collection[str] = ()
 ) -> str:
     """``name``, or for ``None`` / ``"auto"`` the configuration auto picks (logged with the
-    reason): of ``AUTO_CHOICES`` whose models are built and intact, the first that described
-    references ``stored`` holds (the extractor names of a database's references), so that an
-    existing map keeps answering; else the first of them; else the weight-free fallback."""
+    reason): of ``AUTO_CHOICES`` whose models are built and intact (and the fallback), the
+    first whose extractor described references of ``stored`` (the extractor names of a
+    database's references), so that an existing map keeps answering; else the first of them;
+    else the weight-free fallback."""
     if name not in (None, AUTO):
         return name
     missing = {choice: _missing_models(models_dir, choice) for choice in AUTO_CHOICES}
