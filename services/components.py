@@ -122,17 +122,21 @@ def resolve_features(
     else the weight-free fallback."""
     if name not in (None, AUTO):
         return name
-    missing = {choice: _missing_models(models_dir, choice) for choice in AUTO_CHOICES}
-    built = [choice for choice, reason in missing.items() if reason is None]
-    first = built[0] if built else FALLBACK_FEATURES
-    kept = next(
-        (
-            choice
-            for choice in (*built, FALLBACK_FEATURES)
-            if any(described_by(get_feature_config(choice), model) for model in stored)
-        ),
-        first,
-    )
+    # a model file is hashed to be trusted: check a choice only when the order reaches it
+    missing: dict[str, str | None] = {}
+
+    def built(choice: str) -> bool:
+        if choice == FALLBACK_FEATURES:
+            return True
+        if choice not in missing:
+            missing[choice] = _missing_models(models_dir, choice)
+        return missing[choice] is None
+
+    def held(choice: str) -> bool:
+        return any(described_by(get_feature_config(choice), model) for model in stored)
+
+    first = next((choice for choice in AUTO_CHOICES if built(choice)), FALLBACK_FEATURES)
+    kept = next((c for c in (*AUTO_CHOICES, FALLBACK_FEATURES) if held(c) and built(c)), first)
     if kept != first:
         logger.warning(
             "features: %s, the features the database's references hold (set SLLOC_FEATURES "
@@ -140,7 +144,7 @@ def resolve_features(
             kept,
         )
         return kept
-    if built:
+    if first != FALLBACK_FEATURES:
         return first
     logger.warning(
         "features: using the weight-free %s pipeline (%s; `slloc models build` exports %s)",
