@@ -115,7 +115,7 @@ class TestCappedConfidence:
 
     @pytest.mark.parametrize(
         ("position_m", "rotation_deg", "expected"),
-        [(0.24, 6.6, 0.5), (0.31, 1.0, 0.5), (0.12, 2.8, 0.97), (0.25, 5.0, 0.97)],
+        [(0.24, 4.1, 0.5), (0.31, 1.0, 0.5), (0.12, 2.8, 0.97), (0.25, 4.0, 0.97)],
     )
     def test_auto_poses_farther_apart_than_the_limits_cap(
         self, position_m: float, rotation_deg: float, expected: float
