@@ -18,8 +18,10 @@ poses are compared, and fallbacks tried in order when none of them verifies:
 
 Choosing between verified poses (``choose``): the pose of local triangulation, which ends on a
 2D–3D refinement, is kept unless it has fewer than ``PREFER_RATIO`` times the epipolar inliers of
-the other — then its triangulated structure went wrong (on redkitchen: four queries where
-``local_tri_all`` was 0.4–1 m off with 11–16 % fewer inliers than ``e5p1``).
+the other, or fewer than ``MIN_POINT_INLIER_SHARE`` of its triangulated points fit it — then its
+triangulated structure went wrong (on redkitchen: four queries where ``local_tri_all`` was
+0.4–1 m off with 11–16 % fewer inliers than ``e5p1``; with XFeat, a median share of 0.50 where
+``local_tri_all`` alone missed (10 cm, 10°), 0.83 where both poses made it).
 
 When two or more poses verified, the answer's stats carry how far the others lie from it
 (``agreement_stats``: ``auto_other_position_m``, ``auto_other_rotation_deg``, the largest over
@@ -54,8 +56,9 @@ from services.geometry.rigid import rotation_error_deg
 from services.verification import verify_pose
 
 # local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
-# the other verified pose's
+# the other verified pose's, or fewer of its triangulated points fit it than this share
 PREFER_RATIO = 0.97
+MIN_POINT_INLIER_SHARE = 0.6
 
 
 @dataclass(frozen=True)
@@ -119,9 +122,21 @@ def choose(verified: dict[str, EstimateResult]) -> tuple[str, str]:
     if "local_tri_all" not in verified:
         return best, "the most inliers"
     local, other = verified["local_tri_all"].num_inliers, others[best].num_inliers
-    if local >= PREFER_RATIO * other:
-        return "local_tri_all", f"2D–3D refined, {local} inliers vs {best}'s {other}"
-    return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
+    if local < PREFER_RATIO * other:
+        return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
+    share = point_inlier_share(verified["local_tri_all"])
+    if share < MIN_POINT_INLIER_SHARE:
+        return best, f"{share:.0%} of local_tri_all's triangulated points fit its pose"
+    return "local_tri_all", f"2D–3D refined, {local} inliers vs {best}'s {other}"
+
+
+def point_inlier_share(result: EstimateResult) -> float:
+    """The share of local triangulation's triangulated points that are inliers of its pose
+    (1 when its stats do not say)."""
+    triangulated = result.stats.get("points_triangulated", 0.0)
+    if triangulated <= 0:
+        return 1.0
+    return result.stats.get("points_inliers", triangulated) / triangulated
 
 
 def agreement_stats(verified: dict[str, EstimateResult], chosen: str) -> dict[str, float]:

@@ -153,8 +153,8 @@ def test_plans() -> None:
             get_estimator(name)  # every planned name is registered
 
 
-def _with_inliers(count: int) -> EstimateResult:
-    return EstimateResult(Rigid3d.identity(), [np.arange(4000) < count])
+def _with_inliers(count: int, stats: dict[str, float] | None = None) -> EstimateResult:
+    return EstimateResult(Rigid3d.identity(), [np.arange(4000) < count], stats=stats or {})
 
 
 def test_choose_prefers_local_triangulation_unless_it_lost_inliers() -> None:
@@ -165,6 +165,18 @@ def test_choose_prefers_local_triangulation_unless_it_lost_inliers() -> None:
     assert name == "e5p1" and "384" in why and "344" in why
     assert choose({"e5p1": _with_inliers(10)})[0] == "e5p1"
     assert choose({"motion_averaging": _with_inliers(10), "e3p1": _with_inliers(20)})[0] == "e3p1"
+
+
+@pytest.mark.parametrize(("points_inliers", "expected"), [(240, "local_tri_all"), (236, "e5p1")])
+def test_choose_drops_local_triangulation_whose_points_do_not_fit(
+    points_inliers: float, expected: str
+) -> None:
+    points = {"points_triangulated": 400.0, "points_inliers": points_inliers}
+    verified = {"e5p1": _with_inliers(900), "local_tri_all": _with_inliers(905, points)}
+    name, why = choose(verified)
+    assert name == expected
+    if expected == "e5p1":
+        assert "59%" in why
 
 
 class _AlwaysDegenerate:
