@@ -102,12 +102,13 @@ class UncertaintyOptions:
     Attributes:
         min_points: fewer verified 3D points than this and no uncertainty is computed.
         max_position_3sigma_m: a 3σ (3 × RMS) position uncertainty above this, in map units
-            (metres on a metric map), caps the confidence at ``capped_confidence``; so does
-            ``auto``'s other verified pose lying farther than this from the answer.
+            (metres on a metric map), caps the confidence at ``capped_confidence``.
         max_rotation_3sigma_deg: the same for the rotation, degrees.
-        max_disagreement_deg: ``auto``'s other verified pose turned more than this from the
-            answer caps the confidence too (on redkitchen with ``xfeat-lg``, 5 of 10 answers
-            whose two poses lay 4–5° apart were right, 20 of 23 at 3–4°).
+        max_disagreement_m: ``auto``'s other verified pose lying farther than this from the
+            answer (map units) caps the confidence too.
+        max_disagreement_deg: so does its being turned more than this from the answer (on
+            redkitchen with ``xfeat-lg``, 5 of 10 answers whose two poses lay 4–5° apart were
+            right, 20 of 23 at 3–4°).
         capped_confidence: the cap; also applied when no uncertainty could be computed for a
             pose whose focal length was estimated.
     """
@@ -115,6 +116,7 @@ class UncertaintyOptions:
     min_points: int = 6
     max_position_3sigma_m: float = 0.25
     max_rotation_3sigma_deg: float = 5.0
+    max_disagreement_m: float = 0.25
     max_disagreement_deg: float = 4.0
     capped_confidence: float = 0.5
 
