@@ -208,10 +208,12 @@ class Localizer:
         yet (confidence below ``SEARCH_CONFIDENCE``: a sideways image can give a pose from
         chance matches, which the confidence reads as wrong; and fewer than ``UPRIGHT_INLIERS``
         inliers, which a wrongly turned query does not reach), and each keeps its most
-        confident answer. A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times
-        more than every turn estimated before (learned descriptors match a wrongly turned image
-        5-10x less, rotation-invariant SIFT about as much: estimating it again would not change
-        the answer). Past one attempt, every result has the stages summed over the attempts.
+        confident answer (an answer that failed for want of depth is settled: no turn brings
+        depth). A turn is estimated only when it matches ``TURN_MATCH_GAIN`` times more than
+        every turn estimated before (learned descriptors match a wrongly turned image 5-10x
+        less, rotation-invariant SIFT about as much: estimating it again would not change the
+        answer). Past one attempt, every result has the shared stages summed over the attempts
+        and its own estimation time summed over its own.
 
         ``spare``: the idle workers the query's extraction and matching may borrow (None: they
         run on the calling thread alone)."""
@@ -233,7 +235,15 @@ class Localizer:
         except _OutOfTimeError:
             timings = clock.finish()
             return [_out_of_time(estimator.name, timings) for estimator in chosen]
-        results = [self._estimate(matched, frame, params, e, clock.branch()) for e in chosen]
+        own_ms = [0.0] * len(chosen)  # each estimator's own estimation time, all turns
+
+        def estimate(index: int, matched: _MatchedQuery) -> LocalizationResult:
+            start = time.perf_counter()
+            result = self._estimate(matched, frame, params, chosen[index], clock.branch())
+            own_ms[index] += (time.perf_counter() - start) * 1000.0
+            return result
+
+        results = [estimate(i, matched) for i in range(len(chosen))]
         clock.lap("estimate", check=False)
         attempts = 1
         most_matches = matched.num_matches
@@ -249,10 +259,8 @@ class Localizer:
                 continue  # no better matched than a turn already estimated: not upright
             most_matches = matched.num_matches
             results = [
-                r
-                if _settled(r)
-                else _better(r, self._estimate(matched, frame, params, e, clock.branch()))
-                for r, e in zip(results, chosen, strict=True)
+                r if _settled(r) else _better(r, estimate(i, matched))
+                for i, r in enumerate(results)
             ]
             clock.lap("estimate", check=False)
         summed = clock.finish() if attempts > 1 else None
@@ -260,10 +268,10 @@ class Localizer:
             replace(
                 r,
                 camera_adaptation=frame.adaptation,
-                timings_ms=summed or r.timings_ms,
+                timings_ms=_own_timings(summed, own) if summed else r.timings_ms,
                 stats={**r.stats, "orientation_attempts": float(attempts)},
             )
-            for r in results
+            for r, own in zip(results, own_ms, strict=True)
         ]
 
     def _match(
@@ -405,11 +413,22 @@ TURN_MATCH_GAIN = 1.5
 
 
 def _settled(result: LocalizationResult) -> bool:
-    """No other turn of the query needs trying for this answer: it is confident, or has so
-    many inliers that the query was matched the right way up."""
+    """No other turn of the query needs trying for this answer: it is confident, has so
+    many inliers that the query was matched the right way up, or failed for want of depth,
+    which no turn brings."""
+    if result.reason == FailureReason.MISSING_DEPTH.value:
+        return True
     return result.localized and (
         result.confidence >= SEARCH_CONFIDENCE or result.num_inliers >= UPRIGHT_INLIERS
     )
+
+
+def _own_timings(summed: dict[str, float], own_estimate_ms: float) -> dict[str, float]:
+    """One estimator's stage timings over several turns: the shared stages as ``summed``
+    (all turns), its own estimation time instead of every estimator's, and ``total`` with
+    the other estimators' time taken out."""
+    others_ms = summed["estimate"] - own_estimate_ms
+    return {**summed, "estimate": own_estimate_ms, "total": summed["total"] - others_ms}
 
 
 def _better(a: LocalizationResult, b: LocalizationResult) -> LocalizationResult:

@@ -45,6 +45,9 @@ def test_every_estimator_answers_as_when_run_alone(split: Split, runner: InProce
         assert len(shared) == len(names)
         # one description and matching: the shared stages took the same time for everyone
         assert len({o.timings_ms["match"] for o in shared}) == 1
+        # each its own estimation time: the client time of each holds its own, none negative
+        for outcome in shared:
+            assert outcome.timings_ms["client"] >= outcome.timings_ms["estimate"] > 0
         for name, outcome in zip(names, shared, strict=True):
             alone = runner.localize(
                 image, depth if name in DEPTH_ESTIMATORS else None, {**params, "estimator": name}

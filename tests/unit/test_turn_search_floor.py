@@ -1,18 +1,27 @@
-"""When the search over quarter turns stops for an answer: once it is confident, or once it
+"""When the search over quarter turns stops for an answer: once it is confident, once it
 has so many inliers that the query was matched the right way up (a wrongly turned query
-localizes with none: ``services.pipeline.UPRIGHT_INLIERS``)."""
+localizes with none: ``services.pipeline.UPRIGHT_INLIERS``), or when it failed for want of
+depth, which no turn brings; and the stage timings of several estimators over several turns."""
 
 from __future__ import annotations
 
 import pytest
 
-from services.pipeline import SEARCH_CONFIDENCE, UPRIGHT_INLIERS, LocalizationResult, _settled
+from services.pipeline import (
+    SEARCH_CONFIDENCE,
+    UPRIGHT_INLIERS,
+    LocalizationResult,
+    _own_timings,
+    _settled,
+)
 
 
-def _answer(localized: bool, confidence: float, inliers: int) -> LocalizationResult:
+def _answer(
+    localized: bool, confidence: float, inliers: int, reason: str = "no_consensus"
+) -> LocalizationResult:
     return LocalizationResult(
         localized=localized,
-        reason=None if localized else "no_consensus",
+        reason=None if localized else reason,
         estimator="e5p1",
         cam_from_world=None,
         num_inliers=inliers,
@@ -36,3 +45,15 @@ def test_search_stops_for_confident_or_well_matched_answers(
     localized: bool, confidence: float, inliers: int, settled: bool
 ) -> None:
     assert _settled(_answer(localized, confidence, inliers)) is settled
+
+
+def test_a_failure_for_want_of_depth_is_settled() -> None:
+    assert _settled(_answer(False, 0.0, 0, reason="missing_depth"))
+    assert not _settled(_answer(False, 0.0, 0, reason="too_few_matches"))
+
+
+def test_an_estimators_timings_leave_the_others_estimation_out() -> None:
+    summed = {"decode": 1.0, "extract": 10.0, "retrieve": 2.0, "match": 20.0}
+    summed |= {"estimate": 30.0, "total": 64.0}  # 1 ms between the stages
+    own = _own_timings(summed, 12.0)
+    assert own == {**summed, "estimate": 12.0, "total": 46.0}
