@@ -154,6 +154,31 @@ def confident_answers(posed: list[QueryRecord]) -> dict[str, int]:
     return {"confident": len(confident), "confident_wrong": len(wrong)}
 
 
+def choices(
+    posed: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
+) -> dict[str, dict[str, Any]]:
+    """The localized answers by the estimator whose pose each is (``auto`` names its choice;
+    any other answers as itself), most answers first: their count and the share of them
+    within each threshold."""
+    by_used: dict[str, list[QueryRecord]] = {}
+    for r in posed:
+        if r.localized:
+            by_used.setdefault(r.estimator_used or r.config.rsplit("/", 1)[-1], []).append(r)
+    return {
+        name: {
+            "answers": len(answers),
+            "recall": {
+                recall_key(m, d): sum(
+                    r.position_error_m <= m and r.rotation_error_deg <= d for r in answers
+                )
+                / len(answers)
+                for m, d in thresholds
+            },
+        }
+        for name, answers in sorted(by_used.items(), key=lambda item: -len(item[1]))
+    }
+
+
 def summarize(
     records: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
 ) -> dict[str, Any]:
@@ -178,6 +203,7 @@ def summarize(
         "position_error_m": _percentiles(pos.tolist()),
         "rotation_error_deg": _percentiles(rot.tolist()),
         "failures": dict(Counter(r.reason or "unknown" for r in posed if not r.localized)),
+        "choices": choices(posed, thresholds),
         "timings_ms": {
             stage: _percentiles([r.timings_ms[stage] for r in records if stage in r.timings_ms])
             for stage in STAGES

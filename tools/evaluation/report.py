@@ -1,4 +1,5 @@
-"""Evaluation outputs: Markdown tables, a JSON file, and PNG plots (cumulative error curves per
+"""Evaluation outputs: Markdown tables (accuracy, stage timings, the confidence's precision and
+recall, ``auto``'s choices), a JSON file, and PNG plots (cumulative error curves per
 configuration, per-stage median times, the confidence's precision/recall curve)."""
 
 from __future__ import annotations
@@ -92,7 +93,36 @@ def markdown_tables(
         ),
     ]
     lines += ["", *confidence_table(summaries)]
+    lines += choices_table(summaries, thresholds)
     return "\n".join(lines) + "\n"
+
+
+def choices_table(
+    summaries: dict[str, dict[str, Any]], thresholds: tuple[tuple[float, float], ...]
+) -> list[str]:
+    """Whose poses the configurations that choose an estimator per query (``auto``) answered
+    with, and how many of each were within each threshold; nothing without such a one."""
+    rows = []
+    for config, s in summaries.items():
+        asked = config.rsplit("/", 1)[-1]
+        if set(s["choices"]) <= {asked}:
+            continue
+        for name, chosen in s["choices"].items():
+            recall = chosen["recall"]
+            cells = [f"{recall[recall_key(m, d)] * 100:.1f} %" for m, d in thresholds]
+            rows.append(f"| {config} | {name} | {chosen['answers']} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    heads = [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
+    return [
+        "",
+        "Choices: the localized answers by the estimator whose pose each is, and the share of "
+        "them within each threshold:",
+        "",
+        "| configuration | pose of | answers | " + " | ".join(heads) + " |",
+        "|---|---|---|" + "---|" * len(heads),
+        *rows,
+    ]
 
 
 def confidence_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
