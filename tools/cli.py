@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "models":
         return _models_build(args)
     if args.command in ("eval", "bench"):
-        missing = _missing_modules("httpx", "matplotlib")
+        missing = _missing_modules("httpx", "matplotlib", "scipy")
         if missing:
             print(
                 f"slloc {args.command} needs the optional evaluation tools ({', '.join(missing)} "

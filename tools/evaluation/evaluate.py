@@ -23,6 +23,7 @@ from tools.evaluation.metrics import (
     make_record,
     summarize,
 )
+from tools.evaluation.paired import paired_against_auto
 from tools.evaluation.report import markdown_tables, write_json, write_plots
 from tools.evaluation.runner import QueryOutcome, Runner
 from tools.evaluation.split import Split
@@ -262,6 +263,8 @@ def write_outputs(
         summary = summarize(records, thresholds)
         summary["confidence"] = curve_summary(curve_of(records))
         evaluation.summaries[config] = summary
+    for config, against in paired_against_auto(evaluation.records, thresholds).items():
+        evaluation.summaries[config]["paired"] = against
     evaluation.markdown = markdown_tables(evaluation.summaries, thresholds)
     out_dir.mkdir(parents=True, exist_ok=True)
     meta = {**meta, "interrupted": evaluation.interrupted, "error": evaluation.error}

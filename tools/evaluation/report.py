@@ -1,6 +1,7 @@
 """Evaluation outputs: Markdown tables (accuracy, stage timings, the confidence's precision and
-recall, ``auto``'s choices), a JSON file, and PNG plots (cumulative error curves per
-configuration, per-stage median times, the confidence's precision/recall curve)."""
+recall, ``auto``'s choices and its paired comparison with each estimator), a JSON file, and
+PNG plots (cumulative error curves per configuration, per-stage median times, the
+confidence's precision/recall curve)."""
 
 from __future__ import annotations
 
@@ -94,6 +95,7 @@ def markdown_tables(
     ]
     lines += ["", *confidence_table(summaries)]
     lines += choices_table(summaries, thresholds)
+    lines += paired_table(summaries, thresholds)
     return "\n".join(lines) + "\n"
 
 
@@ -150,6 +152,36 @@ def confidence_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
         )
         lines.append("| " + " | ".join([config, *cells, wrong]) + " |")
     return lines
+
+
+def paired_table(
+    summaries: dict[str, dict[str, Any]], thresholds: tuple[tuple[float, float], ...]
+) -> list[str]:
+    """``auto`` against each other estimator (``tools.evaluation.paired``); nothing without
+    ``auto`` and another estimator."""
+    rows = []
+    for config, s in summaries.items():
+        for other, cells in s.get("paired", {}).items():
+            texts = []
+            for m, d in thresholds:
+                cell = cells[recall_key(m, d)]
+                texts.append(
+                    f"{cell['auto_only']} / {cell['other_only']} (p {cell['p_value']:.2f})"
+                )
+            rows.append(f"| {config} | {other} | " + " | ".join(texts) + " |")
+    if not rows:
+        return []
+    heads = [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
+    return [
+        "",
+        "`auto` against each estimator on the same queries: those only `auto` got within the "
+        "threshold / those only the other got (two-sided sign test: the chance of a gap at "
+        "least as large if neither were better):",
+        "",
+        "| configuration | against | " + " | ".join(heads) + " |",
+        "|---|---|" + "---|" * len(heads),
+        *rows,
+    ]
 
 
 def _json_safe(value: Any) -> Any:
