@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+from tests.evaluation.records import hand_made
 from tools.evaluation.metrics import QueryRecord, summarize
 from tools.evaluation.report import choices_table
 
@@ -12,21 +13,7 @@ THRESHOLDS = ((0.05, 5.0), (0.25, 2.0))
 
 
 def _record(config: str, used: str | None, pos: float, rot: float) -> QueryRecord:
-    localized = math.isfinite(pos)
-    return QueryRecord(
-        config=config,
-        query="q",
-        localized=localized,
-        reason=None if localized else "no_consensus",
-        position_error_m=pos,
-        rotation_error_deg=rot,
-        num_inliers=0,
-        confidence=0.0,
-        timings_ms={},
-        retrieved=[],
-        cam_from_world=None,
-        estimator_used=used,
-    )
+    return hand_made(config, "q", pos, rot, estimator_used=used)
 
 
 def test_choices_count_each_estimators_answers_and_their_recall() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.evaluation.records import hand_made
 from tools.evaluation.confidence_curve import curve_of, precision_recall
 from tools.evaluation.metrics import QueryRecord
 
@@ -32,20 +33,7 @@ def test_failures_are_never_accepted() -> None:
 
 
 def _record(localized: bool, pos: float, rot: float, conf: float, unrelated: bool) -> QueryRecord:
-    return QueryRecord(
-        config="c",
-        query="q",
-        localized=localized,
-        reason=None if localized else "no_consensus",
-        position_error_m=pos,
-        rotation_error_deg=rot,
-        num_inliers=0,
-        confidence=conf,
-        timings_ms={},
-        retrieved=[],
-        cam_from_world=None,
-        unrelated=unrelated,
-    )
+    return hand_made(pos=pos, rot=rot, localized=localized, confidence=conf, unrelated=unrelated)
 
 
 @pytest.mark.parametrize("unrelated_conf", [0.5, 0.99])

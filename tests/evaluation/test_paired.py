@@ -7,6 +7,7 @@ import math
 
 import pytest
 
+from tests.evaluation.records import hand_made
 from tools.evaluation.metrics import QueryRecord
 from tools.evaluation.paired import paired_against_auto
 from tools.evaluation.report import paired_table
@@ -15,21 +16,7 @@ THRESHOLDS = ((0.05, 5.0), (0.25, 2.0))
 
 
 def _record(config: str, query: str, pos: float, rot: float, **flags: bool) -> QueryRecord:
-    localized = math.isfinite(pos)
-    return QueryRecord(
-        config=config,
-        query=query,
-        localized=localized,
-        reason=None if localized else "no_consensus",
-        position_error_m=pos,
-        rotation_error_deg=rot,
-        num_inliers=0,
-        confidence=0.0,
-        timings_ms={},
-        retrieved=[],
-        cam_from_world=None,
-        **flags,
-    )
+    return hand_made(config, query, pos, rot, **flags)
 
 
 def _records() -> list[QueryRecord]:

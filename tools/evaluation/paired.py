@@ -22,8 +22,8 @@ def paired_against_auto(
 ) -> dict[str, dict[str, dict[str, dict[str, Any]]]]:
     """For every ``features/auto`` configuration, each other estimator of the same features:
     per threshold, ``auto_only`` and ``other_only`` (queries only that one got within it) and
-    ``p_value``. Queries with ground truth only (no unrelated images or wrong intrinsics), and
-    those both answered or failed."""
+    ``p_value``, over the queries both were asked that have ground truth (unrelated images
+    and wrong-intrinsics copies left out); a failure is within no threshold."""
     by_config: dict[str, dict[str, QueryRecord]] = {}
     for r in records:
         if not r.unrelated and not r.wrong_intrinsics:

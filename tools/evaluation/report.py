@@ -113,18 +113,12 @@ def choices_table(
             recall = chosen["recall"]
             cells = [f"{recall[recall_key(m, d)] * 100:.1f} %" for m, d in thresholds]
             rows.append(f"| {config} | {name} | {chosen['answers']} | " + " | ".join(cells) + " |")
-    if not rows:
-        return []
-    heads = [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
-    return [
-        "",
+    return _table(
         "Choices: the localized answers by the estimator whose pose each is, and the share of "
         "them within each threshold:",
-        "",
-        "| configuration | pose of | answers | " + " | ".join(heads) + " |",
-        "|---|---|---|" + "---|" * len(heads),
-        *rows,
-    ]
+        ["configuration", "pose of", "answers", *_threshold_heads(thresholds)],
+        rows,
+    )
 
 
 def confidence_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
@@ -169,19 +163,24 @@ def paired_table(
                     f"{cell['auto_only']} / {cell['other_only']} (p {cell['p_value']:.2f})"
                 )
             rows.append(f"| {config} | {other} | " + " | ".join(texts) + " |")
-    if not rows:
-        return []
-    heads = [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
-    return [
-        "",
+    return _table(
         "`auto` against each estimator on the same queries: those only `auto` got within the "
         "threshold / those only the other got (two-sided sign test: the chance of a gap at "
         "least as large if neither were better):",
-        "",
-        "| configuration | against | " + " | ".join(heads) + " |",
-        "|---|---|" + "---|" * len(heads),
-        *rows,
-    ]
+        ["configuration", "against", *_threshold_heads(thresholds)],
+        rows,
+    )
+
+
+def _threshold_heads(thresholds: tuple[tuple[float, float], ...]) -> list[str]:
+    return [f"({m * 100:g} cm, {d:g}°)" for m, d in thresholds]
+
+
+def _table(intro: str, heads: list[str], rows: list[str]) -> list[str]:
+    """A titled Markdown table after a blank line; nothing without rows."""
+    if not rows:
+        return []
+    return ["", intro, "", "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads), *rows]
 
 
 def _json_safe(value: Any) -> Any:
