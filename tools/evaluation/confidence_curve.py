@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.types import BoolArray, FloatArray
-from tools.evaluation.metrics import QueryRecord
+from tools.evaluation.metrics import QueryRecord, within
 
 TARGET = (0.25, 5.0)
 REPORTED_THRESHOLDS = (0.5, 0.8, 0.9, 0.95)
@@ -71,13 +71,7 @@ def curve_of(records: list[QueryRecord], target: tuple[float, float] = TARGET) -
     """The curve of one configuration's records."""
     max_m, max_deg = target
     correct = np.array(
-        [
-            r.localized
-            and not r.unrelated
-            and r.position_error_m <= max_m
-            and r.rotation_error_deg <= max_deg
-            for r in records
-        ],
+        [r.localized and not r.unrelated and within(r, max_m, max_deg) for r in records],
         bool,
     )
     return precision_recall(

@@ -116,6 +116,12 @@ def make_record(
     return record
 
 
+def within(record: QueryRecord, max_m: float, max_deg: float) -> bool:
+    """The record's pose lies within ``max_m`` and ``max_deg`` of the truth (a failure's
+    errors are infinite: never)."""
+    return record.position_error_m <= max_m and record.rotation_error_deg <= max_deg
+
+
 def recall_key(max_m: float, max_deg: float) -> str:
     return f"{max_m * 100:g}cm_{max_deg:g}deg"
 
@@ -146,11 +152,7 @@ def confident_answers(posed: list[QueryRecord]) -> dict[str, int]:
     """``confident``: localized answers with confidence above ``CONFIDENT``;
     ``confident_wrong``: those more than ``WRONG_M`` or ``WRONG_DEG`` off."""
     confident = [r for r in posed if r.localized and r.confidence > CONFIDENT]
-    wrong = [
-        r
-        for r in confident
-        if not (r.position_error_m <= WRONG_M and r.rotation_error_deg <= WRONG_DEG)
-    ]
+    wrong = [r for r in confident if not within(r, WRONG_M, WRONG_DEG)]
     return {"confident": len(confident), "confident_wrong": len(wrong)}
 
 
@@ -168,10 +170,7 @@ def choices(
         name: {
             "answers": len(answers),
             "recall": {
-                recall_key(m, d): sum(
-                    r.position_error_m <= m and r.rotation_error_deg <= d for r in answers
-                )
-                / len(answers)
+                recall_key(m, d): sum(within(r, m, d) for r in answers) / len(answers)
                 for m, d in thresholds
             },
         }
@@ -210,9 +209,7 @@ def summarize(
         },
         "localizable_queries": len(easy),
         "localizable_recall_10cm_5deg": (
-            sum(r.position_error_m <= lm and r.rotation_error_deg <= ld for r in easy) / len(easy)
-            if easy
-            else 0.0
+            sum(within(r, lm, ld) for r in easy) / len(easy) if easy else 0.0
         ),
         "retrieval_covered_queries": len(covered),
         "retrieval_recall": sum(r.retrieval_hit for r in covered) / len(covered)

@@ -8,13 +8,9 @@ from typing import Any
 
 from scipy.stats import binomtest
 
-from tools.evaluation.metrics import QueryRecord, recall_key
+from tools.evaluation.metrics import QueryRecord, recall_key, within
 
 CHOOSER = "auto"
-
-
-def _within(record: QueryRecord, max_m: float, max_deg: float) -> bool:
-    return record.position_error_m <= max_m and record.rotation_error_deg <= max_deg
 
 
 def paired_against_auto(
@@ -40,8 +36,8 @@ def paired_against_auto(
             common = chosen.keys() & other.keys()
             cells: dict[str, dict[str, Any]] = {}
             for m, d in thresholds:
-                auto_only = sum(_within(chosen[q], m, d) > _within(other[q], m, d) for q in common)
-                other_only = sum(_within(other[q], m, d) > _within(chosen[q], m, d) for q in common)
+                auto_only = sum(within(chosen[q], m, d) > within(other[q], m, d) for q in common)
+                other_only = sum(within(other[q], m, d) > within(chosen[q], m, d) for q in common)
                 discordant = auto_only + other_only
                 cells[recall_key(m, d)] = {
                     "auto_only": auto_only,
