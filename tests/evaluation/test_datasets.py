@@ -72,22 +72,27 @@ def test_colmap_adapter(eval_views: list[SyntheticView], tmp_path: Path) -> None
     assert dataset.images[0].camera == views[0].camera
 
 
-def test_redkitchen_adapter(eval_views: list[SyntheticView], tmp_path: Path) -> None:
-    """Camera-to-world rows in, cam_from_world out; depth only where the file exists; the
-    README's split as the default."""
-    views = eval_views[:12]
-    (tmp_path / "images").mkdir()
-    (tmp_path / "depth").mkdir()
-    with (tmp_path / "poses_c2w.csv").open("w", newline="") as f:
+def write_redkitchen(root: Path, views: list[SyntheticView], poses: str = "poses_c2w.csv") -> None:
+    """``views`` in the redkitchen layout, their poses in ``root / poses``."""
+    (root / "images").mkdir(exist_ok=True)
+    (root / "depth").mkdir(exist_ok=True)
+    with (root / poses).open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["image", *(f"T_c2w_{r}{c}" for r in range(3) for c in range(4))])
         for i, view in enumerate(views):
             name = f"frame-{i:06d}.color.jpg"
-            (tmp_path / "images" / name).write_bytes(b"jpeg")
+            (root / "images" / name).write_bytes(b"jpeg")
             if i % 5 == 0:
-                (tmp_path / "depth" / f"frame-{i:06d}.depth.png").write_bytes(b"png")
+                (root / "depth" / f"frame-{i:06d}.depth.png").write_bytes(b"png")
             world_from_cam = view.cam_from_world.inverse().matrix
             writer.writerow([f"images/{name}", *(f"{v:.17g}" for v in world_from_cam.ravel())])
+
+
+def test_redkitchen_adapter(eval_views: list[SyntheticView], tmp_path: Path) -> None:
+    """Camera-to-world rows in, cam_from_world out; depth only where the file exists; the
+    README's split as the default."""
+    views = eval_views[:12]
+    write_redkitchen(tmp_path, views)
     dataset = open_dataset(tmp_path)
     assert [image.name for image in dataset.images] == [
         f"frame-{i:06d}.color.jpg" for i in range(12)
@@ -103,6 +108,28 @@ def test_redkitchen_adapter(eval_views: list[SyntheticView], tmp_path: Path) -> 
     assert [image.name for image in split.references] == [
         dataset.images[i].name for i in (0, 5, 10)
     ]
+
+
+def test_redkitchen_ground_truth_choice(eval_views: list[SyntheticView], tmp_path: Path) -> None:
+    """The colour camera's poses (poses_c2w_sfm.csv) by default where they exist; --poses
+    picks either file; a missing file or --poses on another layout is refused."""
+    write_redkitchen(tmp_path, eval_views[:6])
+    write_redkitchen(tmp_path, eval_views[6:12], "poses_c2w_sfm.csv")
+    assert_same_poses_as(open_dataset(tmp_path).images, eval_views[6:12])
+    assert_same_poses_as(open_dataset(tmp_path, poses="poses_c2w.csv").images, eval_views[:6])
+    with pytest.raises(ValueError, match="no ground-truth file"):
+        open_dataset(tmp_path, poses="missing.csv")
+    (tmp_path / "poses_c2w_sfm.csv").unlink()
+    assert_same_poses_as(open_dataset(tmp_path).images, eval_views[:6])
+    with pytest.raises(ValueError, match="redkitchen-layout folder only"):
+        open_dataset(tmp_path / "images", poses="poses_c2w.csv")
+
+
+def assert_same_poses_as(images: list[PosedImage], views: list[SyntheticView]) -> None:
+    for image, view in zip(images, views, strict=True):
+        np.testing.assert_allclose(
+            image.cam_from_world.matrix, view.cam_from_world.matrix, atol=1e-9
+        )
 
 
 def test_unknown_layout(tmp_path: Path) -> None:

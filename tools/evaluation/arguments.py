@@ -27,6 +27,11 @@ def add_dataset_arguments(parser: argparse.ArgumentParser, required: bool) -> No
     )
     parser.add_argument("--images", type=Path, help="image folder of a COLMAP model")
     parser.add_argument(
+        "--poses",
+        help="a redkitchen folder's ground-truth file (default: poses_c2w_sfm.csv, the colour "
+        "camera's, where it exists; poses_c2w.csv is the depth camera's track)",
+    )
+    parser.add_argument(
         "--references",
         help='reference rule, e.g. "range:0-499 every:5", "list:refs.txt", "rest" '
         "(default: the dataset's suggestion, else everything but the queries)",

@@ -367,7 +367,9 @@ def bench_main(args: argparse.Namespace) -> int:
         if args.dataset is not None:
             try:
                 split = split_dataset(
-                    open_dataset(args.dataset, args.images), args.references, args.queries
+                    open_dataset(args.dataset, args.images, args.poses),
+                    args.references,
+                    args.queries,
                 )
             except (OSError, ValueError) as exc:
                 print(f"slloc bench: {exc}", file=sys.stderr)

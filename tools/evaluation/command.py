@@ -60,7 +60,7 @@ def _log(line: str) -> None:
 def eval_main(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(logging.WARNING)  # per-image INFO lines would drown progress
     try:
-        dataset = open_dataset(args.dataset, args.images)
+        dataset = open_dataset(args.dataset, args.images, args.poses)
         split = split_dataset(dataset, args.references, args.queries)
         estimators = _names(args.estimators, estimator_names(), "estimators")
         settings = get_settings()

@@ -76,11 +76,28 @@ def csv_dataset(path: Path) -> Dataset:
     return Dataset(path.stem, _from_items(read_csv(path)))
 
 
-def redkitchen_dataset(root: Path) -> Dataset:
+REDKITCHEN_POSES = "poses_c2w.csv"  # the depth camera's track (KinectFusion)
+# the colour camera's Structure-from-Motion poses: the ground truth to tune and compare on
+# (``poses_c2w.csv`` sits 2.2° and 6 cm off the colour camera)
+REDKITCHEN_SFM_POSES = "poses_c2w_sfm.csv"
+
+
+def redkitchen_dataset(root: Path, poses: str | None = None) -> Dataset:
     """The redkitchen layout: ``images/frame-NNNNNN.color.jpg``, ``depth/frame-NNNNNN.depth.png``
-    (every 5th frame) and ``poses_c2w.csv`` (camera-to-world 3×4 rows), frames in order."""
+    (every 5th frame) and camera-to-world 3×4 rows, frames in order, from ``poses`` (a file
+    name in ``root``; default: ``poses_c2w_sfm.csv`` where it exists, else ``poses_c2w.csv``).
+
+    Raises:
+        ValueError: ``poses`` names no file in ``root``.
+    """
+    if poses is None:
+        poses = (
+            REDKITCHEN_SFM_POSES if (root / REDKITCHEN_SFM_POSES).is_file() else REDKITCHEN_POSES
+        )
+    if not (root / poses).is_file():
+        raise ValueError(f"{root}: no ground-truth file {poses!r}")
     images = []
-    with (root / "poses_c2w.csv").open(newline="") as f:
+    with (root / poses).open(newline="") as f:
         for row in csv.DictReader(f):
             name = Path(row["image"]).name
             m = np.array([float(row[f"T_c2w_{r}{c}"]) for r in range(3) for c in range(4)])
@@ -103,17 +120,21 @@ def redkitchen_dataset(root: Path) -> Dataset:
     return Dataset(root.name, images, "range:0-499 every:5", "range:500-999 every:10")
 
 
-def open_dataset(path: Path, images: Path | None = None) -> Dataset:
-    """The adapter by layout: a ``.csv`` file; a folder with ``poses_c2w.csv`` (redkitchen);
-    a COLMAP model folder (``cameras.txt``/``cameras.bin``, needs ``images``).
+def open_dataset(path: Path, images: Path | None = None, poses: str | None = None) -> Dataset:
+    """The adapter by layout: a ``.csv`` file; a folder with ``poses_c2w.csv`` (redkitchen,
+    its ground truth from ``poses``, see ``redkitchen_dataset``); a COLMAP model folder
+    (``cameras.txt``/``cameras.bin``, needs ``images``).
 
     Raises:
-        ValueError: the layout is not recognised, or a COLMAP model comes without ``images``.
+        ValueError: the layout is not recognised, a COLMAP model comes without ``images``, or
+            ``poses`` is given for another layout than redkitchen's.
     """
+    if poses is not None and not (path / REDKITCHEN_POSES).is_file():
+        raise ValueError(f"{path}: --poses applies to a redkitchen-layout folder only")
     if path.is_file() and path.suffix.lower() == ".csv":
         return csv_dataset(path)
-    if (path / "poses_c2w.csv").is_file():
-        return redkitchen_dataset(path)
+    if (path / REDKITCHEN_POSES).is_file():
+        return redkitchen_dataset(path, poses)
     if (path / "cameras.txt").is_file() or (path / "cameras.bin").is_file():
         if images is None:
             raise ValueError(f"{path} is a COLMAP model: give its image folder with --images")
