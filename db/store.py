@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import math
 from collections import defaultdict
 from collections.abc import Callable
 
@@ -15,11 +17,13 @@ from db.vocabulary import VLAD_KIND
 from services.features.base import LocalFeatures
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
-from services.geometry.rigid import Rigid3d
+from services.geometry.rigid import Rigid3d, pose_problem
 from services.reference_cache import CachedFeatures, ReferenceFeatureCache
 from services.references import ReferenceView
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.contracts import RetrievalIndex, VocabularyState, empty_index
+
+logger = logging.getLogger(__name__)
 
 
 def camera_of(row: ReferenceImage) -> Camera:
@@ -30,6 +34,23 @@ def pose_of(row: ReferenceImage) -> Rigid3d:
     return Rigid3d.from_quaternion(
         np.array([row.qw, row.qx, row.qy, row.qz]), np.array([row.tx, row.ty, row.tz])
     )
+
+
+def unusable(row: ReferenceImage) -> str | None:
+    """Why a stored reference cannot take part in a localization, or None: a pose or
+    intrinsics out of the range that adds accept now (a row stored before they were checked,
+    or written by hand), which would only turn into overflows in the estimators."""
+    problem = pose_problem(
+        np.array([row.qw, row.qx, row.qy, row.qz], dtype=np.float64),
+        np.array([row.tx, row.ty, row.tz], dtype=np.float64),
+    )
+    if problem is not None:
+        return problem
+    if not all(math.isfinite(float(v)) for v in row.camera_params):
+        return "camera parameters must be finite numbers"
+    if row.width <= 0 or row.height <= 0:
+        return "camera size must be positive"
+    return None
 
 
 def gps_of(row: ReferenceImage) -> GpsFix | None:
@@ -149,6 +170,15 @@ class SqlReferenceStore:
         for image_id in image_ids:
             image = images.get(image_id)
             if image is None:  # deleted since retrieval
+                continue
+            problem = unusable(image)
+            if problem is not None:
+                logger.warning(
+                    "map %s: reference %s left out of the localization: %s",
+                    self.map_id,
+                    image.id,
+                    problem,
+                )
                 continue
             camera = camera_of(image)
             entry = cached[image_id] or self._decoded(image_id, camera, arrays, generation)

@@ -16,6 +16,9 @@ from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputEr
 from services.jpeg_integrity import check_jpeg_complete
 from services.types import Float32Array, UInt8Array
 
+# depth beyond this is read as unknown: no sensor or stereo rig measures it, and its squares
+# would overflow float32 in the estimators
+MAX_DEPTH_M = 1e6
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 # libjpeg decodes at 1/2, 1/4 or 1/8 scale from the DCT coefficients, never holding the full
 # image: OpenCV's reduced-colour flags, largest reduction first
@@ -122,7 +125,8 @@ def decode_image_reduced(data: bytes, max_pixels: int, min_side: int | None) -> 
 def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> Float32Array:
     """Decode a depth map: 16-bit PNG in millimetres or ``.npy`` float32 in metres.
 
-    Invalid depth (0, 65535, non-finite, negative) becomes 0. The map must match the image size.
+    Invalid depth (0, 65535, non-finite, negative, beyond ``MAX_DEPTH_M``) becomes 0. The map
+    must match the image size.
 
     Returns:
         (H, W) float32 depth in metres, 0 where unknown.
@@ -140,7 +144,7 @@ def decode_depth(data: bytes, width: int, height: int, max_pixels: int) -> Float
         depth = raw.astype(np.float32) / 1000.0
         depth[raw == 65535] = 0.0
     _check_depth_size(depth.shape[1], depth.shape[0], width, height)
-    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    depth[~np.isfinite(depth) | (depth < 0) | (depth > MAX_DEPTH_M)] = 0.0
     out: Float32Array = depth
     return out
 

@@ -16,7 +16,7 @@ from services.geometry.camera import (
     Camera,
     check_plausible,
 )
-from services.geometry.rigid import Rigid3d
+from services.geometry.rigid import MAX_TRANSLATION_M, Rigid3d, pose_problem
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 CameraModelName = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
@@ -88,7 +88,12 @@ class PoseSchema(BaseModel):
     rotation: list[FiniteFloat] = Field(
         min_length=4, max_length=4, description="unit quaternion [w, x, y, z]"
     )
-    translation: list[FiniteFloat] = Field(min_length=3, max_length=3)
+    translation: list[FiniteFloat] = Field(
+        min_length=3,
+        max_length=3,
+        description=f"metres (map units); on input |translation| (the camera centre's "
+        f"distance from the map's origin) at most {MAX_TRANSLATION_M:g}",
+    )
 
     @field_validator("rotation")
     @classmethod
@@ -98,12 +103,21 @@ class PoseSchema(BaseModel):
             raise ValueError(f"rotation must be a unit quaternion (norm {norm:.6g})")
         return q
 
+    @model_validator(mode="after")
+    def _physical(self) -> PoseSchema:
+        problem = pose_problem(np.array(self.rotation), np.array(self.translation))
+        if problem is not None:
+            raise ValueError(problem)
+        return self
+
     def to_rigid(self) -> Rigid3d:
         return Rigid3d.from_quaternion(np.array(self.rotation), np.array(self.translation))
 
     @classmethod
     def from_rigid(cls, pose: Rigid3d) -> PoseSchema:
-        return cls(
+        """A pose as the service answers it (not checked: an estimate or a stored pose is
+        answered as it is)."""
+        return cls.model_construct(
             rotation=[float(v) for v in pose.quaternion],
             translation=[float(v) for v in pose.translation],
         )

@@ -54,6 +54,38 @@ def matrix_to_quaternion(R: FloatArray) -> FloatArray:
     return qa if qa[0] >= 0 else -qa
 
 
+# a stored camera pose is at most this far from its map's origin (|translation| of
+# ``cam_from_world`` is the camera centre's distance from it): about the Earth's diameter, so
+# that even a map in Earth-centred coordinates fits, while magnitudes whose squares overflow
+# (1e155 and up) never reach the estimators
+MAX_TRANSLATION_M = 1e7
+# a quaternion is normalised when read; farther than this from unit norm it is refused
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def pose_problem(quaternion: FloatArray, translation: FloatArray) -> str | None:
+    """Why a camera pose ``[w, x, y, z]``, ``t`` cannot be stored, or None when it can: every
+    number finite, a unit quaternion (within ``QUATERNION_NORM_TOLERANCE``) and
+    ``|t| <= MAX_TRANSLATION_M``."""
+    q = np.asarray(quaternion, dtype=np.float64)
+    t = np.asarray(translation, dtype=np.float64)
+    if q.shape != (4,) or t.shape != (3,):
+        return "a pose is a quaternion of 4 numbers and a translation of 3"
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        return "pose values must be finite numbers"
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        return f"rotation must be a unit quaternion (norm {norm:.6g})"
+    with np.errstate(over="ignore"):  # a square may overflow to inf: beyond the range
+        distance = float(np.linalg.norm(t))
+    if not distance <= MAX_TRANSLATION_M:
+        return (
+            f"|translation| = {distance:.6g} m is beyond the physical range: a camera lies "
+            f"within {MAX_TRANSLATION_M:g} m of its map's origin"
+        )
+    return None
+
+
 @dataclass(frozen=True)
 class Rigid3d:
     """``x_dst = rotation @ x_src + translation``.

@@ -1,0 +1,132 @@
+"""Issue "Holds under every fault": values out of their physical range are refused where they
+enter (422), a bad stored row never turns into a 500, and oversized images are 413 on add as on
+localize; on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from numpy.lib import format as npy_format
+from sqlalchemy import create_engine, update
+
+from db.models import ReferenceImage
+from services.imaging import MAX_DEPTH_M, decode_depth
+from tests.conftest import create_map, image_metadata, upload_view
+from tools.synthetic.scene import SyntheticView, encode_png
+
+PROBLEM = "application/problem+json"
+
+
+def _assert_problem(response: object, status: int, kind: str = "invalid-input") -> dict:  # type: ignore[type-arg]
+    assert response.status_code == status, response.text  # type: ignore[attr-defined]
+    assert response.headers["content-type"] == PROBLEM  # type: ignore[attr-defined]
+    problem: dict = response.json()  # type: ignore[attr-defined,type-arg]
+    assert problem["type"].endswith("/" + kind), problem
+    assert problem["detail"]
+    return problem
+
+
+def _post_image(
+    client: TestClient, map_id: str, image: bytes, metadata: dict[str, object]
+) -> object:
+    return client.post(
+        f"/v1/maps/{map_id}/images",
+        files={"image": ("i.png", image, "image/png")},
+        data={"metadata": json.dumps(metadata)},
+    )
+
+
+def _localize(client: TestClient, map_id: str, view: SyntheticView, **params: object) -> object:
+    return client.post(
+        f"/v1/maps/{map_id}/localize",
+        files={"image": ("q.png", encode_png(view.image), "image/png")},
+        data={"params": json.dumps(params)},
+    )
+
+
+@pytest.mark.parametrize(
+    "translation",
+    [[1e155, 0.0, 0.0], [1e200, 1e200, 1e200], [0.0, 0.0, 1.0001e7], [6e6, 6e6, 6e6]],
+)
+def test_translation_beyond_the_physical_range_is_422(
+    client: TestClient, reference_views: list[SyntheticView], translation: list[float]
+) -> None:
+    map_id = create_map(client)
+    view = reference_views[0]
+    metadata = image_metadata(view)
+    metadata["cam_from_world"]["translation"] = translation  # type: ignore[index]
+    problem = _assert_problem(_post_image(client, map_id, encode_png(view.image), metadata), 422)
+    assert "translation" in problem["detail"] and "1e+07 m" in problem["detail"]
+    assert client.get(f"/v1/maps/{map_id}/images").json()["total"] == 0
+
+
+def test_translation_within_the_physical_range_is_stored(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    """A map in Earth-centred coordinates: cameras about 6,400 km from the origin."""
+    map_id = create_map(client)
+    view = reference_views[0]
+    metadata = image_metadata(view)
+    metadata["cam_from_world"]["translation"] = [4e6, 3e6, 4e6]  # type: ignore[index]
+    response = _post_image(client, map_id, encode_png(view.image), metadata)
+    assert response.status_code == 201, response.text  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("rotation", [[0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]])
+def test_rotation_that_is_no_unit_quaternion_is_422(
+    client: TestClient, reference_views: list[SyntheticView], rotation: list[float]
+) -> None:
+    map_id = create_map(client)
+    view = reference_views[0]
+    metadata = image_metadata(view)
+    metadata["cam_from_world"]["rotation"] = rotation  # type: ignore[index]
+    problem = _assert_problem(_post_image(client, map_id, encode_png(view.image), metadata), 422)
+    assert "unit quaternion" in problem["detail"]
+
+
+def test_stored_reference_with_an_overflowing_pose_is_left_out_not_500(
+    client: TestClient,
+    database_url: str,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> None:
+    """A row stored before poses were range-checked (or written by hand) with a translation
+    whose square overflows: auto localizes with the other references instead of failing
+    with LinAlgError in the reference layout."""
+    map_id = create_map(client)
+    ids = []
+    for view in reference_views[:6]:
+        response = upload_view(client, map_id, view)
+        assert response.status_code == 201, response.text  # type: ignore[attr-defined]
+        ids.append(response.json()["id"])  # type: ignore[attr-defined]
+    engine = create_engine(database_url)
+    with engine.begin() as conn:
+        conn.execute(
+            update(ReferenceImage)
+            .where(ReferenceImage.id.in_(ids[:2]))
+            .values(tx=1e200, ty=1e200, tz=1e200)
+        )
+    engine.dispose()
+    response = _localize(client, map_id, query_views[0], top_k=6)
+    assert response.status_code == 200, response.text  # type: ignore[attr-defined]
+    result = response.json()  # type: ignore[attr-defined]
+    assert result["localized"], result
+    assert all(r["num_matches"] == 0 for r in result["retrieved"] if r["image_id"] in ids[:2])
+
+
+def _npy(depth: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    npy_format.write_array(buf, depth)
+    return buf.getvalue()
+
+
+def test_depth_beyond_the_physical_range_is_unknown() -> None:
+    depth = np.full((4, 6), 2.0, np.float32)
+    depth[0, 0], depth[1, 1], depth[2, 2] = 1e30, np.inf, MAX_DEPTH_M * 2
+    decoded = decode_depth(_npy(depth), 6, 4, 10_000)
+    assert decoded[0, 0] == decoded[1, 1] == decoded[2, 2] == 0.0
+    assert decoded[3, 3] == 2.0
