@@ -32,10 +32,13 @@ class Settings(BaseSettings):
 
     database_url: str = Field(
         "sqlite:///./data/slloc.db",
-        description="SQLAlchemy URL; e.g. postgresql+psycopg://user@host:5432/slloc",
+        description="SQLAlchemy URL: SQLite (the default) or PostgreSQL, e.g. "
+        "postgresql+psycopg://user:pass@host:5432/slloc",
     )
     models_dir: Path = Field(
-        Path("./models"), description="Where `slloc models build` writes ONNX models"
+        Path("./models"),
+        description="Where the exported ONNX models are read from (`slloc models build` "
+        "writes them)",
     )
     features: str = Field(
         AUTO,
@@ -52,7 +55,8 @@ class Settings(BaseSettings):
     global_model: Path | None = Field(
         None,
         description="ONNX global-descriptor model for retrieval (contract in "
-        "services/retrieval/onnx_global.py); default: weight-free thumbnails",
+        "services/retrieval/onnx_global.py); default: weight-free VLAD over each map's own "
+        "vocabulary (blurred thumbnails on small maps)",
     )
     onnx_threads: int = Field(
         0,
@@ -68,15 +72,29 @@ class Settings(BaseSettings):
     )
     api_keys: str = Field(
         "",
-        description="Comma-separated `key:role` pairs, role admin or client; empty = auth off",
+        description="Comma-separated `key:role` pairs, role admin or client, sent as the "
+        "X-API-Key header; empty = auth off (logged as a warning)",
     )
-    max_upload_bytes: int = Field(25 * 1024 * 1024, gt=0, description="Per-file upload limit")
-    max_image_pixels: int = Field(40_000_000, gt=0, description="Decoded pixel-count limit")
-    max_top_k: int = Field(50, gt=0, description="Largest top_k a localize request may ask for")
+    max_upload_bytes: int = Field(
+        25 * 1024 * 1024, gt=0, description="Per-file upload limit in bytes; 413 above it"
+    )
+    max_image_pixels: int = Field(
+        40_000_000,
+        gt=0,
+        description="Decoded image size limit in pixels, checked from the header before "
+        "decoding; 413 above it",
+    )
+    max_top_k: int = Field(
+        50, gt=0, description="Largest top_k a localize request may ask for (422 above)"
+    )
     max_frames: int = Field(
         5, ge=1, le=32, description="Most frames (image parts) one localize request may carry"
     )
-    auto_migrate: bool = Field(True, description="Upgrade the schema to head at start-up")
+    auto_migrate: bool = Field(
+        True,
+        description="Upgrade the schema to head at start-up (`slloc db upgrade` does it by "
+        "hand; replicas sharing one database run with false)",
+    )
     localize_workers: int = Field(
         0,
         ge=0,
@@ -112,7 +130,8 @@ class Settings(BaseSettings):
     max_queued: int = Field(
         8,
         ge=0,
-        description="Localize and add requests that may wait for a worker; more get 503",
+        description="Localize and add requests that may wait for a worker; more get 503 with "
+        "Retry-After",
     )
     max_keypoints: int = Field(
         4096, gt=0, description="Largest keypoint budget a map's feature options may ask for"
@@ -122,16 +141,20 @@ class Settings(BaseSettings):
         ge=64,
         description="Largest image side (px) a map's feature options may ask for; one aliked "
         "extraction at S px takes ~2.9 GiB per megapixel of S² (3 GiB at 1024, 11.3 GiB at "
-        "2048: README, Memory)",
+        "2048: docs, Deploying, Memory)",
     )
     localize_time_budget_s: float = Field(
         10.0,
         gt=0,
         allow_inf_nan=False,
-        description="Wall-clock budget of one localize (s); a request may ask for less",
+        description="Wall-clock budget of one localize (s); a request may ask for less; past it "
+        "the answer is localized: false, reason time_budget_exceeded",
     )
     timeout_keep_alive_s: int = Field(
-        5, gt=0, description="`slloc serve`: an idle keep-alive connection is closed after this"
+        5,
+        gt=0,
+        description="`slloc serve`: a connection that has not sent a complete request head "
+        "this long (s) after opening or after its last response is closed",
     )
     log_format: LogFormat = Field(
         "text",

@@ -1,5 +1,5 @@
-"""The markdown table of the feature configurations (``slloc features`` prints it; the README
-holds it verbatim), written from ``services/features/configs.py``."""
+"""The markdown table of the feature configurations (``slloc features`` prints it;
+docs/models.md holds it verbatim), written from ``services/features/configs.py``."""
 
 from __future__ import annotations
 

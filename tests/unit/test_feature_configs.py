@@ -1,5 +1,5 @@
 """The table of feature configurations: what each preset builds, and the texts read from it
-(settings help, ``slloc features``, the README table)."""
+(settings help, ``slloc features``, the table on the docs' models page)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from services.runtime.manifest import ModelEntry
 from tools.cli import main
 from tools.feature_table import feature_table
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+MODELS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "models.md"
 
 # preset → (extractor name, matcher name): the components each preset has always built
 BUILDS = {
@@ -112,7 +112,7 @@ def test_cli_prints_the_table(capsys: pytest.CaptureFixture[str]) -> None:
     assert len(out.splitlines()) == 2 + len(FEATURE_CONFIGS)
 
 
-def test_readme_holds_the_table() -> None:
-    assert feature_table() in README.read_text(), (
-        "README.md's table of feature configurations is stale: paste `slloc features` over it"
+def test_models_page_holds_the_table() -> None:
+    assert feature_table() in MODELS_PAGE.read_text(), (
+        "docs/models.md's table of feature configurations is stale: paste `slloc features` over it"
     )
