@@ -9,6 +9,7 @@ from importlib.metadata import version
 
 from anyio import CapacityLimiter
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
 
 from app.admission import Admission
@@ -99,6 +100,16 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     routers = [m.router for m in (maps, images, geo, localize, gpp, health)]
     routes = [route for router in routers for route in router.routes]
     app.add_middleware(ApiKeyGate, routes=routes)
+    # outside the key gate: a browser's preflight carries no key (SLLOC_CORS_ORIGINS)
+    if origins := settings.parsed_cors_origins():
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=origins,
+            allow_methods=["*"],
+            allow_headers=["*"],
+            expose_headers=["X-Request-ID", "Retry-After"],
+            max_age=600,
+        )
     # around the others: every answer, their 401 and 413 included, carries the request id
     app.add_middleware(RequestContext)
     # outermost: every answer is counted under its route template

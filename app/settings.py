@@ -178,6 +178,14 @@ class Settings(BaseSettings):
         description="`slloc serve`: open connections and tasks at once; more get 503",
     )
 
+    cors_origins: str = Field(
+        "",
+        description="Comma-separated origins (scheme://host[:port]) whose browser pages may "
+        "call the API (CORS, every route: preflights answered, Access-Control-Allow-Origin "
+        "set); * = any origin; empty = CORS off (a browser's cross-origin preflight is "
+        "refused)",
+    )
+
     @field_validator("api_keys")
     @classmethod
     def _check_keys(cls, value: str) -> str:
@@ -186,6 +194,9 @@ class Settings(BaseSettings):
 
     def parsed_api_keys(self) -> list[ApiKey]:
         return parse_api_keys(self.api_keys)
+
+    def parsed_cors_origins(self) -> list[str]:
+        return [o.strip().rstrip("/") for o in self.cors_origins.split(",") if o.strip()]
 
 
 def parse_api_keys(value: str) -> list[ApiKey]:

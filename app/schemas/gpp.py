@@ -1,16 +1,25 @@
-"""The Open AR Cloud GeoPose Protocol (OSCP GPP, version 1) request and response, as OpenVPS
-serves them: field names as the protocol spells them. Only what a visual positioning answer
-uses is read (the first camera reading and the first geolocation reading); other sensor
-readings are accepted and ignored."""
+"""The Open AR Cloud GeoPose Protocol (OSCP GPP) request and response, versions 1 and 2, as
+the published clients send them: field names as the protocol spells them.
+
+Version 1 carries ``sensorReadings`` as a list of ``{sensorId, timestamp, privacy, reading}``
+whose kind is the type of the sensor of that id in ``sensors`` (camera intrinsics may sit in
+the sensor's ``params``); version 2 carries an object of per-kind lists (``cameraReadings``,
+``geolocationReadings``, …). Only what a visual positioning answer uses is read: the first
+camera reading, the first geolocation reading and the last prior pose; other readings and
+fields (privacy, wifi, accelerometer…) are accepted and ignored."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator
 from pydantic.alias_generators import to_camel
 
 from app.schemas.geo import GeoPoseSchema
+
+# timestamps: milliseconds since the Unix epoch, or (gpp-access before 0.1) an ISO string
+Timestamp = float | str | None
 
 
 class _Lenient(BaseModel):
@@ -22,51 +31,140 @@ class _Lenient(BaseModel):
 
 class CameraParam(_Lenient):
     model: str | None = Field(
-        None, description="COLMAP model name (UNKNOWN_CAMERA or absent: no intrinsics)"
+        None, description="COLMAP model name (UNKNOWN_CAMERA, UNKNOWN or absent: no intrinsics)"
     )
     model_params: list[float] | None = Field(None, description="COLMAP parameter order")
 
 
 class ImageOrientation(_Lenient):
+    """Only the upright, unmirrored image (rotation a multiple of 360°, mirrored false) is
+    served; other values are answered 422 rather than localized wrongly."""
+
     mirrored: bool = False
-    rotation: float = 0.0
+    rotation: float = Field(0.0, allow_inf_nan=False, description="degrees")
 
 
 class CameraReading(_Lenient):
-    sequence_number: int = 0
-    image_format: str = Field(
+    sensor_id: str | int | None = None
+    sequence_number: int | None = None
+    image_format: str | None = Field(
+        None,
         description="JPG, JPEG or PNG (encoded bytes), or RGBA32, RGB24, GRAY8 (raw pixels "
-        "of ``size``)"
+        "of ``size``). JPEG and PNG bytes are recognised by their signature whatever the "
+        "label says",
     )
-    size: list[int] = Field(min_length=2, max_length=2, description="width, height")
+    size: list[int] | None = Field(
+        None,
+        min_length=2,
+        max_length=2,
+        description="width, height; optional for JPEG and PNG (read from the image)",
+    )
     image_bytes: str = Field(description="base64")
     image_orientation: ImageOrientation | None = None
     params: CameraParam | None = None
 
 
+def _finite_or_none(value: object) -> object:
+    """NaN / ±inf (Python clients' json.dumps writes them) read as absent."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 class GeolocationReading(_Lenient):
+    sensor_id: str | int | None = None
     latitude: float = Field(ge=-90, le=90, allow_inf_nan=False)
     longitude: float = Field(ge=-180, le=180, allow_inf_nan=False)
     altitude: float | None = Field(None, allow_inf_nan=False)
-    accuracy: float | None = Field(None, gt=0, allow_inf_nan=False)
+    accuracy: float | None = Field(
+        None,
+        ge=0,
+        allow_inf_nan=False,
+        description="horizontal 1-σ in metres; 0 or absent: unknown",
+    )
+
+    _finite = field_validator("altitude", "accuracy", mode="before")(_finite_or_none)
 
 
 class SensorReadings(_Lenient):
-    camera_readings: list[CameraReading] = Field(min_length=1, max_length=1)
-    geolocation_readings: list[GeolocationReading] | None = None
+    """Version 2's readings. ``geoLocationReadings`` (as @oarc/gpp-access spells it) is read
+    like ``geolocationReadings``."""
+
+    camera_readings: list[CameraReading] = Field(
+        min_length=1, max_length=16, description="the first one is localized"
+    )
+    geolocation_readings: list[GeolocationReading] | None = Field(
+        None,
+        max_length=64,
+        validation_alias=AliasChoices(
+            "geolocationReadings", "geoLocationReadings", "geolocation_readings"
+        ),
+        description="the first one narrows retrieval (also read as geoLocationReadings)",
+    )
+
+
+class SensorReadingV1(_Lenient):
+    """Version 1's reading: its kind is that of the sensor ``sensorId`` in ``sensors`` (or,
+    without one, what its fields are: ``imageBytes`` a camera, ``latitude`` a geolocation)."""
+
+    sensor_id: str | int | None = None
+    timestamp: Timestamp = None
+    reading: dict[str, Any] | None = None
+
+
+class Sensor(_Lenient):
+    id: str | int | None = None
+    type: str | None = Field(None, description="camera, geolocation, wifi, …")
+    params: CameraParam | None = Field(
+        None, description="a camera's intrinsics (version 1 puts them here)"
+    )
 
 
 class GeoPoseAccuracy(BaseModel):
-    position: float = Field(description="metres")
-    orientation: float = Field(description="degrees")
+    position: float = Field(description="metres: the mean of the three axes' 1-σ")
+    orientation: float = Field(description="degrees: the mean of the three angles' 1-σ")
+
+
+class PriorPosition(_Lenient):
+    lat: float = Field(ge=-90, le=90, allow_inf_nan=False)
+    lon: float = Field(ge=-180, le=180, allow_inf_nan=False)
+    h: float | None = Field(None, allow_inf_nan=False)
+
+
+class PriorGeoPose(_Lenient):
+    position: PriorPosition
+
+
+class PriorAccuracy(_Lenient):
+    position: float | None = Field(None, ge=0, allow_inf_nan=False)
+
+    _finite = field_validator("position", mode="before")(_finite_or_none)
+
+
+class PriorPose(_Lenient):
+    """A GeoPose answer received before (``GeoPoseResp``): its position narrows retrieval
+    like a GPS fix of its position accuracy. Entries without a ``geopose`` are ignored."""
+
+    timestamp: Timestamp = None
+    accuracy: PriorAccuracy | None = None
+    geopose: PriorGeoPose | None = None
 
 
 class GeoPoseReq(_Lenient):
     id: str = Field(max_length=255)
-    timestamp: float | None = None
+    timestamp: Timestamp = None
     type: str = "geopose"
-    sensors: list[dict[str, Any]] = Field(default_factory=list, max_length=64)
-    sensor_readings: SensorReadings
+    sensors: list[Sensor] = Field(default_factory=list, max_length=64)
+    sensor_readings: SensorReadings | list[SensorReadingV1] = Field(
+        description="version 2: an object of per-kind lists; version 1: a list of "
+        "{sensorId, reading}"
+    )
+    prior_poses: list[PriorPose] | None = Field(
+        None,
+        max_length=64,
+        description="earlier answers: the last one with a geopose narrows retrieval (before "
+        "the GPS fix)",
+    )
 
 
 class GeoPoseResp(BaseModel):

@@ -1,19 +1,35 @@
-"""The Open AR Cloud GeoPose Protocol's request as a localize request: its image, intrinsics
-and GPS fix."""
+"""The Open AR Cloud GeoPose Protocol's request as a localize request (its image, intrinsics,
+GPS fix and prior pose), the version its answer is given in, and the answer itself."""
 
 from __future__ import annotations
 
 import base64
 import binascii
+import io
+import math
+from dataclasses import dataclass
+from typing import Literal, TypeVar
 
 import cv2
 import numpy as np
+from PIL import Image, UnidentifiedImageError
+from pydantic import ValidationError
 
-from app.schemas.gpp import CameraReading, GeoPoseReq
+from app.schemas.gpp import (
+    CameraParam,
+    CameraReading,
+    GeolocationReading,
+    GeoPoseAccuracy,
+    GeoPoseReq,
+    SensorReadings,
+)
 from app.usecases.localize import LocalizeRequest
 from services.errors import InvalidInputError
+from services.geo.geopose import GeoPose
+from services.geo.geopose import GeoPoseAccuracy as PoseAccuracy
 from services.geo.gps import GpsFix
 from services.geometry.camera import CAMERA_MODELS, Camera, check_plausible
+from services.types import FloatArray
 
 ENCODED_FORMATS = {"JPG", "JPEG", "PNG"}
 # raw pixel formats: channels and the OpenCV conversion to BGR
@@ -22,24 +38,139 @@ RAW_FORMATS = {
     "RGB24": (3, cv2.COLOR_RGB2BGR),
     "GRAY8": (1, cv2.COLOR_GRAY2BGR),
 }
+_SIGNATURES = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")  # JPEG, PNG
+_NO_INTRINSICS = (None, "", "UNKNOWN_CAMERA", "UNKNOWN")
+
+CameraAxes = Literal["forward_left_up", "opengl"]
+# the forward-left-up camera's axes (x forward, y left, z up) in the OpenGL camera frame
+# (x right, y up, z backward): a rotation of 120° about (1, −1, −1)/√3
+GL_FROM_FLU = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+
+OSCP_MEDIA_TYPE = "application/vnd.oscp+json"
+VERSIONS = ("1.0", "2.0")
+
+T = TypeVar("T", CameraReading, GeolocationReading)
 
 
-def image_bytes(reading: CameraReading, max_pixels: int) -> bytes:
-    """The reading's image as JPEG/PNG bytes (raw pixels are encoded as PNG).
+@dataclass(frozen=True)
+class GppQuery:
+    """What a GeoPose request asks: its first camera reading (with the intrinsics its sensor
+    may carry instead), its position hint and the version of its shape (1 or 2)."""
+
+    reading: CameraReading
+    params: CameraParam | None
+    hint: GpsFix | None
+    version: int
+
+
+def read_request(body: GeoPoseReq) -> GppQuery:
+    """The camera reading, position hint and protocol version of either request shape.
+
+    Raises:
+        InvalidInputError: no camera reading, or a version 1 reading that is not one.
+    """
+    sensors = {str(s.id): s for s in body.sensors if s.id is not None}
+    if isinstance(body.sensor_readings, SensorReadings):
+        cameras = body.sensor_readings.camera_readings
+        fixes = body.sensor_readings.geolocation_readings or []
+        version = 2
+    else:
+        cameras, fixes = [], []
+        for i, item in enumerate(body.sensor_readings):
+            sensor = sensors.get(str(item.sensor_id))
+            kind = (sensor.type or "").lower() if sensor is not None else ""
+            data = item.reading or {}
+            if kind == "camera" or (not kind and "imageBytes" in data):
+                cameras.append(_v1_reading(CameraReading, data, i, item.sensor_id))
+            elif kind == "geolocation" or (not kind and "latitude" in data):
+                fixes.append(_v1_reading(GeolocationReading, data, i, item.sensor_id))
+        if not cameras:
+            raise InvalidInputError("sensorReadings: no camera reading (a sensor of type camera)")
+        version = 1
+    reading = cameras[0]
+    params = reading.params
+    if params is None and reading.sensor_id is not None:
+        sensor = sensors.get(str(reading.sensor_id))
+        params = sensor.params if sensor is not None else None
+    return GppQuery(reading, params, _hint(body, fixes), version)
+
+
+def _v1_reading(
+    model: type[T], data: dict[str, object], index: int, sensor_id: str | int | None
+) -> T:
+    try:
+        reading = model.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise InvalidInputError(
+            f"sensorReadings[{index}].reading.{where}: {first['msg']}"
+        ) from None
+    if reading.sensor_id is None:
+        reading = reading.model_copy(update={"sensor_id": sensor_id})
+    return reading
+
+
+def _hint(body: GeoPoseReq, fixes: list[GeolocationReading]) -> GpsFix | None:
+    """The last prior pose with a position, else the first GPS fix (accuracy 0: unknown)."""
+    for prior in reversed(body.prior_poses or []):
+        if prior.geopose is not None:
+            p = prior.geopose.position
+            accuracy = prior.accuracy.position if prior.accuracy is not None else None
+            return GpsFix(p.lat, p.lon, p.h, accuracy or None)
+    if fixes:
+        fix = fixes[0]
+        return GpsFix(fix.latitude, fix.longitude, fix.altitude, fix.accuracy or None)
+    return None
+
+
+def check_orientation(reading: CameraReading) -> None:
+    """Raises:
+    InvalidInputError: a mirrored or rotated image (not served: it would be localized as
+        another camera's).
+    """
+    orientation = reading.image_orientation
+    if orientation is None:
+        return
+    if orientation.mirrored or orientation.rotation % 360.0 != 0.0:
+        raise InvalidInputError(
+            f"cameraReadings[0].imageOrientation (mirrored {orientation.mirrored}, rotation "
+            f"{orientation.rotation:g}) is not supported: send the image upright as the camera "
+            "took it (mirrored false, rotation 0)"
+        )
+
+
+def image_bytes(reading: CameraReading, max_pixels: int) -> tuple[bytes, tuple[int, int]]:
+    """The reading's image as JPEG/PNG bytes (raw pixels are encoded as PNG), and its width
+    and height. JPEG and PNG bytes are recognised by their signature whatever
+    ``imageFormat`` says; raw pixels are read only when labelled so with ``size`` and their
+    byte count fits it.
 
     Raises:
         InvalidInputError: bad base64, an unknown format, or raw data of the wrong size.
     """
+    encoded = reading.image_bytes
+    if encoded.startswith("data:") and "," in encoded[:100]:  # a data URL as it is
+        encoded = encoded.split(",", 1)[1]
     try:
-        data = base64.b64decode(reading.image_bytes, validate=True)
+        data = base64.b64decode(encoded, validate=True)
     except (binascii.Error, ValueError):
         raise InvalidInputError("cameraReadings[0].imageBytes is not valid base64") from None
-    fmt = reading.image_format.upper()
+    fmt = (reading.image_format or "").upper()
+    if data.startswith(_SIGNATURES):
+        return data, _encoded_size(data)
     if fmt in ENCODED_FORMATS:
-        return data
+        raise InvalidInputError(
+            f"cameraReadings[0]: imageFormat {fmt} but the bytes are neither JPEG nor PNG"
+        )
     if fmt not in RAW_FORMATS:
         known = ", ".join(sorted(ENCODED_FORMATS | set(RAW_FORMATS)))
-        raise InvalidInputError(f"cameraReadings[0].imageFormat {fmt!r}: known are {known}")
+        raise InvalidInputError(
+            f"cameraReadings[0].imageFormat {reading.image_format!r} and the bytes are neither "
+            f"JPEG nor PNG: known are {known}"
+        )
+    if reading.size is None:
+        raise InvalidInputError(f"cameraReadings[0].size is needed for raw {fmt} pixels")
     width, height = reading.size
     if width <= 0 or height <= 0 or width * height > max_pixels:
         raise InvalidInputError(f"cameraReadings[0].size {width}×{height} is not acceptable")
@@ -53,35 +184,86 @@ def image_bytes(reading: CameraReading, max_pixels: int) -> bytes:
     ok, png = cv2.imencode(".png", cv2.cvtColor(pixels, conversion))
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
         raise InvalidInputError("cameraReadings[0]: the image could not be encoded")
-    return bytes(png)
+    return bytes(png), (width, height)
 
 
-def camera(reading: CameraReading) -> Camera | None:
-    """The reading's intrinsics (None: unknown camera).
+def _encoded_size(data: bytes) -> tuple[int, int]:
+    """Width and height from a JPEG's or PNG's header (nothing is decoded)."""
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            width, height = image.size
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        raise InvalidInputError("cameraReadings[0]: the JPEG/PNG image is unreadable") from None
+    return int(width), int(height)
+
+
+def camera(query: GppQuery, size: tuple[int, int]) -> Camera | None:
+    """The reading's intrinsics (None: unknown camera) for an image of ``size`` (the
+    reading's ``size`` when it gives one).
 
     Raises:
         InvalidInputError: a model slloc does not know, or the wrong number of parameters.
     """
-    params = reading.params
-    if params is None or params.model in (None, "UNKNOWN_CAMERA") or not params.model_params:
+    params = query.params
+    if params is None or params.model in _NO_INTRINSICS or not params.model_params:
         return None
     if params.model not in CAMERA_MODELS:
         raise InvalidInputError(
             f"cameraReadings[0].params.model {params.model!r}: known are "
             f"{', '.join(CAMERA_MODELS)} and UNKNOWN_CAMERA"
         )
-    width, height = reading.size
+    width, height = query.reading.size or size
     cam = Camera(params.model, width, height, tuple(params.model_params))
     check_plausible(cam)
     return cam
 
 
-def localize_request(body: GeoPoseReq) -> tuple[LocalizeRequest, GpsFix | None]:
-    """The localize request of a GeoPose request, and its GPS fix if it has one."""
-    reading = body.sensor_readings.camera_readings[0]
-    fixes = body.sensor_readings.geolocation_readings or []
-    gps = None
-    if fixes:
-        fix = fixes[0]
-        gps = GpsFix(fix.latitude, fix.longitude, fix.altitude, fix.accuracy)
-    return LocalizeRequest(camera=camera(reading)), gps
+def localize_request(query: GppQuery, size: tuple[int, int]) -> LocalizeRequest:
+    return LocalizeRequest(camera=camera(query, size))
+
+
+def answer_version(accept: str | None, request_version: int) -> tuple[str, str] | None:
+    """The protocol version and media type to answer in for the ``Accept`` header, None when
+    it accepts nothing served. ``application/vnd.oscp+json; version=1.0`` (or 2.0) is
+    answered in that version under that media type; JSON or anything else acceptable in the
+    request's own version as ``application/json``."""
+    default = (f"{request_version}.0", "application/json")
+    if not accept or not accept.strip():
+        return default
+    ranges = []
+    for order, item in enumerate(accept.split(",")):
+        media, *raw = (part.strip() for part in item.split(";"))
+        params = {}
+        for p in raw:
+            key, _, value = p.partition("=")
+            if key:
+                params[key.strip().lower()] = value.strip().strip('"')
+        try:
+            q = float(params.get("q", "1"))
+        except ValueError:
+            q = 1.0
+        if q > 0 and math.isfinite(q):
+            ranges.append((-q, order, media.lower(), params))
+    for _, _, media, params in sorted(ranges):
+        if media == OSCP_MEDIA_TYPE:
+            version = params.get("version", f"{request_version}.0")
+            version = f"{version}.0" if version.isdigit() else version
+            if version in VERSIONS:
+                return version, f"{OSCP_MEDIA_TYPE}; version={version}"
+        elif media in ("application/json", "application/*", "*/*"):
+            return default
+    return None
+
+
+def answer_rotation(pose: GeoPose, axes: CameraAxes) -> FloatArray:
+    """ENU-from-camera rotation of the answer in the camera axes asked for."""
+    enu_from_gl: FloatArray = np.asarray(pose.enu_from_camera, np.float64)
+    return enu_from_gl if axes == "opengl" else enu_from_gl @ GL_FROM_FLU
+
+
+def answer_accuracy(accuracy: PoseAccuracy) -> GeoPoseAccuracy:
+    """The protocol's means over all components: the three axes' 1-σ (horizontal_m is the
+    2-D RMS of East and North, each horizontal_m/√2) and the three angles' (the pose's RMS
+    rotation angle spread evenly over them: 1/√3 each)."""
+    position = (math.sqrt(2.0) * accuracy.horizontal_m + accuracy.vertical_m) / 3.0
+    return GeoPoseAccuracy(position=position, orientation=accuracy.yaw_deg / math.sqrt(3.0))

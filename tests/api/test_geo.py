@@ -277,7 +277,7 @@ def test_geopose_protocol(
     response = client.post(f"/v1/maps/{geo_map}/geopose", json=request)
     assert response.status_code == 422 and response.json()["type"].endswith("not-geo-registered")
     client.put(f"/v1/maps/{geo_map}/geo-registration", json=REGISTRATION_BODY)
-    response = client.post(f"/v1/maps/{geo_map}/geopose", json=request)
+    response = client.post(f"/v1/maps/{geo_map}/geopose?camera_axes=opengl", json=request)
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["id"] == "req-1" and body["type"] == "geopose"
@@ -293,10 +293,13 @@ def test_geopose_protocol_errors(
     url = f"/v1/maps/{geo_map}/geopose"
     request = _gpp_request(query_views[0])
     reading = request["sensorReadings"]["cameraReadings"][0]  # type: ignore[index]
+    not_an_image = base64.b64encode(bytes(1000)).decode()
     for change, needle in (
         ({"imageBytes": "***"}, "base64"),
-        ({"imageFormat": "YUV420"}, "imageFormat"),
-        ({"imageFormat": "RGBA32", "size": [640, 480]}, "bytes"),
+        ({"imageFormat": "YUV420", "imageBytes": not_an_image}, "imageFormat"),
+        ({"imageFormat": "PNG", "imageBytes": not_an_image}, "neither JPEG nor PNG"),
+        ({"imageFormat": "RGBA32", "size": [640, 480], "imageBytes": not_an_image}, "bytes"),
+        ({"imageFormat": "RGBA32", "size": None, "imageBytes": not_an_image}, "size"),
         ({"params": {"model": "FISHEYE", "modelParams": [1.0]}}, "model"),
     ):
         bad = json.loads(json.dumps(request))
