@@ -70,6 +70,21 @@ def image_size_from_header(data: bytes) -> tuple[int, int]:
     raise ImageDecodeError("not a JPEG or PNG image")
 
 
+def check_pixel_limit(data: bytes, max_pixels: int) -> tuple[int, int]:
+    """(width, height) from the header, before anything else reads the image.
+
+    Raises:
+        ImageTooLargeError: more than ``max_pixels`` pixels.
+        ImageDecodeError: not a PNG or JPEG, or a truncated header.
+    """
+    width, height = image_size_from_header(data)
+    if width * height > max_pixels:
+        raise ImageTooLargeError(
+            f"image is {width}×{height} = {width * height} pixels; the limit is {max_pixels}"
+        )
+    return width, height
+
+
 def decode_image(data: bytes, max_pixels: int) -> UInt8Array:
     """Decode a JPEG or PNG upload into an (H, W, 3) RGB uint8 array, EXIF orientation applied.
 
@@ -90,11 +105,7 @@ def decode_image_reduced(data: bytes, max_pixels: int, min_side: int | None) -> 
         ImageTooLargeError: more than ``max_pixels`` pixels (checked from the header).
         ImageDecodeError: corrupt or unsupported data.
     """
-    width, height = image_size_from_header(data)
-    if width * height > max_pixels:
-        raise ImageTooLargeError(
-            f"image is {width}×{height} = {width * height} pixels; the limit is {max_pixels}"
-        )
+    width, height = check_pixel_limit(data, max_pixels)
     if width == 0 or height == 0:
         raise ImageDecodeError("image has zero width or height")
     factor, flags = 1, cv2.IMREAD_COLOR

@@ -20,7 +20,7 @@ from db.vocabulary import SqlVocabularyStore
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import decode_image_reduced
+from services.imaging import check_pixel_limit, decode_image_reduced
 from services.pipeline import Localizer
 from services.preview import Preview, make_preview
 from services.reference_cache import ReferenceFeatureCache
@@ -77,9 +77,13 @@ def add_reference_image(
         NotFoundError: unknown map.
         NameTakenError: the map has an image of that name (also when another add stored it
             while this one was describing the image).
+        ImageTooLargeError: the image's header claims more than the localizer's pixel limit.
         InvalidInputError: the image, depth or camera is unusable.
     """
     taken = f"map already has an image named {image.name!r}"
+    # before anything reads the image (EXIF included): a header claiming too many pixels is
+    # 413, as on localize
+    check_pixel_limit(image_bytes, localizer.max_pixels)
     if image.gps is None:
         image = replace(image, gps=gps_from_exif(image_bytes))
     with sessions() as session:

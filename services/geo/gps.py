@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import warnings
 from dataclasses import dataclass
 
 from PIL import ExifTags, Image, UnidentifiedImageError
@@ -48,9 +49,14 @@ def gps_from_exif(image_bytes: bytes) -> GpsFix | None:
     unreadable one. EXIF altitude is above sea level; it is taken as the height unchanged (the
     geoid's offset from the ellipsoid is constant over a map and a registration absorbs it)."""
     try:
-        with Image.open(io.BytesIO(image_bytes)) as image:
-            gps = image.getexif().get_ifd(ExifTags.IFD.GPSInfo)
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        # only the header and metadata are read: Pillow's decompression-bomb guard (which
+        # raises for a header claiming over 2 × Image.MAX_IMAGE_PIXELS) is not needed here;
+        # the pixel limit is the caller's to enforce, answered 413
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(image_bytes)) as image:
+                gps = image.getexif().get_ifd(ExifTags.IFD.GPSInfo)
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError, SyntaxError):
         return None
     try:
         latitude = _degrees(gps[_LAT], gps.get(_LAT_REF, "N"), "S")

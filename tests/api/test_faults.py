@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import io
 import json
+import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from numpy.lib import format as npy_format
 from sqlalchemy import create_engine, update
 
 from db.models import ReferenceImage
+from services.geo.gps import gps_from_exif
 from services.imaging import MAX_DEPTH_M, decode_depth
 from tests.conftest import create_map, image_metadata, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
@@ -130,3 +133,35 @@ def test_depth_beyond_the_physical_range_is_unknown() -> None:
     decoded = decode_depth(_npy(depth), 6, 4, 10_000)
     assert decoded[0, 0] == decoded[1, 1] == decoded[2, 2] == 0.0
     assert decoded[3, 3] == 2.0
+
+
+def _png_claiming(view: SyntheticView, width: int, height: int) -> bytes:
+    """A real PNG whose header (with a valid CRC) claims ``width`` × ``height`` pixels."""
+    data = bytearray(encode_png(view.image))
+    ihdr = bytearray(data[12:29])  # chunk type and data
+    ihdr[4:12] = struct.pack(">II", width, height)
+    data[12:29] = ihdr
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(ihdr)))
+    return bytes(data)
+
+
+# over 2 × PIL.Image.MAX_IMAGE_PIXELS (178,956,970): Pillow refuses to open it
+BOMB = (20_000, 10_000)
+
+
+def test_image_claiming_more_pixels_than_pillow_opens_is_413_on_add(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    map_id = create_map(client)
+    view = reference_views[0]
+    bomb = _png_claiming(view, *BOMB)
+    _assert_problem(_post_image(client, map_id, bomb, image_metadata(view)), 413, "image-too-large")
+    assert client.get(f"/v1/maps/{map_id}/images").json()["total"] == 0
+    localized = client.post(
+        f"/v1/maps/{map_id}/localize", files={"image": ("q.png", bomb, "image/png")}
+    )
+    _assert_problem(localized, 413, "image-too-large")
+
+
+def test_exif_of_a_decompression_bomb_is_none(reference_views: list[SyntheticView]) -> None:
+    assert gps_from_exif(_png_claiming(reference_views[0], *BOMB)) is None
