@@ -34,6 +34,12 @@ REQUEST_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10
 STAGE_BUCKETS_S = (0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 # the route label of a request that matched no route (keeps the label set bounded)
 UNMATCHED_ROUTE = "unmatched"
+# the method label's values: a request with any other method (HTTP lets a client make one up)
+# is counted as OTHER_METHOD, so that clients cannot add series without bound
+KNOWN_METHODS = frozenset(
+    ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "CONNECT", "TRACE")
+)
+OTHER_METHOD = "other"
 # maps reported by `slloc_map_images` at each scrape, the largest first
 MAX_MAP_SERIES = 1000
 
@@ -46,7 +52,8 @@ class ServiceMetrics:
         self.registry = CollectorRegistry()
         self.requests = Counter(
             "slloc_http_requests",
-            "HTTP requests answered, by method, route template and status code",
+            "HTTP requests answered, by method (other: not a standard one), route template "
+            "and status code",
             ("method", "route", "status"),
             registry=self.registry,
         )
@@ -190,8 +197,8 @@ class RequestMetrics:
         try:
             await self.app(scope, receive, send_and_record)
         finally:
-            method, route = scope["method"], self._template(scope)
-            self.metrics.requests.labels(method, route, str(status)).inc()
+            method, route = method_label(scope["method"]), self._template(scope)
+            self.metrics.requests.labels(method, route, status_label(status)).inc()
             self.metrics.request_seconds.labels(method, route).observe(time.perf_counter() - start)
 
     def _template(self, scope: Scope) -> str:
@@ -207,6 +214,16 @@ class RequestMetrics:
             if match is Match.PARTIAL and partial is None and isinstance(path, str):
                 partial = path  # the path of a route with other methods (405)
         return partial or UNMATCHED_ROUTE
+
+
+def method_label(method: str) -> str:
+    """The method as a label value: a standard method, else ``other``."""
+    return method if method in KNOWN_METHODS else OTHER_METHOD
+
+
+def status_label(status: int) -> str:
+    """The status code as a label value (a code outside 100–599 is ``other``)."""
+    return str(status) if 100 <= status <= 599 else "other"
 
 
 _ANY_KEY = RoleCheck(("admin", "client"))

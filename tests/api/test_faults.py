@@ -7,14 +7,17 @@ from __future__ import annotations
 import io
 import json
 import struct
+import uuid
 import zlib
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from numpy.lib import format as npy_format
+from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import create_engine, update
 
+from app.metrics import KNOWN_METHODS
 from db.models import ReferenceImage
 from services.geo.gps import gps_from_exif
 from services.imaging import MAX_DEPTH_M, decode_depth
@@ -165,3 +168,21 @@ def test_image_claiming_more_pixels_than_pillow_opens_is_413_on_add(
 
 def test_exif_of_a_decompression_bomb_is_none(reference_views: list[SyntheticView]) -> None:
     assert gps_from_exif(_png_claiming(reference_views[0], *BOMB)) is None
+
+
+def test_made_up_methods_add_no_metric_series(client: TestClient) -> None:
+    """A client may send any token as the method: each is counted as ``other``."""
+    for i in range(20):
+        response = client.request(f"X{i}FOO", "/v1/health")
+        assert response.status_code in (400, 404, 405), response.text
+    client.request("BREW", f"/no/such/{uuid.uuid4()}")
+    scraped = client.get("/metrics")
+    assert scraped.status_code == 200
+    families = {f.name: f.samples for f in text_string_to_metric_families(scraped.text)}
+    requests = [s for s in families["slloc_http_requests"] if s.name.endswith("_total")]
+    methods = {s.labels["method"] for s in requests}
+    assert methods <= KNOWN_METHODS | {"other"}, methods
+    assert sum(s.value for s in requests if s.labels["method"] == "other") == 21
+    routes = {s.labels["route"] for s in requests}
+    assert all(r.startswith("/") or r == "unmatched" for r in routes), routes
+    assert not any("/no/such" in r for r in routes)
