@@ -11,14 +11,21 @@ import base64
 import copy
 import json
 import math
+import shutil
+import socket
+import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+import uvicorn
 from fastapi.testclient import TestClient
 
+from app.main import create_app
+from app.settings import Settings
 from app.usecases.gpp import GL_FROM_FLU
 from services.geo.geodesy import Geodetic, ecef_from_enu_rotation, ecef_from_geodetic
 from services.geo.geopose import CV_FROM_GL
@@ -38,15 +45,17 @@ PRIVACY = {
 
 
 @pytest.fixture(scope="module")
+def db_url(tmp_path_factory: pytest.TempPathFactory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('gpp') / 'slloc.db'}"
+
+
+@pytest.fixture(scope="module")
 def served(
-    tmp_path_factory: pytest.TempPathFactory,
-    localizer: Localizer,
-    reference_views: list[SyntheticView],
+    db_url: str, localizer: Localizer, reference_views: list[SyntheticView]
 ) -> Iterator[tuple[TestClient, str]]:
     """A client with CORS on for two origins, and the scene's map with the true
     registration."""
-    url = f"sqlite:///{tmp_path_factory.mktemp('gpp') / 'slloc.db'}"
-    with make_client(url, localizer, cors_origins=ORIGINS) as client:
+    with make_client(db_url, localizer, cors_origins=ORIGINS) as client:
         map_id = create_map(client, "zurich")
         for view in reference_views:
             assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
@@ -465,16 +474,114 @@ def test_cors_is_off_without_origins(tmp_path: Path, localizer: Localizer) -> No
         assert "access-control-allow-origin" not in response.headers
 
 
-GPP_ACCESS_SCRIPT = r"""
-import { GeoPoseRequest, Sensor, Privacy, IMAGEFORMAT, ImageOrientation, CameraParam,
-         SENSORTYPE, sendRequest } from '@oarc/gpp-access';
-const [url, image, w, h, model, params, lat, lon, alt] = JSON.parse(process.argv[2]);
+# sparcl's request through @oarc/gpp-access 0.2.1 itself: its classes serialize the request,
+# its sendRequest validates it (zod), posts it and validates the answer
+GPP_ACCESS_SCRIPT = """
+import { readFileSync } from 'node:fs';
+import { CameraParam, GeoPoseRequest, IMAGEFORMAT, ImageOrientation, Privacy, SENSORTYPE,
+         Sensor, sendRequest } from '@oarc/gpp-access';
+const a = JSON.parse(readFileSync(process.argv[2], 'utf8'));
 const request = new GeoPoseRequest('sparcl-1');
 request.addSensor(new Sensor('0', SENSORTYPE.camera));
 request.addSensor(new Sensor('1', SENSORTYPE.geolocation));
-request.addCameraData(IMAGEFORMAT.JPG, [w, h], image, 0, new ImageOrientation(false, 0),
-                      new CameraParam(model, params), Date.now(), '0', new Privacy());
-request.addGeoLocationData(lat, lon, alt, 5, 3, NaN, 0, Date.now(), '1', new Privacy());
-const answer = await sendRequest(url, JSON.stringify(request));
-console.log(JSON.stringify(answer));
+const params = new CameraParam();
+params.model = a.model;
+params.modelParams = a.params;
+request.addCameraData(IMAGEFORMAT.JPG, [a.width, a.height], a.image, 0,
+                      new ImageOrientation(false, 0), params, Date.now(), '0', new Privacy());
+request.addGeoLocationData(a.lat, a.lon, a.h, 5, 3, 0, 0, Date.now(), '1', new Privacy());
+console.log(JSON.stringify(await sendRequest(a.url, JSON.stringify(request))));
 """
+
+
+@pytest.fixture(scope="module")
+def gpp_access_script(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The script above bundled with @oarc/gpp-access 0.2.1 (npm, into a temporary folder:
+    the package's ESM imports directories, which Node alone cannot load, so esbuild bundles
+    it as sparcl's Vite does). Skipped without node and npm or without the registry."""
+    npm, node = shutil.which("npm"), shutil.which("node")
+    if npm is None or node is None:
+        pytest.skip("node and npm are needed to run @oarc/gpp-access")
+    root = tmp_path_factory.mktemp("gpp-access")
+    install = [npm, "install", "--prefix", str(root), "--no-audit", "--no-fund"]
+    install += ["--ignore-scripts", "@oarc/gpp-access@0.2.1", "esbuild@0.24.2"]
+    try:
+        done = subprocess.run(install, capture_output=True, text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.skip("npm install timed out (offline?)")
+    if done.returncode != 0:
+        pytest.skip(f"npm install failed (offline?): {done.stderr[-500:]}")
+    (root / "client.mjs").write_text(GPP_ACCESS_SCRIPT)
+    bundle = root / "client.bundle.mjs"
+    subprocess.run(
+        [
+            str(root / "node_modules" / ".bin" / "esbuild"),
+            str(root / "client.mjs"),
+            "--bundle",
+            "--platform=node",
+            "--format=esm",
+            f"--outfile={bundle}",
+            "--log-level=warning",
+        ],
+        check=True,
+        cwd=root,
+        timeout=120,
+    )
+    return bundle
+
+
+@pytest.fixture(scope="module")
+def live_url(db_url: str, localizer: Localizer, served: tuple[TestClient, str]) -> Iterator[str]:
+    """The service over HTTP (uvicorn in a thread) on the module's database."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    app = create_app(Settings(database_url=db_url), localizer=localizer)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(timeout=30)
+
+
+def test_gpp_access_package_drives_the_endpoint(
+    gpp_access_script: Path,
+    live_url: str,
+    served: tuple[TestClient, str],
+    query_views: list[SyntheticView],
+    tmp_path: Path,
+) -> None:
+    _, map_id = served
+    view = query_views[4]
+    lat, lon, h = _fix(view)
+    cam = view.camera
+    args = {
+        "url": f"{live_url}/v1/maps/{map_id}/geopose",
+        "image": _b64(encode_jpeg(view.image)),
+        "width": cam.width,
+        "height": cam.height,
+        "model": cam.model,
+        "params": list(cam.params),
+        "lat": lat,
+        "lon": lon,
+        "h": h,
+    }
+    (tmp_path / "args.json").write_text(json.dumps(args))
+    node = shutil.which("node")
+    assert node is not None
+    done = subprocess.run(
+        [node, str(gpp_access_script), str(tmp_path / "args.json")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    answer = json.loads(done.stdout.strip().splitlines()[-1])
+    assert answer["id"] == "sparcl-1"
+    position, rotation = _errors(answer["geopose"], view)
+    assert position < 0.02 and rotation < 0.5, (position, rotation)
