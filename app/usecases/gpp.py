@@ -43,7 +43,8 @@ _NO_INTRINSICS = (None, "", "UNKNOWN_CAMERA", "UNKNOWN")
 
 CameraAxes = Literal["forward_left_up", "opengl"]
 # the forward-left-up camera's axes (x forward, y left, z up) in the OpenGL camera frame
-# (x right, y up, z backward): a rotation of 120° about (1, −1, −1)/√3
+# (x right, y up, z backward): a rotation of 120° about (−1, 1, 1)/√3, quaternion
+# (x, y, z, w) = (−½, ½, ½, ½)
 GL_FROM_FLU = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
 
 OSCP_MEDIA_TYPE = "application/vnd.oscp+json"
