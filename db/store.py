@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from db.arrays import from_row
 from db.models import FeatureArray, Map, ReferenceImage
 from db.vocabulary import VLAD_KIND
+from services.errors import InvalidInputError
 from services.features.base import LocalFeatures
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
@@ -56,7 +57,11 @@ def unusable(row: ReferenceImage) -> str | None:
 def gps_of(row: ReferenceImage) -> GpsFix | None:
     if row.gps_latitude is None or row.gps_longitude is None:
         return None
-    return GpsFix(row.gps_latitude, row.gps_longitude, row.gps_height, row.gps_accuracy_m)
+    try:
+        return GpsFix(row.gps_latitude, row.gps_longitude, row.gps_height, row.gps_accuracy_m)
+    except InvalidInputError:  # stored before its values were range-checked
+        logger.warning("reference %s: stored GPS position ignored: out of range", row.id)
+        return None
 
 
 class SqlReferenceStore:

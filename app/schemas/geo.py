@@ -9,15 +9,18 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from db.geo import StoredRegistration
-from services.geo.geodesy import Geodetic
+from services.geo.geodesy import HEIGHT_RANGE_M, Geodetic
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
-from services.geo.gps import GpsFix
-from services.geo.registration import GeoRegistration
+from services.geo.gps import MAX_GPS_ACCURACY_M, GpsFix
+from services.geo.registration import MAX_ENU_TRANSLATION_M, SCALE_RANGE, GeoRegistration
 
 # numbers as JSON numbers: a boolean is not one (lax mode would read false as 0)
 Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Latitude = Field(ge=-90, le=90, allow_inf_nan=False, description="WGS84 degrees")
 Longitude = Field(ge=-180, le=180, allow_inf_nan=False, description="WGS84 degrees")
+# metres above the WGS84 ellipsoid, within the physical range
+Height = Annotated[Number, Field(ge=HEIGHT_RANGE_M[0], le=HEIGHT_RANGE_M[1])]
+EnuMetres = Annotated[Number, Field(ge=-MAX_ENU_TRANSLATION_M, le=MAX_ENU_TRANSLATION_M)]
 
 
 class GpsSchema(BaseModel):
@@ -26,8 +29,8 @@ class GpsSchema(BaseModel):
 
     latitude: Number = Latitude
     longitude: Number = Longitude
-    height: Number | None = None
-    accuracy_m: Number | None = Field(None, gt=0)
+    height: Height | None = None
+    accuracy_m: Number | None = Field(None, gt=0, le=MAX_GPS_ACCURACY_M)
 
     def to_fix(self) -> GpsFix:
         return GpsFix(self.latitude, self.longitude, self.height, self.accuracy_m)
@@ -45,7 +48,7 @@ class GpsSchema(BaseModel):
 class GeodeticSchema(BaseModel):
     latitude: Number = Latitude
     longitude: Number = Longitude
-    height: Number = Field(0.0, description="metres above the WGS84 ellipsoid")
+    height: Height = Field(0.0, description="metres above the WGS84 ellipsoid")
 
 
 class EnuFromMapSchema(BaseModel):
@@ -55,8 +58,11 @@ class EnuFromMapSchema(BaseModel):
         max_length=4,
         description="enu_from_map rotation quaternion [w, x, y, z]",
     )
-    translation: list[Number] = Field(
-        [0.0, 0.0, 0.0], min_length=3, max_length=3, description="metres in ENU"
+    translation: list[EnuMetres] = Field(
+        [0.0, 0.0, 0.0],
+        min_length=3,
+        max_length=3,
+        description=f"metres in ENU; |translation| at most {MAX_ENU_TRANSLATION_M:g}",
     )
 
 
@@ -67,7 +73,9 @@ class GeoRegistrationIn(BaseModel):
 
     origin: GeodeticSchema
     enu_from_map: EnuFromMapSchema = EnuFromMapSchema()
-    scale: Number = Field(1.0, gt=0, description="metres per map unit")
+    scale: Number = Field(
+        1.0, ge=SCALE_RANGE[0], le=SCALE_RANGE[1], description="metres per map unit"
+    )
 
     def to_registration(self) -> GeoRegistration:
         o = self.origin

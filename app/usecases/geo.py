@@ -3,6 +3,7 @@ queries, and the GeoPose of a localized query."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -26,6 +27,8 @@ GPS_PRIOR_SIGMAS = 3.0
 # the accuracy assumed for a GPS hint that states none (a phone outdoors), and the least radius
 DEFAULT_GPS_ACCURACY_M = 10.0
 MIN_GPS_PRIOR_RADIUS_M = 10.0
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -68,7 +71,13 @@ def find_registration(sessions: sessionmaker[Session], map_id: str) -> StoredReg
     """
     with sessions() as session:
         document = require_map(session, map_id).geo_registration
-    return None if document is None else from_document(document)
+    if document is None:
+        return None
+    try:
+        return from_document(document)
+    except InvalidInputError as exc:  # stored before its values were range-checked
+        logger.warning("map %s: stored geo-registration ignored: %s", map_id, exc)
+        return None
 
 
 def map_registration(sessions: sessionmaker[Session], map_id: str) -> GeoRegistration | None:
@@ -172,13 +181,29 @@ def with_gps_hint(
 def geopose_answer(
     registration: GeoRegistration | None, result: LocalizationResult
 ) -> tuple[GeoPose, GeoPoseAccuracy] | None:
-    """The query's GeoPose and its accuracy, for a localized query on a registered map."""
+    """The query's GeoPose and its accuracy, for a localized query on a registered map; None
+    also when they are not finite numbers (a pose far outside the registered region)."""
     if registration is None or not result.localized or result.cam_from_world is None:
         return None
-    pose = geopose_of(result.cam_from_world, registration)
-    uncertainty = result.uncertainty
-    return pose, geopose_accuracy(
-        registration,
-        uncertainty.position_m if uncertainty is not None else None,
-        uncertainty.rotation_deg if uncertainty is not None else None,
-    )
+    with np.errstate(all="ignore"):
+        pose = geopose_of(result.cam_from_world, registration)
+        uncertainty = result.uncertainty
+        accuracy = geopose_accuracy(
+            registration,
+            uncertainty.position_m if uncertainty is not None else None,
+            uncertainty.rotation_deg if uncertainty is not None else None,
+        )
+    p = pose.position
+    numbers = [
+        p.latitude,
+        p.longitude,
+        p.height,
+        *pose.quaternion_xyzw,
+        accuracy.horizontal_m,
+        accuracy.vertical_m,
+        accuracy.yaw_deg,
+    ]
+    if not np.all(np.isfinite(np.asarray(numbers, np.float64))):
+        logger.warning("geopose left out: not finite (a pose far outside the registered region)")
+        return None
+    return pose, accuracy

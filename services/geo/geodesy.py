@@ -12,6 +12,10 @@ import pycolmap
 
 from services.types import FloatArray
 
+# heights above the WGS84 ellipsoid that a camera, a GPS fix or a registration's origin may
+# have, metres: from below the deepest ocean trench (about −11,000 m) to the edge of space
+HEIGHT_RANGE_M = (-12_000.0, 100_000.0)
+
 
 @cache
 def _gps() -> Any:

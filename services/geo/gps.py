@@ -10,11 +10,13 @@ from dataclasses import dataclass
 from PIL import ExifTags, Image, UnidentifiedImageError
 
 from services.errors import InvalidInputError
-from services.geo.geodesy import Geodetic
+from services.geo.geodesy import HEIGHT_RANGE_M, Geodetic
 
 # EXIF GPS tags (EXIF 2.32, GPS IFD)
 _LAT_REF, _LAT, _LON_REF, _LON, _ALT_REF, _ALT = 1, 2, 3, 4, 5, 6
 _H_POSITIONING_ERROR = 31
+# a GPS accuracy beyond the Earth's circumference says nothing
+MAX_GPS_ACCURACY_M = 4e7
 
 
 @dataclass(frozen=True)
@@ -32,12 +34,18 @@ class GpsFix:
             raise InvalidInputError("gps.latitude must be within [-90, 90] degrees")
         if not (math.isfinite(self.longitude) and -180.0 <= self.longitude <= 180.0):
             raise InvalidInputError("gps.longitude must be within [-180, 180] degrees")
-        if self.height is not None and not math.isfinite(self.height):
-            raise InvalidInputError("gps.height must be a finite number")
+        if self.height is not None:
+            low, high = HEIGHT_RANGE_M
+            if not (math.isfinite(self.height) and low <= self.height <= high):
+                raise InvalidInputError(
+                    f"gps.height must be within {low:g}…{high:g} m (a physical height)"
+                )
         if self.accuracy_m is not None and not (
-            math.isfinite(self.accuracy_m) and self.accuracy_m > 0
+            math.isfinite(self.accuracy_m) and 0 < self.accuracy_m <= MAX_GPS_ACCURACY_M
         ):
-            raise InvalidInputError("gps.accuracy_m must be a positive number")
+            raise InvalidInputError(
+                f"gps.accuracy_m must be a positive number of at most {MAX_GPS_ACCURACY_M:g} m"
+            )
 
     def geodetic(self) -> Geodetic:
         """The fix as a geodetic point, an unknown height taken as 0."""

@@ -11,7 +11,7 @@ import numpy as np
 import pycolmap
 
 from services.errors import InvalidInputError
-from services.geo.geodesy import Geodetic, enu_from_geodetic, geodetic_from_enu
+from services.geo.geodesy import HEIGHT_RANGE_M, Geodetic, enu_from_geodetic, geodetic_from_enu
 from services.geometry.rigid import matrix_to_quaternion, quaternion_to_matrix
 from services.types import BoolArray, FloatArray
 
@@ -19,6 +19,19 @@ MIN_GPS_REFERENCES = 3
 # the smallest singular value (relative to the largest) of the centred map centres below
 # which their layout is a line and the rotation about it is unobservable
 COLLINEAR_RATIO = 1e-3
+# physical ranges of a registration besides its origin's height (HEIGHT_RANGE_M): the scale in
+# metres per map unit, and |translation| of enu_from_map in metres (about the Earth's
+# diameter: beyond it ENU at the origin means nothing)
+SCALE_RANGE = (1e-6, 1e6)
+MAX_ENU_TRANSLATION_M = 1e7
+
+
+def height_problem(height: float, what: str) -> str | None:
+    """Why ``height`` (metres above the WGS84 ellipsoid) is no physical one, or None."""
+    low, high = HEIGHT_RANGE_M
+    if not (np.isfinite(height) and low <= height <= high):
+        return f"{what} {height:g} m is out of the physical range {low:g}…{high:g} m"
+    return None
 
 
 @dataclass(frozen=True)
@@ -44,10 +57,33 @@ class GeoRegistration:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise InvalidInputError("the registration's scale must be a positive number")
+        if not SCALE_RANGE[0] <= self.scale <= SCALE_RANGE[1]:
+            raise InvalidInputError(
+                f"the registration's scale {self.scale:g} m per map unit is out of the "
+                f"physical range {SCALE_RANGE[0]:g}…{SCALE_RANGE[1]:g}"
+            )
         if not -90.0 <= self.origin.latitude <= 90.0:
             raise InvalidInputError("the origin's latitude must be within [-90, 90] degrees")
         if not -180.0 <= self.origin.longitude <= 180.0:
             raise InvalidInputError("the origin's longitude must be within [-180, 180] degrees")
+        problem = height_problem(self.origin.height, "the origin's height")
+        if problem is not None:
+            raise InvalidInputError(problem)
+        translation = np.asarray(self.translation, np.float64)
+        if not np.all(np.isfinite(translation)) or not (
+            np.max(np.abs(translation)) <= MAX_ENU_TRANSLATION_M
+            and float(np.linalg.norm(translation)) <= MAX_ENU_TRANSLATION_M
+        ):
+            raise InvalidInputError(
+                f"the registration's |translation| is out of the physical range: at most "
+                f"{MAX_ENU_TRANSLATION_M:g} m"
+            )
+        if not (
+            np.all(np.isfinite(self.rotation))
+            and np.isfinite(self.position_sigma_m)
+            and np.isfinite(self.rotation_sigma_deg)
+        ):
+            raise InvalidInputError("the registration's values must be finite numbers")
 
     @classmethod
     def from_quaternion(

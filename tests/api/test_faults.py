@@ -18,7 +18,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import create_engine, update
 
 from app.metrics import KNOWN_METHODS
-from db.models import ReferenceImage
+from db.models import Map, ReferenceImage
 from services.geo.gps import gps_from_exif
 from services.imaging import MAX_DEPTH_M, decode_depth
 from tests.conftest import create_map, image_metadata, upload_view
@@ -186,3 +186,72 @@ def test_made_up_methods_add_no_metric_series(client: TestClient) -> None:
     routes = {s.labels["route"] for s in requests}
     assert all(r.startswith("/") or r == "unmatched" for r in routes), routes
     assert not any("/no/such" in r for r in routes)
+
+
+REGISTRATION = {
+    "origin": {"latitude": 47.3769, "longitude": 8.5417, "height": 408.0},
+    "enu_from_map": {"rotation": [1.0, 0.0, 0.0, 0.0], "translation": [3.0, -2.0, 1.0]},
+    "scale": 1.0,
+}
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ({"origin": {"latitude": 0.0, "longitude": 0.0, "height": 1e308}}, "height"),
+        ({"origin": {"latitude": 0.0, "longitude": 0.0, "height": -1e7}}, "height"),
+        ({"origin": {"latitude": 0.0, "longitude": 0.0, "height": 100_001.0}}, "height"),
+        ({"scale": 1e308}, "scale"),
+        ({"scale": 1e-9}, "scale"),
+        ({"enu_from_map": {"translation": [1e308, 0.0, 0.0]}}, "translation"),
+        ({"enu_from_map": {"translation": [9e6, 9e6, 0.0]}}, "translation"),
+    ],
+)
+def test_geo_registration_out_of_the_physical_range_is_422(
+    client: TestClient, change: dict[str, object], named: str
+) -> None:
+    map_id = create_map(client)
+    url = f"/v1/maps/{map_id}/geo-registration"
+    problem = _assert_problem(client.put(url, json={**REGISTRATION, **change}), 422)
+    assert named in problem["detail"]
+    assert client.get(url).status_code == 404
+    assert client.put(url, json=REGISTRATION).status_code == 200
+
+
+def test_gps_height_out_of_the_physical_range_is_422(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    map_id = create_map(client)
+    view = reference_views[0]
+    metadata = {**image_metadata(view), "gps": {"latitude": 1.0, "longitude": 2.0, "height": 1e308}}
+    problem = _assert_problem(_post_image(client, map_id, encode_png(view.image), metadata), 422)
+    assert "height" in problem["detail"]
+
+
+def test_stored_registration_out_of_range_gives_no_geopose_not_nulls(
+    client: TestClient,
+    database_url: str,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> None:
+    """A registration stored before its values were range-checked: localize answers without
+    a geopose (the schema's numbers are never null) and reading it is 404."""
+    map_id = create_map(client)
+    for view in reference_views[:6]:
+        assert upload_view(client, map_id, view).status_code == 201
+    document = {
+        "origin": [47.0, 8.0, 1e308],
+        "rotation": [1.0, 0.0, 0.0, 0.0],
+        "translation": [0.0, 0.0, 0.0],
+        "scale": 1e308,
+        "source": "manual",
+    }
+    engine = create_engine(database_url)
+    with engine.begin() as conn:
+        conn.execute(update(Map).where(Map.id == map_id).values(geo_registration=document))
+    engine.dispose()
+    response = _localize(client, map_id, query_views[0], top_k=6)
+    assert response.status_code == 200, response.text  # type: ignore[attr-defined]
+    result = response.json()  # type: ignore[attr-defined]
+    assert result["localized"] and result["geopose"] is None, result["geopose"]
+    assert client.get(f"/v1/maps/{map_id}/geo-registration").status_code == 404
