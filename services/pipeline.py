@@ -55,6 +55,8 @@ class LocalizeParams:
         the match of each reference, and it bounds the estimator's own budget; once spent,
         the result is ``time_budget_exceeded``.
     frame: what an AR client says about its frame (camera rotation, gravity, rotation search).
+    min_confidence: a pose with a lower confidence is no answer: ``localized`` False, reason
+        ``low_confidence``, the pose as ``candidate``.
     """
 
     camera: Camera | None = None
@@ -64,6 +66,7 @@ class LocalizeParams:
     options: EstimatorOptions = field(default_factory=EstimatorOptions)
     time_budget_s: float | None = None
     frame: QueryFrameHints = field(default_factory=QueryFrameHints)
+    min_confidence: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,22 @@ class LocalizationResult:
     uncertainty: PoseUncertainty | None = None
     camera_adaptation: CameraAdaptation | None = None  # how the request's camera was adapted
     upright_turn_deg: int = 0  # the clockwise turn of the upload the query was matched at
+    # the pose of a ``low_confidence`` answer, which is not localized
+    candidate: Rigid3d | None = None
+
+    def below(self, min_confidence: float) -> LocalizationResult:
+        """This answer, or, when it is localized with a confidence below ``min_confidence``,
+        the ``low_confidence`` answer holding its pose as ``candidate``."""
+        if not self.localized or self.confidence >= min_confidence:
+            return self
+        return replace(
+            self,
+            localized=False,
+            reason=FailureReason.LOW_CONFIDENCE.value,
+            cam_from_world=None,
+            candidate=self.cam_from_world,
+            uncertainty=None,
+        )
 
 
 def _sample_depth(depth: Float32Array | None, xy: FloatArray) -> FloatArray | None:
@@ -266,7 +285,7 @@ class Localizer:
         summed = clock.finish() if attempts > 1 else None
         return [
             replace(
-                r,
+                r.below(params.min_confidence),
                 camera_adaptation=frame.adaptation,
                 timings_ms=_own_timings(summed, own) if summed else r.timings_ms,
                 stats={**r.stats, "orientation_attempts": float(attempts)},

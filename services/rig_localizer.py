@@ -9,7 +9,7 @@ together: one time budget, and the pixel limit on the sum of the frames' pixels.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from services.errors import ImageTooLargeError
 from services.estimators.base import FailureReason
@@ -78,6 +78,16 @@ class SessionLocalizationResult:
     result: LocalizationResult
     map_from_session: Rigid3d | None
     frames: list[FrameResult]
+
+    def below(self, min_confidence: float) -> SessionLocalizationResult:
+        """This answer, or, when its joint estimate is less confident than ``min_confidence``,
+        the ``low_confidence`` answer: no map_from_session, no frame poses, the first frame's
+        pose as the summary's ``candidate``."""
+        result = self.result.below(min_confidence)
+        if result is self.result:
+            return self
+        frames = [replace(frame, cam_from_world=None) for frame in self.frames]
+        return SessionLocalizationResult(result, None, frames)
 
 
 def align_single_frame(
@@ -186,7 +196,7 @@ def _localize_frames(
     estimate = estimate_rig_pose(rig_frames, clock.bound(params.options))
     lap("estimate", check=False)  # the work is done: its answer is kept
     names = {image_id: ref.name for image_id, ref in loaded.items()}
-    return _answer(estimate, rig_frames, names, clock.finish())
+    return _answer(estimate, rig_frames, names, clock.finish()).below(params.min_confidence)
 
 
 def _retrieve(

@@ -11,7 +11,7 @@ from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
 from app.schemas.session import MAX_FRAMES_SCHEMA, FrameIn, SessionAlignmentOut
 from app.schemas.uncertainty import UncertaintyOut
-from app.usecases.localize import LocalizeRequest
+from app.usecases.localize import DEFAULT_MIN_CONFIDENCE, LocalizeRequest
 from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
@@ -85,6 +85,14 @@ class LocalizeParamsIn(BaseModel):
         "(within the time budget) when it fails as uploaded",
     )
     output: OutputIn = Field(default_factory=OutputIn)
+    min_confidence: float = Field(
+        DEFAULT_MIN_CONFIDENCE,
+        ge=0,
+        le=1,
+        allow_inf_nan=False,
+        description="A pose less confident than this is not an answer: localized: false, "
+        "reason low_confidence, the pose as `candidate`. 0 answers every verified pose",
+    )
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -100,6 +108,7 @@ class LocalizeParamsIn(BaseModel):
                 self.gravity.to_hint() if self.gravity else None,
                 self.rotation_search,
             ),
+            min_confidence=self.min_confidence,
         )
 
     def to_frames(self) -> list[SessionFrame] | None:
@@ -188,6 +197,11 @@ class LocalizeResult(BaseModel):
     )
     cam_from_world: PoseSchema | None
     camera_center: list[float] | None
+    candidate: PoseSchema | None = Field(
+        None,
+        description="With reason low_confidence: the pose found, less confident than "
+        "params.min_confidence (not an answer; `confidence` is its confidence)",
+    )
     num_inliers: int
     confidence: float = Field(description="In [0, 1]; see README 'Reading the result'")
     retrieved: list[RetrievedOut]
@@ -247,6 +261,9 @@ class LocalizeResult(BaseModel):
             estimator_reason=result.estimator_reason,
             cam_from_world=PoseSchema.from_rigid(pose) if pose is not None else None,
             camera_center=[float(v) for v in pose.center] if pose is not None else None,
+            candidate=PoseSchema.from_rigid(result.candidate)
+            if result.candidate is not None
+            else None,
             num_inliers=result.num_inliers,
             confidence=result.confidence,
             retrieved=_retrieved_out(result.retrieved),

@@ -92,6 +92,26 @@ def test_result_shape(client: TestClient, scene_map: str, query_views: list[Synt
     }
 
 
+def test_low_confidence_answer_holds_its_candidate(
+    client: TestClient, scene_map: str, query_views: list[SyntheticView]
+) -> None:
+    """Below params.min_confidence the answer is not localized, reason low_confidence, with
+    the pose found as `candidate`; the default floor answers the same query."""
+    view = query_views[0]
+    answered = _localize(client, scene_map, encode_png(view.image), {"camera": _camera(view)})
+    assert answered["localized"] and answered["candidate"] is None
+    refused = _localize(
+        client,
+        scene_map,
+        encode_png(view.image),
+        {"camera": _camera(view), "min_confidence": (answered["confidence"] + 1.0) / 2.0},
+    )
+    assert refused["localized"] is False and refused["reason"] == "low_confidence"
+    assert refused["cam_from_world"] is None and refused["camera_center"] is None
+    assert refused["candidate"] == answered["cam_from_world"]
+    assert refused["confidence"] == answered["confidence"]
+
+
 def test_unrelated_image_is_not_localized(client: TestClient, scene_map: str) -> None:
     for seed in range(3):
         result = _localize(client, scene_map, encode_png(unrelated_image(seed)), {})
@@ -144,6 +164,7 @@ def test_empty_map_is_not_localized(client: TestClient, query_views: list[Synthe
             "camera is 100×480 but the image is 640×480",
         ),
         ({"prior": {"position": [0, 0], "radius": 1}}, "position"),
+        ({"min_confidence": 1.5}, "min_confidence"),
     ],
 )
 def test_bad_params_are_422(

@@ -126,6 +126,26 @@ def test_frames_recover_map_from_session(
         assert 0.0 < result["confidence"] <= 1.0
 
 
+def test_joint_estimate_below_min_confidence_is_not_localized(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    """Several frames answer low_confidence like one: no map_from_session, no frame poses,
+    the first frame's pose as the candidate."""
+    views = session_views[:2]
+    images = [encode_png(v.image) for v in views]
+    answered = _localize(client, scene_map, views, images)
+    assert answered["localized"] is True and answered["confidence"] < 1.0
+    refused = _localize(
+        client, scene_map, views, images, min_confidence=(answered["confidence"] + 1.0) / 2.0
+    )
+    assert refused["localized"] is False and refused["reason"] == "low_confidence"
+    assert refused["map_from_session"] is None and refused["cam_from_world"] is None
+    assert all(frame["cam_from_world"] is None for frame in refused["frames"])
+    first = answered["frames"][0]["cam_from_world"]
+    for key in ("rotation", "translation"):  # the joint estimate again: equal to rounding
+        np.testing.assert_allclose(refused["candidate"][key], first[key], atol=1e-6)
+
+
 def test_one_frame_with_session_pose(
     client: TestClient, scene_map: str, session_views: list[SyntheticView]
 ) -> None:

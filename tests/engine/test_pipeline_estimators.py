@@ -68,3 +68,28 @@ def test_estimator_rejects_unrelated_image(
     )
     assert not result.localized and result.cam_from_world is None
     assert result.reason in ("no_consensus", "too_few_matches", "degenerate_geometry")
+
+
+def test_pose_below_min_confidence_is_a_candidate(
+    localizer: Localizer, store: MemoryReferenceStore, query_views: list[SyntheticView]
+) -> None:
+    """A verified pose less confident than the request's floor is answered low_confidence,
+    not localized, with the same pose as its candidate; a floor it meets changes nothing."""
+    view = query_views[0]
+    image = encode_png(view.image)
+    answered = localizer.localize(image, LocalizeParams(camera=view.camera), store)
+    assert answered.localized and answered.cam_from_world is not None
+    assert 0.0 < answered.confidence < 1.0
+    met = localizer.localize(
+        image, LocalizeParams(camera=view.camera, min_confidence=answered.confidence), store
+    )
+    assert met.localized and met.candidate is None
+    floor = (answered.confidence + 1.0) / 2.0
+    refused = localizer.localize(
+        image, LocalizeParams(camera=view.camera, min_confidence=floor), store
+    )
+    assert not refused.localized and refused.reason == "low_confidence"
+    assert refused.cam_from_world is None and refused.uncertainty is None
+    assert refused.candidate is not None
+    np.testing.assert_allclose(refused.candidate.matrix, answered.cam_from_world.matrix, atol=1e-9)
+    assert refused.confidence == answered.confidence
