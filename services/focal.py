@@ -113,15 +113,20 @@ def _jackknife_sigma(
     focal: float,
     pose: Rigid3d,
     options: EstimatorOptions,
-) -> float:
+    deadline: Deadline,
+) -> float | None:
     """Leave-one-reference-out standard deviation of the focal length, pixels: the inlier
     tracks ``rows`` are triangulated again without each reference and the focal refined on
     them. Errors shared by one reference's points (its pose, its lens) move the points
-    together, which the per-point covariance cannot see; the jackknife does."""
+    together, which the per-point covariance cannot see; the jackknife does. None when the
+    ``deadline`` passes before every reference was left out (one refit per reference: with
+    many references this is the longest part of the focal estimation)."""
     num_views = tracks.match_index.shape[1]
     observed = tracks.subset(rows)
     refits = []
     for left_out in range(num_views):
+        if deadline.expired():
+            return None
         if not observed.observed[:, left_out].any():
             continue
         views = np.delete(np.arange(num_views), left_out)
@@ -148,23 +153,35 @@ def estimate_focal(
     deadline: Deadline,
 ) -> FocalEstimate:
     """The query camera of a ``width`` × ``height`` image from its matches (pixels in COLMAP
-    convention), or ``focal_unobservable`` with the stats gathered so far."""
+    convention), or ``focal_unobservable`` with the stats gathered so far; or
+    ``time_budget_exceeded`` when the request's ``deadline`` passes first (it is checked
+    between the steps and between the refits of the jackknife)."""
     focal_options: FocalOptions = options.focal
     stats: dict[str, float] = {}
 
     def unobservable() -> FocalEstimate:
         return FocalEstimate(None, FailureReason.FOCAL_UNOBSERVABLE, stats)
 
+    def out_of_time() -> FocalEstimate:
+        return FocalEstimate(None, FailureReason.TIME_BUDGET_EXCEEDED, stats)
+
+    if deadline.expired():
+        return out_of_time()
+
     guess = default_camera(width, height)
     stacked = stack_matches(guess, references)  # the query camera is not used below
     tracks = build_tracks(stacked, options.triangulation.track_merge_px).multi_view()
     if tracks.size < focal_options.min_points:
         return unobservable()
+    if deadline.expired():
+        return out_of_time()
     tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px)
     valid = np.flatnonzero(tri.valid)
     stats["focal_tracks"] = float(valid.size)
-    if valid.size < focal_options.min_points or deadline.expired():
+    if valid.size < focal_options.min_points:
         return unobservable()
+    if deadline.expired():
+        return out_of_time()
     xy = stacked.query_xy[tracks.query_match[valid]]
     points3d = tri.points[valid]
     fit = _fit(
@@ -178,6 +195,8 @@ def estimate_focal(
     )
     if fit is None:
         return unobservable()
+    if deadline.expired():
+        return out_of_time()
     focal, pose, mask = fit
     stats["focal_px"] = focal
     stats["focal_points"] = float(mask.sum())
@@ -189,7 +208,11 @@ def estimate_focal(
     if sigma is None:
         return unobservable()
     stats["focal_relative_sigma_points"] = sigma / focal
-    jackknife = _jackknife_sigma(stacked, tracks, valid[mask], width, height, focal, pose, options)
+    jackknife = _jackknife_sigma(
+        stacked, tracks, valid[mask], width, height, focal, pose, options, deadline
+    )
+    if jackknife is None or deadline.expired():
+        return out_of_time()
     stats["focal_relative_sigma_references"] = jackknife / focal
     sigma = max(sigma, jackknife)
     stats["focal_relative_sigma"] = sigma / focal

@@ -1,0 +1,44 @@
+"""Issue "Holds under every fault", N3: the focal estimation of a query without a camera
+keeps the request's time budget (its leave-one-reference-out jackknife refits once per
+reference: 30 references take seconds unbounded)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from services.estimators.base import FailureReason
+from services.estimators.ransac import Deadline
+from services.focal import estimate_focal
+from tests.estimators.conftest import TEST_OPTIONS
+from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
+
+BUDGET_S = 0.3
+# the steps between two deadline checks (a triangulation, a RANSAC fit) on a loaded machine
+SLACK_S = 0.5
+
+
+@pytest.fixture(scope="module")
+def many_references() -> SyntheticCorrespondences:
+    return make_correspondences(seed=3, num_references=30)
+
+
+def test_focal_estimation_stops_at_the_deadline(
+    many_references: SyntheticCorrespondences,
+) -> None:
+    start = time.perf_counter()
+    found = estimate_focal(640, 480, many_references.references, TEST_OPTIONS, Deadline(BUDGET_S))
+    elapsed = time.perf_counter() - start
+    assert found.camera is None
+    assert found.failure_reason is FailureReason.TIME_BUDGET_EXCEEDED
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+
+
+def test_a_spent_budget_stops_focal_estimation_at_once(
+    many_references: SyntheticCorrespondences,
+) -> None:
+    start = time.perf_counter()
+    found = estimate_focal(640, 480, many_references.references, TEST_OPTIONS, Deadline(0.0))
+    assert found.failure_reason is FailureReason.TIME_BUDGET_EXCEEDED
+    assert time.perf_counter() - start < SLACK_S
