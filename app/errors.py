@@ -10,6 +10,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
+from sqlalchemy.exc import DBAPIError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 from starlette.routing import BaseRoute, Match, Route
@@ -23,6 +25,8 @@ logger = logging.getLogger(__name__)
 
 PROBLEM_JSON = "application/problem+json"
 PROBLEM_BASE = "https://slloc.dev/problems/"
+# seconds a client is asked to wait after a 503 for an unreachable database
+DATABASE_RETRY_AFTER_S = 5
 
 
 class Problem(BaseModel):
@@ -120,7 +124,8 @@ def _describe(status: int) -> str:
         409: "Name already taken",
         413: "Upload or image too large",
         422: "Invalid input",
-        503: "Busy: too many requests in progress or waiting; retry after Retry-After seconds",
+        503: "Busy (too many requests in progress or waiting) or the database unreachable: "
+        "retry after Retry-After seconds",
     }.get(status, "Problem")
 
 
@@ -224,6 +229,33 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
         if status == 405:
             headers["Allow"] = _allowed_methods(routes, request.scope) or headers.get("Allow", "")
         return problem_response(request, status, slug, title, str(exc.detail), headers or None)
+
+    async def _database_down(request: Request, exc: Exception) -> JSONResponse:
+        """The database is unreachable (connection refused or lost, pool exhausted, a
+        read-only or locked file): 503 to retry, not a 500."""
+        if (
+            isinstance(exc, DBAPIError)
+            and not isinstance(exc, OperationalError)
+            and not exc.connection_invalidated
+        ):
+            return await _unexpected(request, exc)
+        logger.warning(
+            "database unavailable on %s %r: %s",
+            request.method,
+            request.url.path,
+            str(getattr(exc, "orig", None) or exc).splitlines()[0][:200],
+        )
+        return problem_response(
+            request,
+            503,
+            "database-unavailable",
+            "Database unavailable",
+            f"the database cannot be reached; retry after {DATABASE_RETRY_AFTER_S} s",
+            {"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+        )
+
+    for database_error in (OperationalError, DBAPIError, PoolTimeoutError):
+        app.add_exception_handler(database_error, _database_down)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

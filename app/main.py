@@ -81,6 +81,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
         yield
+        app.state.draining = True  # /readyz answers 503 from now on
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()
@@ -119,6 +120,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     for router in routers:
         app.include_router(router)
     app.include_router(metrics_router)
+    app.include_router(health.probes)
     install_viewer(app)
     install_openapi(app)
     return app

@@ -56,8 +56,12 @@ def test_manifests_wire_the_service_together() -> None:
     (deployment,) = by_kind["Deployment"]
     pod = deployment["spec"]["template"]
     (container,) = pod["spec"]["containers"]
-    for probe in ("readinessProbe", "livenessProbe"):
-        assert container[probe]["httpGet"]["path"] == "/v1/health"
+    for probe, path in (
+        ("startupProbe", "/readyz"),
+        ("readinessProbe", "/readyz"),
+        ("livenessProbe", "/livez"),
+    ):
+        assert container[probe]["httpGet"]["path"] == path
     assert pod["metadata"]["annotations"]["prometheus.io/path"] == "/metrics"
     assert {"secretRef": {"name": "slloc"}} in container["envFrom"]
     (secret,) = by_kind["Secret"]

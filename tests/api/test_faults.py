@@ -21,7 +21,8 @@ from app.metrics import KNOWN_METHODS
 from db.models import Map, ReferenceImage
 from services.geo.gps import gps_from_exif
 from services.imaging import MAX_DEPTH_M, decode_depth
-from tests.conftest import create_map, image_metadata, upload_view
+from services.pipeline import Localizer
+from tests.conftest import create_map, image_metadata, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 
 PROBLEM = "application/problem+json"
@@ -255,3 +256,31 @@ def test_stored_registration_out_of_range_gives_no_geopose_not_nulls(
     result = response.json()  # type: ignore[attr-defined]
     assert result["localized"] and result["geopose"] is None, result["geopose"]
     assert client.get(f"/v1/maps/{map_id}/geo-registration").status_code == 404
+
+
+# a PostgreSQL URL on a port nothing listens on: every connection is refused
+CLOSED_PORT_URL = "postgresql+psycopg://postgres@127.0.0.1:9/slloc"
+
+
+def test_database_outage_is_503_with_retry_after_and_probes_tell(localizer: Localizer) -> None:
+    with make_client(
+        CLOSED_PORT_URL, localizer, raise_server_exceptions=False, auto_migrate=False
+    ) as c:
+        for response in (c.get("/v1/maps"), c.post("/v1/maps", json={"name": "m"})):
+            problem = _assert_problem(response, 503, "database-unavailable")
+            assert response.headers["retry-after"] == "5"  # type: ignore[attr-defined]
+            assert "password" not in problem["detail"]
+        assert c.get("/livez").status_code == 200
+        assert c.head("/livez").status_code == 200
+        ready = c.get("/readyz")
+        assert ready.status_code == 503 and "database" in ready.text
+        assert ready.headers["retry-after"]
+        assert c.get("/v1/health").json()["status"] == "degraded"
+
+
+def test_probes_and_head_of_health_answer_200(client: TestClient) -> None:
+    for path in ("/livez", "/readyz", "/v1/health"):
+        assert client.get(path).status_code == 200, path
+        response = client.head(path)
+        assert response.status_code == 200, (path, response.status_code)
+        assert response.content == b""

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from importlib.metadata import version
 
-from anyio import to_thread
-from fastapi import APIRouter, Request
+from anyio import move_on_after, to_thread
+from fastapi import APIRouter, Request, Response
 from sqlalchemy import text
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.datastructures import State
@@ -19,6 +19,52 @@ from services.runtime.memory import MemoryBound
 from services.runtime.threads import ThreadPlan
 
 router = APIRouter(prefix="/v1", tags=["health"])
+# Kubernetes-style probes at the root, without an API key: outside the documented API
+probes = APIRouter(include_in_schema=False)
+# seconds /readyz waits for the database before it answers not ready
+READY_DATABASE_TIMEOUT_S = 2.0
+
+
+@router.head("/health", include_in_schema=False)
+async def health_head() -> Response:
+    """HEAD of /v1/health: the process answers (a load balancer's check)."""
+    return Response(status_code=200)
+
+
+@probes.api_route("/livez", methods=["GET", "HEAD"])
+async def livez() -> Response:
+    """Liveness: the process answers on its event loop. Touches nothing else (no database),
+    so that a database outage never gets the service restarted."""
+    return Response("ok\n", media_type="text/plain")
+
+
+@probes.api_route("/readyz", methods=["GET", "HEAD"])
+async def readyz(request: Request) -> Response:
+    """Readiness: the database answers within READY_DATABASE_TIMEOUT_S, the models are
+    loaded and the service is not draining; else 503 naming what is not ready."""
+    state = request.app.state
+    problems = []
+    if getattr(state, "draining", False):
+        problems.append("draining: shutting down")
+    if getattr(state, "localizer", None) is None:
+        problems.append("models: not loaded")
+    sessions = getattr(state, "sessions", None)
+    up = False
+    if sessions is not None:
+        with move_on_after(READY_DATABASE_TIMEOUT_S):
+            up = await to_thread.run_sync(
+                _database_up, sessions, limiter=state.health_threads, abandon_on_cancel=True
+            )
+    if not up:
+        problems.append(f"database: unreachable within {READY_DATABASE_TIMEOUT_S:g} s")
+    if problems:
+        return Response(
+            "not ready: " + "; ".join(problems) + "\n",
+            status_code=503,
+            media_type="text/plain",
+            headers={"Retry-After": "5"},
+        )
+    return Response("ok\n", media_type="text/plain")
 
 
 @router.get("/health", operation_id="health")
