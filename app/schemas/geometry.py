@@ -18,7 +18,8 @@ from services.geometry.camera import (
 )
 from services.geometry.rigid import MAX_TRANSLATION_M, Rigid3d, pose_problem
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+# numbers as JSON numbers: strict, so that a string ("500") or a boolean is refused
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 CameraModelName = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
 
 

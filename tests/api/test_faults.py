@@ -284,3 +284,21 @@ def test_probes_and_head_of_health_answer_200(client: TestClient) -> None:
         response = client.head(path)
         assert response.status_code == 200, (path, response.status_code)
         assert response.content == b""
+
+
+@pytest.mark.parametrize("name", ["   ", "\u00a0\u2003", "invoice\u202egpj.exe", "a\u2066b"])
+def test_blank_names_and_bidi_controls_are_422(client: TestClient, name: str) -> None:
+    _assert_problem(client.post("/v1/maps", json={"name": name}), 422)
+
+
+@pytest.mark.parametrize("bad", ["500", True])
+def test_camera_params_must_be_numbers(
+    client: TestClient, reference_views: list[SyntheticView], bad: object
+) -> None:
+    map_id = create_map(client)
+    view = reference_views[0]
+    metadata = image_metadata(view)
+    params = list(metadata["camera"]["params"])  # type: ignore[index]
+    params[0] = bad
+    metadata["camera"] = {**metadata["camera"], "params": params}  # type: ignore[dict-item]
+    _assert_problem(_post_image(client, map_id, encode_png(view.image), metadata), 422)
