@@ -109,6 +109,8 @@ def reference_layout(
     w = weights[used] / weights[used].sum()
     centered = centers[used] - w @ centers[used]
     covariance = np.einsum("k,ki,kj->ij", w, centered, centered)
+    if not np.all(np.isfinite(covariance)):  # centres so far apart that their spread overflows
+        return ReferenceLayout(0.0, 1.0, 90.0)
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)
     extents = np.sqrt(np.clip(eigenvalues[::-1], 0.0, None))
     if extents[0] <= 1e-12:
