@@ -12,7 +12,7 @@ from db.repositories.images import ImageRepository
 from services.components import build_localizer as build_engine_localizer
 from services.components import resolve_features
 from services.features.configs import get_feature_config
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.runtime.manifest import read_manifest
 from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
 from services.runtime.onnx import OnnxOptions

@@ -32,7 +32,7 @@ from app.settings import Settings, get_settings
 from app.viewer import install_viewer
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
 from services.retrieval.cache import RetrievalIndexCache

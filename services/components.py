@@ -27,10 +27,10 @@ from services.features.configs import (
 )
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.features.sift import SiftExtractor, SiftOptions
+from services.localization.localizer import Localizer
 from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
-from services.pipeline import Localizer
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.onnx_global import OnnxGlobalDescriptor
 from services.retrieval.thumbnail import ThumbnailDescriptor

@@ -21,7 +21,7 @@ from app.main import create_app
 from app.settings import Settings
 from services.components import build_localizer
 from services.features.configs import FEATURE_CONFIGS
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.runtime.manifest import ModelEntry, file_sha256, write_entry
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 

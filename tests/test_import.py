@@ -33,7 +33,7 @@ from db.repositories.maps import MapRepository
 from db.session import make_engine
 from services.geo.geodesy import Geodetic
 from services.geo.registration import GeoRegistration
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tools import cli
 from tools.importers import read_colmap
 from tools.synthetic.dataset import write_synthetic_dataset

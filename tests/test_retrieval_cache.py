@@ -14,7 +14,7 @@ from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.retrieval.cache import RetrievalIndexCache
 from tests.conftest import image_metadata
 from tools.synthetic.scene import SyntheticView, encode_png

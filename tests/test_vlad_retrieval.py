@@ -20,7 +20,7 @@ from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
 from db.vocabulary import STAGED_PREFIX, SqlVocabularyStore
 from services.geometry.rigid import rotation_error_deg
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES, NUM_CENTERS
 from services.retrieval.search import top_k

@@ -24,7 +24,7 @@ from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.vocabulary import SqlVocabularyStore
 from services.estimators.base import FailureReason
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.retrieval import vlad_index
 from services.retrieval.contracts import VocabularyError
 from services.retrieval.training import BackgroundTrainer

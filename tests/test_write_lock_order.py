@@ -24,7 +24,7 @@ from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.vocabulary import SqlVocabularyStore
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import image_metadata
 from tools.synthetic.scene import SyntheticView, encode_png
 

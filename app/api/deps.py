@@ -14,7 +14,7 @@ from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
 from app.usecases.localize import LocalizeContext
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 

@@ -12,7 +12,7 @@ from app.schemas.geometry import CameraSchema, FiniteFloat
 from services.geometry.intrinsics_adaptation import CameraAdaptation, rotated_from_camera
 from services.geometry.pose_conventions import world_from_cam
 from services.geometry.rigid import Rigid3d, matrix_to_quaternion
-from services.query_frame import DEFAULT_GRAVITY_MAX_ANGLE_DEG, GravityHint
+from services.localization.query_frame import DEFAULT_GRAVITY_MAX_ANGLE_DEG, GravityHint
 
 PoseConvention = Literal["colmap", "opengl", "unity"]
 

@@ -15,10 +15,10 @@ from app.usecases.localize import DEFAULT_MIN_CONFIDENCE, LocalizeRequest
 from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
-from services.pipeline import LocalizationResult, RetrievedReference
-from services.query_frame import QueryFrameHints
+from services.localization.answer import LocalizationResult, RetrievedReference
+from services.localization.frames import SessionLocalizationResult
+from services.localization.query_frame import QueryFrameHints
 from services.retrieval.search import PositionPrior
-from services.rig_localizer import SessionLocalizationResult
 
 
 class PriorSchema(BaseModel):

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
-from services.pose_uncertainty import PoseUncertainty
+from services.estimators.uncertainty import PoseUncertainty
 
 
 class UncertaintyOut(BaseModel):

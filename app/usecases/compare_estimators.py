@@ -6,7 +6,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from app.usecases.localize import LocalizeContext, LocalizeRequest
-from services.pipeline import LocalizationResult
+from services.estimators.registry import get_estimator
+from services.localization.answer import LocalizationResult
+from services.localization.compare import localize_each
 
 
 def localize_with_each(
@@ -27,6 +29,12 @@ def localize_with_each(
     """
     localizer, params, store = context.map_engine(map_id, request)
     with context.slots:
-        return localizer.localize_each(
-            image_bytes, params, estimators, store, depth_bytes, context.spare
+        return localize_each(
+            localizer,
+            image_bytes,
+            params,
+            [get_estimator(name) for name in estimators],
+            store,
+            depth_bytes,
+            context.spare,
         )

@@ -19,7 +19,7 @@ from services.errors import InvalidInputError
 from services.geo.geopose import GeoPose, GeoPoseAccuracy, geopose_accuracy, geopose_of
 from services.geo.gps import GpsFix
 from services.geo.registration import GeoRegistration, estimate_registration
-from services.pipeline import LocalizationResult
+from services.localization.answer import LocalizationResult
 from services.retrieval.search import PositionPrior
 
 # a query's GPS hint keeps references within this many of its 1-σ accuracies, horizontally

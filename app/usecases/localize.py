@@ -15,8 +15,9 @@ from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
-from services.pipeline import LocalizationResult, LocalizeParams, Localizer
-from services.query_frame import QueryFrameHints
+from services.localization.answer import LocalizationResult
+from services.localization.localizer import LocalizeParams, Localizer
+from services.localization.query_frame import QueryFrameHints
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
@@ -82,7 +83,7 @@ def engine_params(
         options = replace(options, ransac=ransac)
     return LocalizeParams(
         camera=request.camera,
-        estimator=request.estimator or default_estimator,
+        estimator=get_estimator(request.estimator or default_estimator),
         top_k=request.top_k,
         prior=request.prior,
         options=options,
@@ -124,11 +125,11 @@ class LocalizeContext:
     features_cache: ReferenceFeatureCache | None = None
 
     def map_engine(
-        self, map_id: str, request: LocalizeRequest, default_estimator: str | None = None
+        self, map_id: str, request: LocalizeRequest
     ) -> tuple[Localizer, LocalizeParams, SqlReferenceStore]:
         """The localizer set up for the map's feature options, the engine's parameters for
-        ``request`` (``default_estimator``, else the map's, where it names none) and the
-        map's references.
+        ``request`` (the estimator resolved: the map's where it names none) and the map's
+        references.
 
         Raises:
             NotFoundError: unknown map.
@@ -139,7 +140,7 @@ class LocalizeContext:
             localizer = self.localizer.for_map(map_row.max_keypoints, map_row.max_side)
             params = engine_params(
                 request,
-                default_estimator or map_row.default_estimator,
+                map_row.default_estimator,
                 self.max_top_k,
                 self.max_time_budget_s,
             )
@@ -171,9 +172,9 @@ def localize(
             estimator needs depth and none was uploaded.
     """
     localizer, params, store = context.map_engine(map_id, request)
-    if depth_bytes is None and get_estimator(params.estimator).needs_depth:
+    if depth_bytes is None and params.estimator.needs_depth:
         raise InvalidInputError(
-            f"depth: estimator {params.estimator} needs the query's depth map (the depth "
+            f"depth: estimator {params.estimator.name} needs the query's depth map (the depth "
             "upload); the references need depth too"
         )
     with context.slots:

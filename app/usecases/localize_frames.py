@@ -1,6 +1,6 @@
 """Localize query frames that come with their AR-session poses, and answer
 ``map_from_session``. One frame goes through the ordinary localization (any estimator); two or
-more are localized jointly as a rig (``services.rig_localizer``)."""
+more are localized jointly as a rig (``services.localization.frames``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from services.errors import InvalidInputError
 from services.estimators.rig_pose import RIG_METHOD
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.rig_localizer import (
+from services.localization.frames import (
     QueryFrame,
     SessionLocalizationResult,
     align_single_frame,
@@ -68,7 +68,8 @@ def localize_with_session(
             f"estimator: several frames are localized jointly by {RIG_METHOD} (local "
             f"triangulation, generalized absolute pose); {request.estimator} takes one frame"
         )
-    localizer, params, store = context.map_engine(map_id, request, RIG_METHOD)
+    # the joint method is the only one: the estimator the parameters resolve is not used
+    localizer, params, store = context.map_engine(map_id, replace(request, estimator=None))
     query_frames = [
         QueryFrame(image, frame.camera, frame.cam_from_session)
         for image, frame in zip(images, frames, strict=True)

@@ -12,7 +12,7 @@ from app.usecases.errors import NameTakenError, NotFoundError
 from db.models import Map
 from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 
 

@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.usecases.errors import ConflictError
 from app.usecases.maps import require_map
 from db.vocabulary import SqlVocabularyStore
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.retrieval.contracts import VocabularyError
 from services.retrieval.vlad_index import VladIndexer
 

@@ -28,10 +28,10 @@ When two or more poses verified, the answer's stats carry how far the others lie
 the others): two estimators that agree are evidence for the pose, which the confidence model
 reads (``services.confidence.model``).
 
-Every pose goes through the 3D verification (``services.verification``); every estimator gets
-what is left of the time budget. The answer names the estimator whose pose it is and why
-(``EstimateResult.estimator_used`` and ``estimator_reason``); when every estimator fails, the
-first one's failure is the answer.
+Every pose goes through the 3D verification (``services.estimators.verification``); every
+estimator gets what is left of the time budget. The answer names the estimator whose pose it is
+and why (``EstimateResult.estimator_used`` and ``estimator_reason``); when every estimator
+fails, the first one's failure is the answer.
 """
 
 from __future__ import annotations
@@ -51,9 +51,9 @@ from services.estimators.estimator import precheck
 from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import ReferenceLayout, reference_layout
 from services.estimators.ransac import Deadline
+from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
 from services.geometry.rigid import rotation_error_deg
-from services.verification import verify_pose
 
 # local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
 # the other verified pose's, or fewer of its triangulated points fit it than this share

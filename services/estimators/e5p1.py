@@ -13,7 +13,7 @@ re-scored and refined on every match (generalized Sampson refinement,
 them. With 10 references × 1000 matches this is ~4× faster for the same accuracy
 (``python -m tools.benchmarks.estimators``).
 
-The pipeline then verifies the pose in 3D (``services.verification``).
+The pipeline then verifies the pose in 3D (``services.estimators.verification``).
 """
 
 from __future__ import annotations

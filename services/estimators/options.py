@@ -58,8 +58,8 @@ class VerificationOptions:
         min_verified_points: fewer verified 3D points than this is a failure (0 disables the
             check): query keypoints that are inliers in >= 2 references whose reference
             observations triangulate to a point that reprojects into the query within
-            ``RansacOptions.max_error_px`` (see ``services.verification``). Epipolar inliers
-            alone do not prove a pose: unrelated images reach 40-75 of them.
+            ``RansacOptions.max_error_px`` (see ``services.estimators.verification``).
+            Epipolar inliers alone do not prove a pose: unrelated images reach 40-75 of them.
         min_reference_spread_deg: estimators that take the position from the references'
             baselines (``e5p1``, ``essential_5pt``) answer ``degenerate_geometry`` when the
             references with inliers spread less than this many degrees around some direction
@@ -75,7 +75,7 @@ class VerificationOptions:
 
 @dataclass(frozen=True)
 class FocalOptions:
-    """Focal-length estimation for a query sent without intrinsics (``services.focal``).
+    """Focal-length estimation for a query sent without intrinsics (``services.estimators.focal``).
 
     Attributes:
         min_points: fewer 2D–3D inliers than this (query keypoints ↔ points triangulated
@@ -97,7 +97,7 @@ class FocalOptions:
 @dataclass(frozen=True)
 class UncertaintyOptions:
     """The pose uncertainty reported with every localized answer, and how it caps the
-    confidence (``services.pose_uncertainty``).
+    confidence (``services.estimators.uncertainty``).
 
     Attributes:
         min_points: fewer verified 3D points than this and no uncertainty is computed.

@@ -14,7 +14,7 @@ Structureless Visual Localization", generalised to a rig):
 3. each frame's pose ``cam_i_from_map = cam_i_from_session ∘ session_from_map``; its inliers are
    its matches within ``max_error_px`` Sampson error, as for every single-frame estimator;
 4. acceptance pools the frames: inliers, references with inliers and verified 3D points
-   (``services.verification``) are summed over frames and checked against
+   (``services.estimators.verification``) are summed over frames and checked against
    ``VerificationOptions``.
 
 A frame with too few points to be localized alone (P3P needs four, the verification ten) still
@@ -41,10 +41,10 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import estimate_generalized_absolute_pose, ransac_options
 from services.estimators.ransac import Deadline
 from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
+from services.estimators.verification import count_verified_points
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
-from services.verification import count_verified_points
 
 logger = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import pytest
 from fastapi.testclient import TestClient
 
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import make_client
 
 PROBLEM = "application/problem+json"

@@ -32,7 +32,7 @@ from schemathesis.specs.openapi.checks import (
 
 from app.main import create_app
 from app.settings import Settings
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import fresh_postgres_database, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 

@@ -30,7 +30,7 @@ from app.usecases.gpp import GL_FROM_FLU
 from services.geo.geodesy import Geodetic, ecef_from_enu_rotation, ecef_from_geodetic
 from services.geo.geopose import CV_FROM_GL
 from services.geometry.rigid import quaternion_to_matrix, rotation_error_deg
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.api.test_geo import ENU_FROM_SCENE, ORIGIN, REGISTRATION_BODY, TRUTH
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_jpeg

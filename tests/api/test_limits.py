@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from app.admission import Admission
 from app.errors import ProblemError
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 

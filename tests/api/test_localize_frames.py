@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
 from services.geometry.session_pose import homogeneous, session_from_camera_opengl
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 

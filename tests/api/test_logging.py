@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from app.api.deps import get_localizer
 from app.logs import JsonFormatter, TextFormatter
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView
 

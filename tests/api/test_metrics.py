@@ -12,7 +12,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from prometheus_client.samples import Sample
 
 from app.settings import Settings
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import create_map, image_metadata, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 

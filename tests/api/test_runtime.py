@@ -15,7 +15,7 @@ import db.store
 from app.localizer_factory import service_memory_bound
 from app.usecases.images import delete_image
 from app.usecases.localize import reference_store
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.runtime.threads import usable_cores
 from tests.conftest import create_map, make_client, upload_view

@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.deps import get_localizer
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client
 
 PROBLEM = "application/problem+json"

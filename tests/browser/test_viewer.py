@@ -25,7 +25,7 @@ import uvicorn
 from app.main import create_app
 from app.settings import Settings
 from app.viewer import vendor_installed
-from services.pipeline import Localizer
+from services.localization.localizer import Localizer
 from tests.conftest import image_metadata
 from tools.synthetic.scene import SyntheticView, encode_png
 

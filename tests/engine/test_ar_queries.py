@@ -11,8 +11,9 @@ from services.errors import InvalidInputError
 from services.geometry.camera import Camera
 from services.geometry.intrinsics_adaptation import rotate_camera, rotated_from_camera
 from services.geometry.rigid import Rigid3d, pose_error, quaternion_to_matrix
-from services.pipeline import LocalizationResult, LocalizeParams, Localizer
-from services.query_frame import GravityHint, QueryFrameHints
+from services.localization.answer import LocalizationResult
+from services.localization.localizer import LocalizeParams, Localizer
+from services.localization.query_frame import GravityHint, QueryFrameHints
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_jpeg, encode_png
 

@@ -11,8 +11,8 @@ import pytest
 
 from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions
-from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names
-from services.pipeline import LocalizeParams, Localizer
+from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
+from services.localization.localizer import LocalizeParams, Localizer
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
 
@@ -51,7 +51,7 @@ def test_every_estimator_answers_on_forward_motion(
         depth = encode_depth_png(view.depth) if name in DEPTH_ESTIMATORS else None
         result = localizer.localize(
             encode_png(view.image),
-            LocalizeParams(camera=view.camera, estimator=name, options=options),
+            LocalizeParams(camera=view.camera, estimator=get_estimator(name), options=options),
             road,
             depth,
         )

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import pytest
 
+from services.estimators.registry import get_estimator
 from services.geometry.rigid import pose_error
-from services.pipeline import LocalizeParams, Localizer
+from services.localization.localizer import LocalizeParams, Localizer
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
@@ -33,7 +34,9 @@ def test_queries_without_intrinsics(
     localized = 0
     for view in queries:
         result = localizer.localize(
-            encode_png(view.image), LocalizeParams(camera=None, estimator=estimator), store
+            encode_png(view.image),
+            LocalizeParams(camera=None, estimator=get_estimator(estimator)),
+            store,
         )
         assert result.camera_source == "estimated"
         if not result.localized:

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names
+from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
 from services.geometry.rigid import pose_error
-from services.pipeline import LocalizeParams, Localizer
+from services.localization.localizer import LocalizeParams, Localizer
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import (
     SyntheticScene,
@@ -43,7 +43,10 @@ def test_estimator_on_rendered_queries(
     for view in queries:
         depth = encode_depth_png(view.depth) if name in DEPTH_ESTIMATORS else None
         result = localizer.localize(
-            encode_png(view.image), LocalizeParams(camera=view.camera, estimator=name), store, depth
+            encode_png(view.image),
+            LocalizeParams(camera=view.camera, estimator=get_estimator(name)),
+            store,
+            depth,
         )
         assert result.localized, (name, view.name, result.reason)
         assert result.cam_from_world is not None
@@ -62,7 +65,7 @@ def test_estimator_rejects_unrelated_image(
     depth = encode_depth_png(np.full(image.shape[:2], 3.0, np.float32))
     result = localizer.localize(
         encode_png(image),
-        LocalizeParams(camera=scene.camera, estimator=name),
+        LocalizeParams(camera=scene.camera, estimator=get_estimator(name)),
         store,
         depth if name in DEPTH_ESTIMATORS else None,
     )

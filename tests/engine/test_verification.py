@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from services import verification
+from services.estimators import verification
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions, VerificationOptions
+from services.estimators.verification import StructureCheck, verify_by_reference_triangulation
 from services.features.sift import SiftExtractor
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
+from services.localization.localizer import LocalizeParams, Localizer
 from services.matching.nearest_neighbor import NearestNeighborMatcher
-from services.pipeline import LocalizeParams, Localizer
 from services.references import ReferenceView
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.thumbnail import ThumbnailDescriptor
-from services.verification import StructureCheck, verify_by_reference_triangulation
 from tools.synthetic.scene import SyntheticScene, encode_png, unrelated_image
 
 # ---------------------------------------------------------------- unit: exact geometry

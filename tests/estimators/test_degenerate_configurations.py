@@ -20,9 +20,9 @@ from services.estimators.position_conditioning import (
     reference_spread_deg,
 )
 from services.estimators.registry import get_estimator
+from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
-from services.verification import verify_pose
 from tests.estimators.conftest import TEST_OPTIONS
 from tools.synthetic.configurations import narrow_baseline, pure_rotation, street
 from tools.synthetic.correspondences import SyntheticCorrespondences

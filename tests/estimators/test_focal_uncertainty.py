@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from services.estimators.base import FailureReason
+from services.estimators.focal import estimate_focal
 from services.estimators.options import UncertaintyOptions
 from services.estimators.ransac import Deadline
 from services.estimators.registry import get_estimator
-from services.focal import estimate_focal
+from services.estimators.uncertainty import PoseUncertainty, capped_confidence, with_uncertainty
+from services.estimators.verification import verify_pose
 from services.geometry.rigid import pose_error
-from services.pose_uncertainty import PoseUncertainty, capped_confidence, with_uncertainty
-from services.verification import verify_pose
 from tests.estimators.conftest import TEST_OPTIONS
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 

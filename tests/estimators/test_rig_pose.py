@@ -10,8 +10,8 @@ from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions, RansacOptions
 from services.estimators.registry import get_estimator
 from services.estimators.rig_pose import RigFrame, estimate_rig_pose
+from services.estimators.verification import verify_pose
 from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
-from services.verification import verify_pose
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 
 OPTIONS = EstimatorOptions(ransac=RansacOptions(min_iterations=100, max_iterations=2000))

@@ -17,8 +17,8 @@ from services.features.configs import FEATURE_CONFIGS, feature_config_names
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
+from services.localization.localizer import LocalizeParams
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
-from services.pipeline import LocalizeParams
 from services.runtime.manifest import read_manifest
 from services.runtime.spare_workers import SpareWorkers
 from tests.models.conftest import MODELS_DIR

@@ -10,8 +10,8 @@ import pytest
 from services.components import build_localizer
 from services.geometry.intrinsics_adaptation import rotate_camera, rotated_from_camera
 from services.geometry.rigid import Rigid3d, pose_error
-from services.pipeline import LocalizeParams, Localizer
-from services.query_frame import GravityHint, QueryFrameHints
+from services.localization.localizer import LocalizeParams, Localizer
+from services.localization.query_frame import GravityHint, QueryFrameHints
 from tests.models.conftest import MODELS_DIR
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticView, encode_png

@@ -9,8 +9,8 @@ import time
 import pytest
 
 from services.estimators.base import FailureReason
+from services.estimators.focal import estimate_focal
 from services.estimators.ransac import Deadline
-from services.focal import estimate_focal
 from tests.estimators.conftest import TEST_OPTIONS
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 

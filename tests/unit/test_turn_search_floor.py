@@ -1,19 +1,15 @@
 """When the search over quarter turns stops for an answer: once it is confident, once it
 has so many inliers that the query was matched the right way up (a wrongly turned query
-localizes with none: ``services.pipeline.UPRIGHT_INLIERS``), or when it failed for want of
+localizes with none: ``services.localization.turns.UPRIGHT_INLIERS``), or when it failed for want of
 depth, which no turn brings; and the stage timings of several estimators over several turns."""
 
 from __future__ import annotations
 
 import pytest
 
-from services.pipeline import (
-    SEARCH_CONFIDENCE,
-    UPRIGHT_INLIERS,
-    LocalizationResult,
-    _own_timings,
-    _settled,
-)
+from services.localization.answer import LocalizationResult
+from services.localization.compare import own_timings
+from services.localization.turns import SEARCH_CONFIDENCE, UPRIGHT_INLIERS, settled
 
 
 def _answer(
@@ -33,7 +29,7 @@ def _answer(
 
 
 @pytest.mark.parametrize(
-    ("localized", "confidence", "inliers", "settled"),
+    ("localized", "confidence", "inliers", "expected"),
     [
         (True, SEARCH_CONFIDENCE, 10, True),  # confident: nothing to search
         (True, 0.3, UPRIGHT_INLIERS, True),  # unsure, but matched upright
@@ -42,18 +38,18 @@ def _answer(
     ],
 )
 def test_search_stops_for_confident_or_well_matched_answers(
-    localized: bool, confidence: float, inliers: int, settled: bool
+    localized: bool, confidence: float, inliers: int, expected: bool
 ) -> None:
-    assert _settled(_answer(localized, confidence, inliers)) is settled
+    assert settled(_answer(localized, confidence, inliers)) is expected
 
 
 def test_a_failure_for_want_of_depth_is_settled() -> None:
-    assert _settled(_answer(False, 0.0, 0, reason="missing_depth"))
-    assert not _settled(_answer(False, 0.0, 0, reason="too_few_matches"))
+    assert settled(_answer(False, 0.0, 0, reason="missing_depth"))
+    assert not settled(_answer(False, 0.0, 0, reason="too_few_matches"))
 
 
 def test_an_estimators_timings_leave_the_others_estimation_out() -> None:
     summed = {"decode": 1.0, "extract": 10.0, "retrieve": 2.0, "match": 20.0}
     summed |= {"estimate": 30.0, "total": 64.0}  # 1 ms between the stages
-    own = _own_timings(summed, 12.0)
+    own = own_timings(summed, 12.0)
     assert own == {**summed, "estimate": 12.0, "total": 46.0}

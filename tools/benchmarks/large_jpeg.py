@@ -25,12 +25,12 @@ from pathlib import Path
 
 import cv2
 
-from services import pipeline
 from services.components import build_localizer
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.imaging import DecodedImage, decode_image_reduced
-from services.pipeline import LocalizeParams
+from services.localization import localizer as single_frame
+from services.localization.localizer import LocalizeParams
 from tools.evaluation.server import memory_mb
 from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene
@@ -68,7 +68,7 @@ def measure(
     data, camera = _large_jpeg(width, height)
     localizer = build_localizer(models, max_pixels=width * height, features=features)
     if mode == "full":  # what the pipeline did before reduced decoding
-        vars(pipeline)["decode_image_reduced"] = _decode_in_full
+        vars(single_frame)["decode_image_reduced"] = _decode_in_full
     pid = os.getpid()
     base = memory_mb(pid, "VmRSS") or 0.0
     store = MemoryReferenceStore()

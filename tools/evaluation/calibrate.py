@@ -31,7 +31,7 @@ from services.confidence.model import (
     feature_vector,
 )
 from services.estimators.options import UncertaintyOptions
-from services.pose_uncertainty import PoseUncertainty, capped_confidence
+from services.estimators.uncertainty import PoseUncertainty, capped_confidence
 from services.types import BoolArray, FloatArray
 from tools.evaluation.confidence_curve import TARGET, ConfidenceCurve, precision_recall
 

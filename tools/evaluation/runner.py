@@ -34,7 +34,7 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
-from services.pipeline import LocalizationResult
+from services.localization.answer import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES
 from tools.evaluation.datasets import PosedImage

@@ -1,7 +1,7 @@
 """Uncertainty of a localized pose in metres and degrees, and the confidence cap it implies.
 
 Whatever the estimator, the pose's inlier tracks are triangulated from the references alone
-(the 3D verification of ``services.verification``); the verified points and their query
+(the 3D verification of ``services.estimators.verification``); the verified points and their query
 keypoints give the first-order covariance of the pose at the answer
 (``services.geometry.pose_covariance``: Gauss–Newton, pixel noise estimated from the
 residuals, the focal length a free parameter when it was estimated, so its uncertainty widens
@@ -18,10 +18,10 @@ import numpy as np
 
 from services.estimators.base import EstimateResult, ReferenceObservation
 from services.estimators.options import EstimatorOptions, UncertaintyOptions
+from services.estimators.verification import check_structure
 from services.geometry.camera import Camera
 from services.geometry.pose_covariance import pose_covariance
 from services.geometry.projection import normalized_from_pixels
-from services.verification import check_structure
 
 
 @dataclass(frozen=True)

@@ -11,28 +11,27 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-from services.errors import ImageTooLargeError
-from services.estimators.base import FailureReason
 from services.estimators.rig_pose import RIG_METHOD, RigEstimate, RigFrame, estimate_rig_pose
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import DecodedImage, decode_image_reduced, image_size_from_header
-from services.pipeline import (
+from services.imaging import DecodedImage
+from services.localization.answer import (
     LocalizationResult,
-    LocalizeParams,
-    Localizer,
     RetrievedReference,
-    _check_camera_matches,
-    _observe,
-    _OutOfTimeError,
-    _StageClock,
+    out_of_time,
+    retrieved_references,
+)
+from services.localization.clock import OutOfTimeError, StageClock
+from services.localization.localizer import LocalizeParams, Localizer
+from services.localization.stages import (
+    check_camera_matches,
+    decode_frames,
+    match,
+    retrieve,
 )
 from services.references import ReferenceStore
-from services.retrieval.thinning import search_thinned
-from services.retrieval.vlad import encode
 from services.runtime.spare_workers import SpareWorkers
-from services.types import BoolArray
 
 
 @dataclass(frozen=True)
@@ -116,39 +115,12 @@ def localize_frames(
         InvalidInputError: an image is unusable or does not fit its camera.
         ImageTooLargeError: the frames together exceed the localizer's pixel limit.
     """
-    clock = _StageClock(params.time_budget_s)
+    clock = StageClock(params.time_budget_s)
     try:
         return _localize_frames(localizer, frames, params, store, clock, spare)
-    except _OutOfTimeError:
-        empty = LocalizationResult(
-            localized=False,
-            reason=FailureReason.TIME_BUDGET_EXCEEDED.value,
-            estimator=RIG_METHOD,
-            cam_from_world=None,
-            num_inliers=0,
-            confidence=0.0,
-            retrieved=[],
-            timings_ms=clock.finish(),
-            stats={},
-        )
+    except OutOfTimeError:
+        empty = out_of_time(RIG_METHOD, clock.finish())
         return SessionLocalizationResult(empty, None, [FrameResult(None, 0, 0, []) for _ in frames])
-
-
-def decode_frames(images: list[bytes], max_pixels: int, min_side: int) -> list[DecodedImage]:
-    """Decode every frame, refusing more than ``max_pixels`` pixels in all (from the headers,
-    before any decoding); JPEGs reduced while their longer side stays at least ``min_side``.
-
-    Raises:
-        ImageTooLargeError: the frames together are too large.
-        ImageDecodeError: a frame is not a decodable JPEG or PNG.
-    """
-    sizes = [image_size_from_header(data) for data in images]
-    total = sum(w * h for w, h in sizes)
-    if total > max_pixels:
-        raise ImageTooLargeError(
-            f"the {len(images)} frames have {total} pixels together; the limit is {max_pixels}"
-        )
-    return [decode_image_reduced(data, max_pixels, min_side) for data in images]
 
 
 def _localize_frames(
@@ -156,7 +128,7 @@ def _localize_frames(
     frames: list[QueryFrame],
     params: LocalizeParams,
     store: ReferenceStore,
-    clock: _StageClock,
+    clock: StageClock,
     spare: SpareWorkers | None,
 ) -> SessionLocalizationResult:
     lap = clock.lap
@@ -167,7 +139,7 @@ def _localize_frames(
     cameras = []
     for frame, image in zip(frames, images, strict=True):
         camera = frame.camera or params.camera or default_camera(image.width, image.height)
-        _check_camera_matches(camera, image)
+        check_camera_matches(camera, image)
         cameras.append(camera)
     lap("decode")
 
@@ -176,65 +148,24 @@ def _localize_frames(
 
     features = spread(extract, images) if spread is not None else extract(images)
     lap("extract")
-    retrieved_rows = _retrieve(localizer, images, features, params, store)
+    index = store.retrieval_index()
+    retrieved_rows = [
+        retrieve(index, localizer.global_descriptor, image.rgb, query, params.top_k, params.prior)
+        for image, query in zip(images, features, strict=True)
+    ]
     all_ids = list(dict.fromkeys(image_id for rows in retrieved_rows for image_id, _ in rows))
     loaded = {ref.image_id: ref for ref in store.load_references(all_ids)}
     lap("retrieve")
     rig_frames = []
     for query, camera, frame, rows in zip(features, cameras, frames, retrieved_rows, strict=True):
         kept = [(loaded[image_id], score) for image_id, score in rows if image_id in loaded]
-        pairs = localizer.matcher.match_many(
-            query, [ref.features for ref, _ in kept], stop=clock.deadline.expired, spread=spread
-        )
-        # a stopped matcher returns fewer pairs: the references it did not reach drop out
-        observations = [
-            _observe(query, None, ref, score, ref_pairs)
-            for (ref, score), ref_pairs in zip(kept, pairs, strict=False)
-        ]
+        observations = match(localizer.matcher, query, kept, clock.deadline.expired, spread)
         rig_frames.append(RigFrame(camera, frame.cam_from_session, observations))
     lap("match")
     estimate = estimate_rig_pose(rig_frames, clock.bound(params.options))
     lap("estimate", check=False)  # the work is done: its answer is kept
     names = {image_id: ref.name for image_id, ref in loaded.items()}
     return _answer(estimate, rig_frames, names, clock.finish()).below(params.min_confidence)
-
-
-def _retrieve(
-    localizer: Localizer,
-    images: list[DecodedImage],
-    features: list[LocalFeatures],
-    params: LocalizeParams,
-    store: ReferenceStore,
-) -> list[list[tuple[str, float]]]:
-    """Per frame, its top-k reference ids with their retrieval scores."""
-    index = store.retrieval_index()
-    out = []
-    for image, query in zip(images, features, strict=True):
-        query_global = (
-            encode(query.descriptors, index.vocabulary)
-            if index.vocabulary is not None
-            else localizer.global_descriptor.compute(image.rgb, query)
-        )
-        rows, scores = search_thinned(index, query_global, params.top_k, params.prior)
-        out.append([(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)])
-    return out
-
-
-def _retrieved(
-    frame: RigFrame, masks: list[BoolArray], names: dict[str, str]
-) -> list[RetrievedReference]:
-    return [
-        RetrievedReference(
-            image_id=obs.image_id,
-            name=names[obs.image_id],
-            score=obs.retrieval_score,
-            num_matches=obs.num_matches,
-            num_inliers=int(mask.sum()),
-            query_xy=obs.query_xy[mask],
-            reference_xy=obs.reference_xy[mask],
-        )
-        for obs, mask in zip(frame.references, masks, strict=True)
-    ]
 
 
 def _answer(
@@ -251,7 +182,7 @@ def _answer(
                 cam_from_world=estimate.cam_from_map(frame),
                 num_inliers=int(sum(int(m.sum()) for m in masks)),
                 num_point_inliers=estimate.point_inliers[i],
-                retrieved=_retrieved(frame, masks, names),
+                retrieved=retrieved_references(frame.references, masks, names),
             )
         )
     localized = estimate.session_from_map is not None

@@ -15,12 +15,12 @@ from services.estimators.base import (
     ReferenceObservation,
 )
 from services.estimators.estimator import missing_depth
+from services.estimators.focal import estimate_focal
 from services.estimators.options import EstimatorOptions
 from services.estimators.ransac import Deadline
-from services.focal import estimate_focal
+from services.estimators.uncertainty import PoseUncertainty, with_uncertainty
+from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
-from services.pose_uncertainty import PoseUncertainty, with_uncertainty
-from services.verification import verify_pose
 
 
 @dataclass(frozen=True)
