@@ -14,7 +14,6 @@ import numpy as np
 
 from services.errors import InvalidInputError
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
-from services.exif_orientation import exif_orientation, orientation_rotation_deg
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.gravity import gravity_error_deg, references_down, unit, upright_turn
@@ -25,6 +24,7 @@ from services.geometry.intrinsics_adaptation import (
     rotated_from_camera,
     rotated_size,
 )
+from services.localization.exif_orientation import exif_orientation, orientation_rotation_deg
 from services.types import FloatArray, UInt8Array
 
 # the turns tried, in order, when nothing tells which way is up: as uploaded, then the two

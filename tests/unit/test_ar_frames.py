@@ -6,12 +6,6 @@ import numpy as np
 import pytest
 
 from services.errors import InvalidInputError
-from services.exif_orientation import (
-    MIRRORED_ORIENTATIONS,
-    ORIENTATION_ROTATION_DEG,
-    exif_orientation,
-    orientation_rotation_deg,
-)
 from services.geometry.gravity import (
     gravity_error_deg,
     references_down,
@@ -25,6 +19,12 @@ from services.geometry.pose_conventions import (
 )
 from services.geometry.rigid import Rigid3d, quaternion_to_matrix
 from services.imaging import decode_image
+from services.localization.exif_orientation import (
+    MIRRORED_ORIENTATIONS,
+    ORIENTATION_ROTATION_DEG,
+    exif_orientation,
+    orientation_rotation_deg,
+)
 from tools.synthetic.scene import encode_jpeg, encode_png
 
 
