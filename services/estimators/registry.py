@@ -38,6 +38,18 @@ DEPTH_USING_ESTIMATORS = DEPTH_ESTIMATORS | {AutoEstimator.name}
 DEFAULT_ESTIMATOR = AutoEstimator.name
 
 
+def register(estimator: PoseEstimator) -> None:
+    """Add ``estimator`` under its name. The API's estimator enum, its OpenAPI document and the
+    contract tests read the names once, when they are imported: register before them.
+
+    Raises:
+        ValueError: the name is taken.
+    """
+    if estimator.name in _ESTIMATORS:
+        raise ValueError(f"estimator {estimator.name!r} is registered already")
+    _ESTIMATORS[estimator.name] = estimator
+
+
 def estimator_names() -> list[str]:
     return sorted(_ESTIMATORS)
 
