@@ -54,11 +54,16 @@ def answer_pose(
     if focal_estimated and not (estimator.needs_depth and missing_depth(references)):
         focal = estimate_focal(camera.width, camera.height, references, options, deadline)
         if focal.camera is None:
-            failed = EstimateResult.failure(
-                FailureReason.FOCAL_UNOBSERVABLE, references, focal.stats
-            )
-            return PoseAnswer(failed, None, None)
+            reason = focal.failure_reason or FailureReason.FOCAL_UNOBSERVABLE
+            return PoseAnswer(EstimateResult.failure(reason, references, focal.stats), None, None)
         camera, focal_stats = focal.camera, focal.stats
+        # the estimator gets what the focal estimation left of the budget
+        left = deadline.remaining_s()
+        if left != float("inf"):
+            own = options.time_budget_s
+            options = replace(
+                options, time_budget_s=max(0.0, left if own is None else min(own, left))
+            )
     verified = verify_pose(
         estimator.estimate(camera, references, options), camera, references, options
     )

@@ -8,9 +8,13 @@ import time
 
 import pytest
 
+from services.confidence.model import default_confidence_model
 from services.estimators.base import FailureReason
 from services.estimators.focal import estimate_focal
 from services.estimators.ransac import Deadline
+from services.estimators.registry import get_estimator
+from services.geometry.camera import default_camera
+from services.localization.estimate import answer_pose
 from tests.estimators.conftest import TEST_OPTIONS
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 
@@ -42,3 +46,20 @@ def test_a_spent_budget_stops_focal_estimation_at_once(
     found = estimate_focal(640, 480, many_references.references, TEST_OPTIONS, Deadline(0.0))
     assert found.failure_reason is FailureReason.TIME_BUDGET_EXCEEDED
     assert time.perf_counter() - start < SLACK_S
+
+
+def test_a_query_without_camera_out_of_time_answers_time_budget_exceeded(
+    many_references: SyntheticCorrespondences,
+) -> None:
+    """The answer names the spent budget, not an unobservable focal length."""
+    answer = answer_pose(
+        get_estimator("auto"),
+        default_camera(640, 480),
+        True,
+        many_references.references,
+        TEST_OPTIONS,
+        Deadline(0.0),
+        default_confidence_model(),
+    )
+    assert answer.camera is None
+    assert answer.result.failure_reason is FailureReason.TIME_BUDGET_EXCEEDED
