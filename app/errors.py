@@ -19,6 +19,7 @@ from starlette.types import Scope
 
 from app.request_context import REQUEST_ID_HEADER, current_request_id
 from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.served_features import FeaturesUnavailableError
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -75,6 +76,7 @@ def too_large(detail: str) -> ProblemError:
 # (status, slug, title) per domain error, most specific first; the detail is the message
 _DOMAIN_ERRORS: list[tuple[type[Exception], int, str, str]] = [
     (NotFoundError, 404, "not-found", "Not found"),
+    (FeaturesUnavailableError, 409, "feature-models-missing", "Feature models missing"),
     (ConflictError, 409, "conflict", "Conflict"),
     (ImageTooLargeError, 413, "image-too-large", "Image too large"),
     (ImageDecodeError, 422, "invalid-image", "Invalid image"),
@@ -121,7 +123,8 @@ def _describe(status: int) -> str:
         401: "Missing or unknown API key",
         403: "The API key's role may not do this",
         404: "Map or image not found",
-        409: "Name already taken",
+        409: "Name already taken; or, on a localize, the map's references need feature models "
+        "this server lacks (type feature-models-missing)",
         413: "Upload or image too large",
         422: "Invalid input",
         503: "Busy (too many requests in progress or waiting) or the database unreachable: "

@@ -15,6 +15,7 @@ from fastapi_offline import FastAPIOffline
 from app.admission import Admission
 from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
+from app.blob_sweep import StartupSweep
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
 from app.localizer_factory import (
@@ -30,6 +31,7 @@ from app.openapi import install_openapi
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
 from app.viewer import install_viewer
+from db.blobs import open_blob_store
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.localization.localizer import Localizer
@@ -75,6 +77,16 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             "(README, Memory)",
             bound.describe(),
         )
+        # the originals of reference images (db/blobs.py), reconciled with the rows
+        app.state.blobs = blobs = open_blob_store(
+            settings.blob_url, settings.database_url, settings.data_dir
+        )
+        logger.info("originals of reference images: %s", blobs.description)
+        app.state.blob_sweep = (
+            StartupSweep(app.state.sessions, blobs, settings.blob_sweep_grace_s)
+            if settings.blob_sweep_on_start
+            else None
+        )
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
@@ -85,6 +97,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()
+        if app.state.blob_sweep is not None:
+            app.state.blob_sweep.join(5.0)
         engine.dispose()
 
     # /docs and /redoc load Swagger UI and ReDoc from the service itself (no CDN, no fonts).

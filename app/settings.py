@@ -35,6 +35,33 @@ class Settings(BaseSettings):
         description="SQLAlchemy URL: SQLite (the default) or PostgreSQL, e.g. "
         "postgresql+psycopg://user:pass@host:5432/slloc",
     )
+    blob_url: str | None = Field(
+        None,
+        description="Where the originals of reference images (their bytes as uploaded, and "
+        "their depth maps) are kept: s3://bucket/prefix for an S3-compatible object store "
+        "that replicas share (credentials, region and endpoint from the standard AWS_* "
+        "variables), or file:///path for a folder; default: a folder beside the SQLite file "
+        "(<file>.blobs), or SLLOC_DATA_DIR/blobs (docs: Originals and the blob store)",
+    )
+    data_dir: Path | None = Field(
+        None,
+        description="Folder of the service's own files: the originals go to <it>/blobs when "
+        "SLLOC_BLOB_URL is unset",
+    )
+    blob_sweep_grace_s: float = Field(
+        3600.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="The start-up sweep (and `slloc blobs sweep`) removes blobs without a "
+        "reference row last written longer ago than this (s); must exceed the longest add "
+        "(an add writes its blobs before its row commits)",
+    )
+    blob_sweep_on_start: bool = Field(
+        True,
+        description="Reconcile the blob store with the database in the background at "
+        "start-up: remove blobs without a row (past SLLOC_BLOB_SWEEP_GRACE_S), log rows "
+        "whose blob is missing",
+    )
     models_dir: Path = Field(
         Path("./models"),
         description="Where the exported ONNX models are read from (`slloc models build` "

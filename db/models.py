@@ -105,6 +105,11 @@ class ReferenceImage(Base):
     gps_accuracy_m: Mapped[float | None] = mapped_column(Float)
     # version of the map vocabulary its stored "vlad" array was encoded with (None: none yet)
     vlad_version: Mapped[int | None] = mapped_column(Integer)
+    # the original upload in the blob store (db/blobs.py): the image's bytes as sent and their
+    # SHA-256, and the depth map's; None: added before originals were kept (or without depth)
+    original_key: Mapped[str | None] = mapped_column(String(255))
+    original_sha256: Mapped[str | None] = mapped_column(String(64))
+    depth_key: Mapped[str | None] = mapped_column(String(255))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     map: Mapped[Map] = relationship(back_populates="images")

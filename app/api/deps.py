@@ -14,6 +14,7 @@ from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
 from app.usecases.localize import LocalizeContext
+from db.blobs import BlobStore
 from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
@@ -68,7 +69,15 @@ async def get_localize_context(request: Request) -> LocalizeContext:
         spare=state.spare_workers,
         trainer=state.vocabulary_trainer,
         features_cache=state.reference_cache,
+        models_dir=settings.models_dir,
+        features=settings.features,
     )
+
+
+async def get_blobs(request: Request) -> BlobStore:
+    """Where the originals of reference images are kept (``SLLOC_BLOB_URL``)."""
+    blobs: BlobStore = request.app.state.blobs
+    return blobs
 
 
 async def get_metrics(request: Request) -> ServiceMetrics:
@@ -83,6 +92,7 @@ ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache
 AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
+BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

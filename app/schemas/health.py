@@ -40,8 +40,31 @@ class RuntimeOut(BaseModel):
     )
 
 
+class UnservableMapOut(BaseModel):
+    """A map whose references this server cannot search (GET /v1/maps/{id} tells more)."""
+
+    id: str
+    name: str
+    image_count: int
+    described_by: list[str] = Field(description="The feature models of its references")
+    missing_models: list[str] = Field(description="The exported models this server lacks")
+    detail: str | None
+
+
 class HealthOut(BaseModel):
-    status: str
+    status: str = Field(
+        description="ok; degraded when the database is down or some map cannot be served "
+        "(unservable_maps)"
+    )
     version: str
     models: ModelsOut
     runtime: RuntimeOut
+    unservable_map_count: int = Field(
+        0,
+        description="Maps with references none of which this server describes alike: their "
+        "localize answers 409 feature-models-missing",
+    )
+    unservable_maps: list[UnservableMapOut] = Field(
+        default_factory=list,
+        description="The first 20 of them, most references first (refreshed every 15 s)",
+    )

@@ -38,6 +38,14 @@ class ImageOut(BaseModel):
     has_depth: bool
     created_at: datetime
     gps: GpsSchema | None = None
+    has_original: bool = Field(
+        description="Its bytes as uploaded are kept (GET …/original; false for images added "
+        "before originals were kept: they serve their stored features but cannot be "
+        "described again)"
+    )
+    original_sha256: str | None = Field(
+        None, description="SHA-256 of the original bytes (hex), when kept"
+    )
 
     @classmethod
     def from_stored(cls, image: StoredImage) -> ImageOut:
@@ -50,6 +58,8 @@ class ImageOut(BaseModel):
             has_depth=image.has_depth,
             created_at=image.created_at,
             gps=GpsSchema.from_fix(image.gps) if image.gps else None,
+            has_original=image.has_original,
+            original_sha256=image.original_sha256,
         )
 
 

@@ -8,6 +8,7 @@ from app.schemas.estimators import EstimatorEnum, EstimatorName
 from app.schemas.text import Description, Name
 from app.usecases.maps import MapRecord
 from app.usecases.reindex import Reindexed
+from app.usecases.served_features import MapServing
 from services.estimators.registry import DEFAULT_ESTIMATOR
 
 
@@ -35,6 +36,61 @@ class MapCreate(BaseModel):
     )
 
 
+class DescribedByOut(BaseModel):
+    feature_model: str = Field(description="The extractor that described them, e.g. xfeat-1024-640")
+    descriptor_model: str = Field(description="The global descriptor that described them")
+    image_count: int
+    served: bool = Field(description="This server describes queries alike: they are searched")
+
+
+class MapFeatureModelsOut(BaseModel):
+    """What the map's references were described by, and whether this server can serve
+    them."""
+
+    server_feature_model: str = Field(
+        description="The extractor this server describes the map's queries with (its model, "
+        "keypoint budget and image side)"
+    )
+    server_descriptor_model: str = Field(description="This server's global descriptor")
+    described_by: list[DescribedByOut] = Field(
+        description="The map's references grouped by what described them, most first"
+    )
+    servable: bool = Field(
+        description="Some reference (or none: an empty map) is described as this server "
+        "describes queries; false: every localize on the map answers 409 "
+        "feature-models-missing"
+    )
+    unserved_image_count: int = Field(description="References this server does not search")
+    missing_models: list[str] = Field(
+        description="Exported models the unserved references need that this server lacks"
+    )
+    configurations: list[str] = Field(
+        description="SLLOC_FEATURES values whose extractor described the unserved references"
+    )
+    detail: str | None = Field(None, description="What is wrong and what to do")
+
+    @classmethod
+    def from_serving(cls, serving: MapServing) -> MapFeatureModelsOut:
+        return cls(
+            server_feature_model=serving.feature_model,
+            server_descriptor_model=serving.descriptor_model,
+            described_by=[
+                DescribedByOut(
+                    feature_model=g.feature_model,
+                    descriptor_model=g.descriptor_model,
+                    image_count=g.image_count,
+                    served=g.served,
+                )
+                for g in serving.described_by
+            ],
+            servable=serving.servable,
+            unserved_image_count=serving.unserved_count,
+            missing_models=list(serving.missing_models),
+            configurations=list(serving.configurations),
+            detail=serving.detail,
+        )
+
+
 class MapOut(BaseModel):
     id: str
     name: str
@@ -42,10 +98,15 @@ class MapOut(BaseModel):
     default_estimator: EstimatorName
     features: FeatureOptions
     image_count: int
+    references_without_original: int = Field(
+        description="Images added before originals were kept (has_original false): they "
+        "serve their stored features but cannot be described again"
+    )
+    feature_models: MapFeatureModelsOut
     created_at: datetime
 
     @classmethod
-    def from_record(cls, record: MapRecord) -> MapOut:
+    def from_record(cls, record: MapRecord, serving: MapServing) -> MapOut:
         return cls(
             id=record.id,
             name=record.name,
@@ -53,6 +114,8 @@ class MapOut(BaseModel):
             default_estimator=record.default_estimator,
             features=FeatureOptions(max_keypoints=record.max_keypoints, max_side=record.max_side),
             image_count=record.image_count,
+            references_without_original=record.without_original,
+            feature_models=MapFeatureModelsOut.from_serving(serving),
             created_at=record.created_at,
         )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import uuid
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from datetime import datetime
@@ -12,7 +13,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import NameTakenError, NotFoundError
 from app.usecases.maps import require_map
+from db.blobs import BlobStore
 from db.models import ReferenceImage
+from db.originals import StoredOriginals, read_original, remove_blobs, write_originals
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.store import camera_of, gps_of, pose_of
@@ -53,6 +56,18 @@ class StoredImage:
     has_depth: bool
     created_at: datetime
     gps: GpsFix | None = None
+    # the image's original bytes are in the blob store (False: added before they were kept)
+    has_original: bool = False
+    original_sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class Original:
+    """A reference image's bytes as uploaded, their SHA-256 and media type."""
+
+    data: bytes
+    sha256: str
+    media_type: str
 
 
 def add_reference_image(
@@ -65,13 +80,16 @@ def add_reference_image(
     trainer: BackgroundTrainer | None = None,
     slots: AbstractContextManager[object] = nullcontext(),
     preview_max_side: int = 0,
+    blobs: BlobStore | None = None,
 ) -> StoredImage:
     """Describe and store a posed reference image: the row and all its features in one
     transaction, or nothing. Without a GPS position, the one in the image's EXIF is kept.
     With a ``trainer``, a retrieval vocabulary that the add makes due is trained in the
     background, so no request waits for it. ``slots`` is held while the image is described
     (bounds concurrent engine work). ``preview_max_side`` > 0 stores a JPEG preview of the
-    image with its longer side at most that many pixels.
+    image with its longer side at most that many pixels. With ``blobs``, the image's bytes
+    as sent (and the depth's) are kept there, written before the row commits and deleted
+    again when it does not (``db/originals.py``).
 
     Raises:
         NotFoundError: unknown map.
@@ -101,16 +119,31 @@ def add_reference_image(
             if preview_max_side > 0
             else None
         )
+    image_id = str(uuid.uuid4())
+    originals: StoredOriginals | None = None
+    if blobs is not None:  # the blobs first: a row never names a blob not written
+        originals = write_originals(blobs, map_id, image_id, image_bytes, depth_bytes)
     try:
         with sessions.begin() as session:
             require_map(session, map_id)  # deleted while we extracted
             row = ImageRepository(session).add(
-                map_id, image.name, image.camera, image.cam_from_world, data, image.gps
+                map_id,
+                image.name,
+                image.camera,
+                image.cam_from_world,
+                data,
+                image.gps,
+                image_id=image_id,
+                originals=originals,
             )
             if preview is not None:
                 ImageRepository(session).add_preview(row.id, preview)
             stored = _stored(row)
-    except IntegrityError as exc:
+    except BaseException as exc:
+        if blobs is not None and originals is not None:
+            remove_blobs(blobs, originals.keys)
+        if not isinstance(exc, IntegrityError):
+            raise
         with sessions() as session:
             if MapRepository(session).get(map_id) is None:
                 raise NotFoundError("map", map_id) from exc
@@ -171,23 +204,59 @@ def get_preview(sessions: sessionmaker[Session], map_id: str, image_id: str) -> 
         return preview
 
 
+def get_original(
+    sessions: sessionmaker[Session], blobs: BlobStore, map_id: str, image_id: str
+) -> Original:
+    """The bytes of one image of the map as they were uploaded.
+
+    Raises:
+        NotFoundError: unknown map or image, or an image stored without its original (added
+            before originals were kept).
+    """
+    with sessions() as session:
+        row = ImageRepository(session).get(map_id, image_id)
+        if row is None:
+            require_map(session, map_id)
+            raise NotFoundError("image", image_id)
+        key, sha256 = row.original_key, row.original_sha256
+    data = read_original(blobs, key) if key is not None else None
+    if data is None or sha256 is None:
+        raise NotFoundError("original of image", image_id)
+    return Original(data, sha256, _media_type(data))
+
+
+def _media_type(data: bytes) -> str:
+    if data.startswith(b"\xff\xd8"):
+        return "image/jpeg"
+    if data.startswith(b"\x89PNG"):
+        return "image/png"
+    return "application/octet-stream"
+
+
 def delete_image(
     sessions: sessionmaker[Session],
     map_id: str,
     image_id: str,
     features_cache: ReferenceFeatureCache | None = None,
+    blobs: BlobStore | None = None,
 ) -> None:
-    """Delete an image and its features (and its entry in ``features_cache``).
+    """Delete an image and its features (and its entry in ``features_cache``); then, with
+    ``blobs``, its originals (after the row's deletion committed: a crash in between leaves
+    blobs without a row, which the sweep removes, never a row without its blobs).
 
     Raises:
         NotFoundError: unknown map or image.
     """
     with sessions.begin() as session:
-        if not ImageRepository(session).delete(map_id, image_id):
+        repository = ImageRepository(session)
+        keys = repository.blob_keys(map_id, image_id)
+        if not repository.delete(map_id, image_id):
             require_map(session, map_id)
             raise NotFoundError("image", image_id)
     if features_cache is not None:
         features_cache.discard(map_id, [image_id])
+    if blobs is not None:
+        remove_blobs(blobs, keys)
 
 
 def _stored(row: ReferenceImage) -> StoredImage:
@@ -200,4 +269,6 @@ def _stored(row: ReferenceImage) -> StoredImage:
         has_depth=row.has_depth,
         created_at=row.created_at,
         gps=gps_of(row),
+        has_original=row.original_key is not None,
+        original_sha256=row.original_sha256,
     )

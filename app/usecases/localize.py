@@ -5,10 +5,12 @@ from __future__ import annotations
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
 from functools import partial
+from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.maps import require_map
+from app.usecases.served_features import check_servable
 from db.store import SqlReferenceStore
 from db.vocabulary import SqlVocabularyStore
 from services.errors import InvalidInputError
@@ -111,6 +113,8 @@ class LocalizeContext:
         spare: the idle worker slots a request's matching may borrow (None: none lent).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
         features_cache: keeps the decoded features of references between calls.
+        models_dir / features: where the server's models are and its feature configuration
+            (named when a map's references need models it lacks).
     """
 
     sessions: sessionmaker[Session]
@@ -123,6 +127,8 @@ class LocalizeContext:
     spare: SpareWorkers | None = None
     trainer: BackgroundTrainer | None = None
     features_cache: ReferenceFeatureCache | None = None
+    models_dir: Path = Path("models")
+    features: str = ""
 
     def map_engine(
         self, map_id: str, request: LocalizeRequest
@@ -133,10 +139,21 @@ class LocalizeContext:
 
         Raises:
             NotFoundError: unknown map.
+            FeaturesUnavailableError: none of the map's references is described as this
+                server describes queries (their models are missing here).
             InvalidInputError: ``top_k`` or ``time_budget_s`` over the limits.
         """
         with self.sessions() as session:
             map_row = require_map(session, map_id)
+            check_servable(
+                session,
+                map_id,
+                map_row.max_keypoints,
+                map_row.max_side,
+                self.localizer,
+                self.models_dir,
+                self.features,
+            )
             localizer = self.localizer.for_map(map_row.max_keypoints, map_row.max_side)
             params = engine_params(
                 request,

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import NameTakenError, NotFoundError
+from db.blobs import BlobStore
 from db.models import Map
+from db.originals import remove_blobs
+from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
 from services.localization.localizer import Localizer
@@ -28,6 +31,10 @@ class MapRecord:
     max_side: int | None
     image_count: int
     created_at: datetime
+    # its references without their originals in the blob store (added before they were kept)
+    without_original: int = 0
+    # (feature model, descriptor model, image count) its references were described by
+    described_by: tuple[tuple[str, str, int], ...] = ()
 
 
 def require_map(session: Session, map_id: str) -> Map:
@@ -118,7 +125,7 @@ def _find_by_name(sessions: sessionmaker[Session], name: str) -> MapRecord | Non
     with sessions() as session:
         repo = MapRepository(session)
         row = repo.get_by_name(name)
-        return None if row is None else _record(row, repo.image_counts([row.id]).get(row.id, 0))
+        return None if row is None else _records(repo, [row])[0]
 
 
 def list_maps(
@@ -128,8 +135,7 @@ def list_maps(
     with sessions() as session:
         repo = MapRepository(session)
         rows, total = repo.page(offset, limit)
-        counts = repo.image_counts([row.id for row in rows])
-        return [_record(row, counts.get(row.id, 0)) for row in rows], total
+        return _records(repo, rows), total
 
 
 def get_map(sessions: sessionmaker[Session], map_id: str) -> MapRecord:
@@ -140,25 +146,45 @@ def get_map(sessions: sessionmaker[Session], map_id: str) -> MapRecord:
     """
     with sessions() as session:
         row = require_map(session, map_id)
-        return _record(row, MapRepository(session).image_counts([map_id]).get(map_id, 0))
+        return _records(MapRepository(session), [row])[0]
 
 
 def delete_map(
     sessions: sessionmaker[Session],
     map_id: str,
     features_cache: ReferenceFeatureCache | None = None,
+    blobs: BlobStore | None = None,
 ) -> None:
     """Delete a map with its images and their features (and their entries in
-    ``features_cache``).
+    ``features_cache``); then, with ``blobs``, its images' originals (after the deletion
+    committed, as ``delete_image`` does).
 
     Raises:
         NotFoundError: no such map.
     """
     with sessions.begin() as session:
+        keys = ImageRepository(session).blob_keys(map_id)
         if not MapRepository(session).delete(map_id):
             raise NotFoundError("map", map_id)
     if features_cache is not None:
         features_cache.discard(map_id)
+    if blobs is not None:
+        remove_blobs(blobs, keys)
+
+
+def _records(repo: MapRepository, rows: list[Map]) -> list[MapRecord]:
+    ids = [row.id for row in rows]
+    counts = repo.image_counts(ids)
+    without = repo.without_original_counts(ids)
+    described = repo.described_by(ids)
+    return [
+        replace(
+            _record(row, counts.get(row.id, 0)),
+            without_original=without.get(row.id, 0),
+            described_by=tuple(described.get(row.id, ())),
+        )
+        for row in rows
+    ]
 
 
 def _record(row: Map, image_count: int) -> MapRecord:

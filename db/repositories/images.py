@@ -7,6 +7,7 @@ from sqlalchemy.orm import Session
 
 from db.arrays import to_row
 from db.models import FeatureArray, Map, ReferenceImage, ReferencePreview, is_stored_id
+from db.originals import StoredOriginals
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -26,13 +27,19 @@ class ImageRepository:
         cam_from_world: Rigid3d,
         data: ReferenceData,
         gps: GpsFix | None = None,
+        image_id: str | None = None,
+        originals: StoredOriginals | None = None,
     ) -> ReferenceImage:
-        """Insert the image row and all its arrays (flushed, not committed)."""
+        """Insert the image row and all its arrays (flushed, not committed). ``image_id``:
+        the row's id (None: a new one); ``originals``: where its originals were written."""
         self._lock_map(map_id)
         qw, qx, qy, qz = (float(v) for v in cam_from_world.quaternion)
         tx, ty, tz = (float(v) for v in cam_from_world.translation)
         row = ReferenceImage(
             map_id=map_id,
+            original_key=originals.original_key if originals else None,
+            original_sha256=originals.original_sha256 if originals else None,
+            depth_key=originals.depth_key if originals else None,
             name=name,
             camera_model=camera.model,
             width=camera.width,
@@ -54,6 +61,8 @@ class ImageRepository:
             gps_height=gps.height if gps else None,
             gps_accuracy_m=gps.accuracy_m if gps else None,
         )
+        if image_id is not None:
+            row.id = image_id
         self.session.add(row)
         self.session.flush()
         arrays = {
@@ -143,6 +152,17 @@ class ImageRepository:
             .limit(limit)
         ).all()
         return list(rows), int(total or 0)
+
+    def blob_keys(self, map_id: str, image_id: str | None = None) -> list[str]:
+        """The blob keys of the map's images (of ``image_id`` alone when given)."""
+        if not is_stored_id(map_id) or (image_id is not None and not is_stored_id(image_id)):
+            return []
+        stmt = select(ReferenceImage.original_key, ReferenceImage.depth_key).where(
+            ReferenceImage.map_id == map_id
+        )
+        if image_id is not None:
+            stmt = stmt.where(ReferenceImage.id == image_id)
+        return [key for row in self.session.execute(stmt) for key in row if key is not None]
 
     def delete(self, map_id: str, image_id: str) -> bool:
         """Delete an image and its feature arrays. True when it existed."""

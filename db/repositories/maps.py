@@ -57,6 +57,42 @@ class MapRepository:
         ).all()
         return {map_id: int(count) for map_id, count in rows}
 
+    def without_original_counts(self, map_ids: list[str]) -> dict[str, int]:
+        """Per map, its images stored without their originals (added before they were
+        kept)."""
+        if not map_ids:
+            return {}
+        rows = self.session.execute(
+            select(ReferenceImage.map_id, func.count())
+            .where(ReferenceImage.map_id.in_(map_ids), ReferenceImage.original_key.is_(None))
+            .group_by(ReferenceImage.map_id)
+        ).all()
+        return {map_id: int(count) for map_id, count in rows}
+
+    def described_by(
+        self, map_ids: list[str] | None = None
+    ) -> dict[str, list[tuple[str, str, int]]]:
+        """Per map (of ``map_ids``, None: every map), the ``(feature model, descriptor model,
+        image count)`` its references were described by, most images first."""
+        stmt = select(
+            ReferenceImage.map_id,
+            ReferenceImage.feature_model,
+            ReferenceImage.descriptor_model,
+            func.count(),
+        ).group_by(
+            ReferenceImage.map_id, ReferenceImage.feature_model, ReferenceImage.descriptor_model
+        )
+        if map_ids is not None:
+            if not map_ids:
+                return {}
+            stmt = stmt.where(ReferenceImage.map_id.in_(map_ids))
+        out: dict[str, list[tuple[str, str, int]]] = {}
+        for map_id, feature_model, descriptor_model, count in self.session.execute(stmt):
+            out.setdefault(map_id, []).append((feature_model, descriptor_model, int(count)))
+        for groups in out.values():
+            groups.sort(key=lambda g: (-g[2], g[0], g[1]))
+        return out
+
     def largest(self, limit: int) -> list[tuple[str, str, int]]:
         """``(id, name, image count)`` of the ``limit`` maps with the most images, largest
         first."""

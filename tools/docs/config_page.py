@@ -62,6 +62,31 @@ OTHER_VARIABLES: tuple[tuple[str, str, str, str], ...] = (
         "the index torch comes from in the image's export stage",
     ),
     (
+        "AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_SESSION_TOKEN",
+        "boto3, with `SLLOC_BLOB_URL=s3://…` ([Originals](blobs.md))",
+        "boto3's chain: these, `~/.aws`, the instance or pod role",
+        "the credentials of the S3-compatible blob store",
+    ),
+    (
+        "AWS_REGION",
+        "boto3, with `SLLOC_BLOB_URL=s3://…`",
+        "boto3's (`~/.aws/config`)",
+        "the blob store's region",
+    ),
+    (
+        "AWS_ENDPOINT_URL_S3",
+        "`db/blobs.py` and boto3, with `SLLOC_BLOB_URL=s3://…`",
+        "unset: AWS_ENDPOINT_URL, else AWS S3",
+        "the S3 endpoint of the blob store alone",
+    ),
+    (
+        "AWS_ENDPOINT_URL",
+        "`db/blobs.py` and boto3, with `SLLOC_BLOB_URL=s3://…`",
+        "unset: AWS S3",
+        "the endpoint of an S3-compatible store (SeaweedFS, MinIO, Ceph, …); when set, "
+        "buckets are addressed by path",
+    ),
+    (
         "SLLOC_CHECK_DATASET",
         "`slloc models build` (`tools/export/check_data.py`)",
         "`../shared/datasets/redkitchen` when it exists",

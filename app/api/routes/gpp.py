@@ -35,7 +35,7 @@ router = APIRouter(prefix="/v1/maps/{map_id}", tags=["geo"])
     response_model=GeoPoseResp,
     responses={
         200: {"content": {gpp.OSCP_MEDIA_TYPE: {}}},
-        **problem_responses(400, 401, 404, 406, 413, 422, 503),
+        **problem_responses(400, 401, 404, 406, 409, 413, 422, 503),
     },
 )
 def geopose(

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import time
 from importlib.metadata import version
 
 from anyio import move_on_after, to_thread
 from fastapi import APIRouter, Request, Response
 from sqlalchemy import text
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.datastructures import State
 
 from app.api.deps import LocalizerDep, SessionsDep
-from app.schemas.health import HealthOut, ModelsOut, RuntimeOut
+from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOut
+from app.settings import Settings
+from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
 from services.estimators.registry import estimator_names
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
@@ -23,6 +27,10 @@ router = APIRouter(prefix="/v1", tags=["health"])
 probes = APIRouter(include_in_schema=False)
 # seconds /readyz waits for the database before it answers not ready
 READY_DATABASE_TIMEOUT_S = 2.0
+# the unservable maps health lists, and how long their survey is reused (it reads every
+# reference's models)
+UNSERVABLE_LISTED = 20
+UNSERVABLE_TTL_S = 15.0
 
 
 @router.head("/health", include_in_schema=False)
@@ -71,9 +79,27 @@ async def readyz(request: Request) -> Response:
 async def health(request: Request, sessions: SessionsDep, localizer: LocalizerDep) -> HealthOut:
     """No API key needed. ``status`` is ``ok``, or ``degraded`` when the database is down.
     Never waits behind other requests: the database probe runs on threads of its own."""
-    up = await to_thread.run_sync(_database_up, sessions, limiter=request.app.state.health_threads)
+    state = request.app.state
+    up = await to_thread.run_sync(_database_up, sessions, limiter=state.health_threads)
+    count, unservable = (
+        await to_thread.run_sync(_unservable, state, localizer, limiter=state.health_threads)
+        if up
+        else (0, [])
+    )
     return HealthOut(
-        status="ok" if up else "degraded",
+        status="ok" if up and not count else "degraded",
+        unservable_map_count=count,
+        unservable_maps=[
+            UnservableMapOut(
+                id=m.id,
+                name=m.name,
+                image_count=m.image_count,
+                described_by=sorted({g.feature_model for g in m.serving.described_by}),
+                missing_models=list(m.serving.missing_models),
+                detail=m.serving.detail,
+            )
+            for m in unservable
+        ],
         version=version("slloc"),
         models=ModelsOut(
             features=localizer.extractor.name,
@@ -101,6 +127,27 @@ def _runtime(state: State) -> RuntimeOut:
         memory_bound_mib=round(bound.total_mib, 1),
         memory_terms_mib={**bound.terms, "retrieval_index": round(bound.retrieval_index_mib, 3)},
     )
+
+
+def _unservable(state: State, localizer: MapLocalizer) -> tuple[int, list[UnservableMap]]:
+    """The maps this server cannot serve, surveyed at most every UNSERVABLE_TTL_S seconds
+    (an unreadable database: none)."""
+    cached: tuple[float, int, list[UnservableMap]] | None = getattr(
+        state, "unservable_survey", None
+    )
+    now = time.monotonic()
+    if cached is not None and now - cached[0] < UNSERVABLE_TTL_S:
+        return cached[1], cached[2]
+    settings: Settings = state.settings
+    try:
+        with state.sessions() as session:
+            count, found = unservable_maps(
+                session, localizer, settings.models_dir, settings.features, UNSERVABLE_LISTED
+            )
+    except SQLAlchemyError:
+        return 0, []
+    state.unservable_survey = (now, count, found)
+    return count, found
 
 
 def _database_up(sessions: sessionmaker[Session]) -> bool:

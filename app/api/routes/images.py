@@ -9,6 +9,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile
 from app.api.deps import (
     AdminKey,
     AdmissionDep,
+    BlobsDep,
     ClientKey,
     Limit,
     LocalizerDep,
@@ -48,6 +49,7 @@ def add_image(
     localizer: LocalizerDep,
     settings: SettingsDep,
     trainer: TrainerDep,
+    blobs: BlobsDep,
     image: Annotated[UploadFile, File(description="JPEG or PNG")],
     metadata: Annotated[
         str, Form(description=METADATA_HELP, json_schema_extra=json_form_schema(ImageMetadata))
@@ -57,6 +59,8 @@ def add_image(
         File(description="Optional depth: 16-bit PNG in millimetres or .npy float32 metres"),
     ] = None,
 ) -> ImageOut:
+    """The image's bytes as sent (and the depth's) are kept in the blob store
+    (``SLLOC_BLOB_URL``) beside its features: ``GET …/images/{image_id}/original``."""
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
     # admitted before the uploads are read: only admitted requests hold them in memory
     with admission.admit():
@@ -72,6 +76,7 @@ def add_image(
             trainer=trainer if settings.global_model is None else None,
             slots=admission.slots,
             preview_max_side=settings.preview_max_side,
+            blobs=blobs,
         )
     return ImageOut.from_stored(stored)
 
@@ -124,6 +129,33 @@ def get_image_preview(map_id: str, image_id: str, sessions: SessionsDep) -> Resp
     return Response(preview.jpeg, media_type="image/jpeg", headers=headers)
 
 
+@router.get(
+    "/{image_id}/original",
+    operation_id="get_image_original",
+    dependencies=[ClientKey],
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"image/jpeg": {}, "image/png": {}},
+            "description": "The image's bytes as uploaded",
+        },
+        **problem_responses(401, 404),
+    },
+)
+def get_image_original(
+    map_id: str, image_id: str, sessions: SessionsDep, blobs: BlobsDep
+) -> Response:
+    """The reference image's bytes exactly as they were uploaded; the ``ETag`` is their
+    SHA-256 (``original_sha256`` of the image). 404 for an image added before originals
+    were kept (``has_original`` false)."""
+    original = images.get_original(sessions, blobs, map_id, image_id)
+    headers = {
+        "Cache-Control": "private, max-age=86400, immutable",
+        "ETag": f'"{original.sha256}"',
+    }
+    return Response(original.data, media_type=original.media_type, headers=headers)
+
+
 @router.delete(
     "/{image_id}",
     status_code=204,
@@ -132,7 +164,12 @@ def get_image_preview(map_id: str, image_id: str, sessions: SessionsDep) -> Resp
     responses=problem_responses(401, 403, 404),
 )
 def delete_image(
-    map_id: str, image_id: str, sessions: SessionsDep, features_cache: ReferenceCacheDep
+    map_id: str,
+    image_id: str,
+    sessions: SessionsDep,
+    features_cache: ReferenceCacheDep,
+    blobs: BlobsDep,
 ) -> Response:
-    images.delete_image(sessions, map_id, image_id, features_cache)
+    """Deletes the image's row and features, then its originals in the blob store."""
+    images.delete_image(sessions, map_id, image_id, features_cache, blobs)
     return Response(status_code=204)

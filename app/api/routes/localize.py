@@ -39,7 +39,7 @@ PARAMS_HELP = (
     "/localize",
     operation_id="localize",
     dependencies=[ClientKey],
-    responses=problem_responses(400, 401, 404, 413, 422, 503),
+    responses=problem_responses(400, 401, 404, 409, 413, 422, 503),
 )
 def localize(
     map_id: str,
@@ -64,7 +64,9 @@ def localize(
     ] = None,
 ) -> LocalizeResult:
     """Returns 200 with ``localized: false`` and a ``reason`` when the image cannot be
-    localized (``time_budget_exceeded`` past the time budget); 4xx only for bad input; 503
+    localized (``time_budget_exceeded`` past the time budget); 4xx only for bad input; 409
+    ``feature-models-missing`` when none of the map's references is described as this
+    server describes queries (their models are not built here; the detail names them); 503
     with ``Retry-After`` when every worker is busy and the queue is full."""
     body = parse_json_form(LocalizeParamsIn, params, "params")
     frames = body.to_frames()

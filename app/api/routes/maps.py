@@ -6,6 +6,7 @@ from fastapi import APIRouter, Response
 
 from app.api.deps import (
     AdminKey,
+    BlobsDep,
     ClientKey,
     Limit,
     LocalizerDep,
@@ -16,10 +17,24 @@ from app.api.deps import (
 )
 from app.errors import problem_responses
 from app.schemas.maps import MapCreate, MapOut, MapPage, ReindexOut
+from app.settings import Settings
 from app.usecases import maps
 from app.usecases.reindex import reindex_map
+from app.usecases.served_features import MapLocalizer, MapServing, map_serving
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
+
+
+def _serving(record: maps.MapRecord, localizer: MapLocalizer, settings: Settings) -> MapServing:
+    return map_serving(
+        record.id,
+        record.max_keypoints,
+        record.max_side,
+        record.described_by,
+        localizer,
+        settings.models_dir,
+        settings.features,
+    )
 
 
 @router.post(
@@ -44,7 +59,7 @@ def create_map(
         body.features.max_side,
         maps.FeatureLimits(settings.max_keypoints, settings.max_side),
     )
-    return MapOut.from_record(record)
+    return MapOut.from_record(record, _serving(record, localizer, settings))
 
 
 @router.get(
@@ -55,11 +70,13 @@ def create_map(
 )
 def list_maps(
     sessions: SessionsDep,
+    localizer: LocalizerDep,
+    settings: SettingsDep,
     offset: Offset = 0,
     limit: Limit = 100,
 ) -> MapPage:
     records, total = maps.list_maps(sessions, offset, limit)
-    items = [MapOut.from_record(record) for record in records]
+    items = [MapOut.from_record(r, _serving(r, localizer, settings)) for r in records]
     return MapPage(items=items, total=total, offset=offset, limit=limit)
 
 
@@ -69,8 +86,14 @@ def list_maps(
     dependencies=[ClientKey],
     responses=problem_responses(401, 404),
 )
-def get_map(map_id: str, sessions: SessionsDep) -> MapOut:
-    return MapOut.from_record(maps.get_map(sessions, map_id))
+def get_map(
+    map_id: str, sessions: SessionsDep, localizer: LocalizerDep, settings: SettingsDep
+) -> MapOut:
+    """``feature_models`` says what the map's references were described by and whether this
+    server can serve them (``servable``; else the models it lacks);
+    ``references_without_original`` counts the images added before originals were kept."""
+    record = maps.get_map(sessions, map_id)
+    return MapOut.from_record(record, _serving(record, localizer, settings))
 
 
 @router.delete(
@@ -80,8 +103,11 @@ def get_map(map_id: str, sessions: SessionsDep) -> MapOut:
     dependencies=[AdminKey],
     responses=problem_responses(401, 403, 404),
 )
-def delete_map(map_id: str, sessions: SessionsDep, features_cache: ReferenceCacheDep) -> Response:
-    maps.delete_map(sessions, map_id, features_cache)
+def delete_map(
+    map_id: str, sessions: SessionsDep, features_cache: ReferenceCacheDep, blobs: BlobsDep
+) -> Response:
+    """Deletes the map, its images and their features, then their originals."""
+    maps.delete_map(sessions, map_id, features_cache, blobs)
     return Response(status_code=204)
 
 
