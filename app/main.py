@@ -16,14 +16,9 @@ from app.admission import Admission
 from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
+from app.engine_config import engine_config, service_memory_bound, thread_plan
 from app.errors import install_error_handlers
 from app.limits import BodySizeLimit
-from app.localizer_factory import (
-    build_localizer,
-    served_settings,
-    service_memory_bound,
-    thread_plan,
-)
 from app.logs import install_request_id_records
 from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
@@ -34,6 +29,7 @@ from app.viewer import install_viewer
 from db.blobs import open_blob_store
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
+from services.components import build_localizer
 from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
@@ -57,9 +53,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             upgrade(engine)
         app.state.engine = engine
         app.state.sessions = make_session_factory(engine)
-        app.state.settings = served = served_settings(settings, app.state.sessions)
-        app.state.thread_plan = plan = thread_plan(served)
+        app.state.settings = settings
+        app.state.thread_plan = plan = thread_plan(settings)
         apply_thread_plan(plan)
+        # what the engine serves, resolved once: the localizer, the memory bound, health and
+        # the served-features checks all read it
+        app.state.engine_config = served = engine_config(settings, app.state.sessions, plan)
         app.state.localizer = localizer or build_localizer(served)
         app.state.ann_builder = BackgroundTrainer("retrieval index")
         app.state.retrieval_cache = RetrievalIndexCache(
@@ -71,10 +70,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.admission = Admission(plan.workers, settings.max_queued)
         # a request alone matches on every worker's core: the idle slots are lent to it
         app.state.spare_workers = SpareWorkers(app.state.admission.slots, plan.workers - 1)
-        app.state.memory_bound = bound = service_memory_bound(served, plan)
+        app.state.memory_bound = bound = service_memory_bound(settings, served, plan)
         logger.info(
             "memory bound: %s; plus the retrieval indexes, which grow with the references "
-            "(README, Memory)",
+            "(docs: deploying, Memory)",
             bound.describe(),
         )
         # the originals of reference images (db/blobs.py), reconciled with the rows

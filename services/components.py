@@ -1,4 +1,5 @@
-"""Builds the localizer's heavy components once (at app start-up or in a CLI command).
+"""The engine's configuration (``EngineConfig``), resolved once, and the localizer's heavy
+components built from it (at app start-up or in a CLI command).
 
 A feature configuration (a local-feature extractor with its matcher) is a row of the table in
 ``services/features/configs.py``, chosen by name. ONNX sessions are created once per model file
@@ -169,39 +170,98 @@ def _missing_models(models_dir: Path, name: str) -> str | None:
     return None
 
 
-def build_localizer(
-    models_dir: Path,
-    max_pixels: int,
-    features: str | None = None,
-    onnx: OnnxOptions | None = None,
-    global_model: Path | None = None,
-    wide_threads: int | None = None,
-) -> Localizer:
-    """The localizer with feature configuration ``features``; retrieval by the ONNX model at
-    ``global_model`` (its contract: ``services/retrieval/onnx_global.py``) or by thumbnails.
+@dataclass(frozen=True)
+class EngineConfig:
+    """What the engine serves, resolved once (at the app's start-up, or in a CLI command) and
+    handed to whatever builds or sizes it: the localizer (``build_localizer``), the memory
+    bound (``model_file_bytes``) and what health and the served-features checks report.
 
-    ``wide_threads``: the threads of the extractor's session for requests that borrow every
-    idle worker (None: none; ``build_features``).
+    Attributes:
+        models_dir: the exported models' folder.
+        features: the feature configuration served, by name (never ``auto``: ``resolve``
+            picks one).
+        max_pixels: the largest decoded image, in pixels.
+        onnx: the onnxruntime sessions' options.
+        global_model: the ONNX global descriptor (its contract:
+            ``services/retrieval/onnx_global.py``); None: thumbnails, with VLAD retrieval.
+        wide_threads: the threads of the extractor's second session, for requests that
+            borrow every idle worker (None: none; ``build_features``).
+    """
 
-    ``None`` or ``"auto"``: the configuration ``resolve_features`` picks.
+    models_dir: Path
+    features: str
+    max_pixels: int
+    onnx: OnnxOptions = field(default_factory=OnnxOptions)
+    global_model: Path | None = None
+    wide_threads: int | None = None
+
+    @classmethod
+    def resolve(
+        cls,
+        models_dir: Path,
+        max_pixels: int,
+        features: str | None = None,
+        *,
+        stored: Collection[str] = (),
+        onnx: OnnxOptions | None = None,
+        global_model: Path | None = None,
+        wide_threads: int | None = None,
+    ) -> EngineConfig:
+        """The configuration with ``features`` resolved (``None`` / ``"auto"``: the one
+        ``resolve_features`` picks against the models built and ``stored``, the extractors
+        that described a database's references).
+
+        Raises:
+            UnknownComponentError: ``features`` names no feature configuration.
+        """
+        name = resolve_features(models_dir, features, stored)
+        get_feature_config(name)  # an unknown name fails here, not when the models load
+        return cls(models_dir, name, max_pixels, onnx or OnnxOptions(), global_model, wide_threads)
+
+    @property
+    def feature_config(self) -> FeatureConfig:
+        return get_feature_config(self.features)
+
+    @property
+    def vlad(self) -> bool:
+        """Retrieval by VLAD over the local features (no global descriptor model)."""
+        return self.global_model is None
+
+    def model_file_bytes(self) -> int:
+        """The sizes of the ONNX files the engine loads: the feature configuration's (the
+        extractor's twice when it has a wide session as well) and the global descriptor's;
+        models not built count 0 (the localizer then fails to build)."""
+        config = self.feature_config
+        entries = read_manifest(self.models_dir)
+        loaded = list(config.models)
+        if config.extractor in config.models and self.wide_threads:
+            loaded.append(config.extractor)
+        paths = [self.models_dir / entries[m].file for m in loaded if m in entries]
+        if self.global_model is not None:
+            paths.append(self.global_model)
+        return sum(path.stat().st_size for path in paths if path.is_file())
+
+
+def build_localizer(engine: EngineConfig) -> Localizer:
+    """The localizer ``engine`` describes: its feature configuration on the models of its
+    folder; retrieval by its global descriptor model or by thumbnails.
 
     Raises:
-        UnknownComponentError: ``features`` names no feature configuration.
-        ModelsMissingError: a named configuration needs models that are not built.
+        ModelsMissingError: the configuration needs models that are not built.
     """
-    name = resolve_features(models_dir, features)
-    config = get_feature_config(name)
-    onnx = onnx or OnnxOptions()
-    extractor, matcher = build_features(config, ModelStore(models_dir, onnx), wide_threads)
+    models = ModelStore(engine.models_dir, engine.onnx)
+    extractor, matcher = build_features(engine.feature_config, models, engine.wide_threads)
     global_descriptor: GlobalDescriptor = ThumbnailDescriptor()
-    if global_model is not None:
-        global_descriptor = OnnxGlobalDescriptor(create_session(global_model, onnx), global_model)
+    if engine.global_model is not None:
+        global_descriptor = OnnxGlobalDescriptor(
+            create_session(engine.global_model, engine.onnx), engine.global_model
+        )
     logger.info(
         "features: %s (%s + %s), models from %s; retrieval: %s",
-        name,
+        engine.features,
         extractor.name,
         matcher.name,
-        models_dir,
+        engine.models_dir,
         global_descriptor.name,
     )
-    return Localizer(extractor, matcher, global_descriptor, max_pixels)
+    return Localizer(extractor, matcher, global_descriptor, engine.max_pixels)

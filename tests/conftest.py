@@ -19,7 +19,7 @@ from sqlalchemy.engine import make_url
 
 from app.main import create_app
 from app.settings import Settings
-from services.components import build_localizer
+from services.components import EngineConfig, build_localizer
 from services.features.configs import FEATURE_CONFIGS
 from services.localization.localizer import Localizer
 from services.runtime.manifest import ModelEntry, file_sha256, write_entry
@@ -47,7 +47,7 @@ def query_views(scene: SyntheticScene) -> list[SyntheticView]:
 
 @pytest.fixture(scope="session")
 def localizer() -> Localizer:
-    return build_localizer(Path("/nonexistent-models"), max_pixels=40_000_000)
+    return build_localizer(EngineConfig.resolve(Path("/nonexistent-models"), max_pixels=40_000_000))
 
 
 @pytest.fixture(scope="session")

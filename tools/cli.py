@@ -276,27 +276,28 @@ def _openapi(out: Path) -> int:
 
 
 def _reindex(map_name: str) -> int:
-    from app.localizer_factory import build_localizer, served_settings
+    from app.engine_config import engine_config
     from app.usecases.errors import ConflictError, NotFoundError
     from app.usecases.reindex import reindex_map
     from db.migrate import upgrade
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
+    from services.components import build_localizer
 
     settings = get_settings()
-    engine = make_engine(settings.database_url)
-    upgrade(engine)
-    sessions = make_session_factory(engine)
+    database = make_engine(settings.database_url)
+    upgrade(database)
+    sessions = make_session_factory(database)
     with sessions() as session:
         row = MapRepository(session).get_by_name(map_name)
         if row is None:
             print(f"no map named {map_name!r}", file=sys.stderr)
             return 2
         map_id = row.id
-    settings = served_settings(settings, sessions)
-    localizer = build_localizer(settings)
+    engine = engine_config(settings, sessions)
+    localizer = build_localizer(engine)
     try:
-        out = reindex_map(sessions, localizer, map_id, settings.global_model is None)
+        out = reindex_map(sessions, localizer, map_id, engine.vlad)
     except (NotFoundError, ConflictError) as exc:
         print(f"reindex failed: {exc}", file=sys.stderr)
         return 1
@@ -308,7 +309,7 @@ def _reindex(map_name: str) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from app.localizer_factory import build_localizer, served_settings
+    from app.engine_config import engine_config
     from app.usecases.errors import NameTakenError, NotFoundError
     from app.usecases.images import add_reference_image
     from app.usecases.maps import open_map
@@ -317,6 +318,7 @@ def _import(args: argparse.Namespace) -> int:
     from db.repositories.images import ImageRepository
     from db.session import make_engine, make_session_factory
     from db.vocabulary import SqlVocabularyStore
+    from services.components import build_localizer
     from services.errors import InvalidInputError
     from services.retrieval.contracts import VocabularyError
     from services.retrieval.vlad_index import VladIndexer
@@ -353,9 +355,9 @@ def _import(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"cannot read {source}: {exc}", file=sys.stderr)
         return 2
-    engine = make_engine(settings.database_url)
-    upgrade(engine)
-    sessions = make_session_factory(engine)
+    database = make_engine(settings.database_url)
+    upgrade(database)
+    sessions = make_session_factory(database)
     opened = open_map(sessions, args.map)  # another import may be creating it too
     map_id, max_keypoints, max_side = opened.id, opened.max_keypoints, opened.max_side
     with sessions() as session:
@@ -368,8 +370,8 @@ def _import(args: argparse.Namespace) -> int:
     )
     for refused in rejected:
         print(f"[refused] {refused.name}: FAILED: {refused.reason}", flush=True)
-    settings = served_settings(settings, sessions)
-    localizer = build_localizer(settings)
+    engine = engine_config(settings, sessions)
+    localizer = build_localizer(engine)
     blobs = open_blob_store(settings.blob_url, settings.database_url, settings.data_dir)
     feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
     failed = stored_meanwhile = 0
@@ -409,7 +411,7 @@ def _import(args: argparse.Namespace) -> int:
     failed += len(rejected)
     meanwhile = f", {stored_meanwhile} stored meanwhile by another run" if stored_meanwhile else ""
     print(f"done: {added} added, {failed} failed{meanwhile}", flush=True)
-    if settings.global_model is None:  # train the vocabulary now so the server need not
+    if engine.vlad:  # train the vocabulary now so the server need not
         try:
             report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train_if_due()
         except VocabularyError as exc:

@@ -15,6 +15,7 @@ from app.metrics import ServiceMetrics
 from app.settings import Settings
 from app.usecases.localize import LocalizeContext
 from db.blobs import BlobStore
+from services.components import EngineConfig
 from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
@@ -23,6 +24,12 @@ from services.retrieval.training import BackgroundTrainer
 async def get_settings_dep(request: Request) -> Settings:
     settings: Settings = request.app.state.settings
     return settings
+
+
+async def get_engine_config(request: Request) -> EngineConfig:
+    """What the engine serves (features, models, retrieval), resolved at start-up."""
+    engine: EngineConfig = request.app.state.engine_config
+    return engine
 
 
 async def get_sessions(request: Request) -> sessionmaker[Session]:
@@ -58,19 +65,20 @@ async def get_localize_context(request: Request) -> LocalizeContext:
     """The database, engine, limits, caches and worker slots every localize shares."""
     state = request.app.state
     settings: Settings = state.settings
+    engine: EngineConfig = state.engine_config
     return LocalizeContext(
         sessions=state.sessions,
         localizer=state.localizer,
         max_top_k=settings.max_top_k,
         max_time_budget_s=settings.localize_time_budget_s,
         cache=state.retrieval_cache,
-        vlad=settings.global_model is None,
+        vlad=engine.vlad,
         slots=state.admission.slots,
         spare=state.spare_workers,
         trainer=state.vocabulary_trainer,
         features_cache=state.reference_cache,
-        models_dir=settings.models_dir,
-        features=settings.features,
+        models_dir=engine.models_dir,
+        features=engine.features,
     )
 
 
@@ -86,6 +94,7 @@ async def get_metrics(request: Request) -> ServiceMetrics:
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
+EngineConfigDep = Annotated[EngineConfig, Depends(get_engine_config)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
 ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache)]

@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 import db.store
-from app.localizer_factory import service_memory_bound
+from app.engine_config import service_memory_bound
 from app.usecases.images import delete_image
 from app.usecases.localize import reference_store
 from services.localization.localizer import Localizer
@@ -168,7 +168,8 @@ def test_health_reports_the_memory_bound(tmp_path: Path, localizer: Localizer) -
         settings = {"cpu_cores": 2, "localize_workers": 2, "max_side": max_side}
         with make_client(url, localizer, **settings) as c:
             runtime = c.get("/v1/health").json()["runtime"]
-            expected = service_memory_bound(c.app.state.settings)  # type: ignore[attr-defined]
+            state = c.app.state  # type: ignore[attr-defined]
+            expected = service_memory_bound(state.settings, state.engine_config, state.thread_plan)
         terms = runtime["memory_terms_mib"]
         assert terms.pop("retrieval_index") == 0  # nothing localized yet
         assert terms == pytest.approx(expected.terms)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from fastapi.testclient import TestClient
 
-from app.localizer_factory import served_settings
+from app.engine_config import engine_config
 from app.settings import Settings
 from db.session import make_engine, make_session_factory
 from services.features.configs import AUTO
@@ -19,7 +19,7 @@ def _served(database_url: str, models_dir: Path, features: str = AUTO) -> str:
     engine = make_engine(database_url)
     try:
         settings = Settings(database_url=database_url, models_dir=models_dir, features=features)
-        return served_settings(settings, make_session_factory(engine)).features
+        return engine_config(settings, make_session_factory(engine)).features
     finally:
         engine.dispose()
 

@@ -11,7 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
-from services.components import ModelsMissingError, ModelStore, build_features, build_localizer
+from services.components import (
+    EngineConfig,
+    ModelsMissingError,
+    ModelStore,
+    build_features,
+    build_localizer,
+)
 from services.features.base import LocalFeatures
 from services.features.configs import FEATURE_CONFIGS, feature_config_names
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
@@ -99,7 +105,9 @@ def test_wide_session_finds_the_same_features(
 ) -> None:
     """The extractor's session on every worker's threads (run when a request borrows the idle
     workers) answers as the one-thread session does."""
-    localizer = build_localizer(MODELS_DIR, 40_000_000, "xfeat-lg", wide_threads=2)
+    localizer = build_localizer(
+        EngineConfig.resolve(MODELS_DIR, 40_000_000, "xfeat-lg", wide_threads=2)
+    )
     extractor = localizer.extractor
     assert isinstance(extractor, OnnxKeypointExtractor) and extractor.wide_session is not None
     assert extractor.wide_session.get_session_options().intra_op_num_threads == 2
@@ -212,7 +220,7 @@ def test_localizes_rendered_queries(
     query_views: list[SyntheticView],
 ) -> None:
     request.getfixturevalue(MODEL_FIXTURES[FEATURE_CONFIGS[features].extractor])
-    localizer = build_localizer(MODELS_DIR, 40_000_000, features)
+    localizer = build_localizer(EngineConfig.resolve(MODELS_DIR, 40_000_000, features))
     store = MemoryReferenceStore()
     for view in reference_views:
         store.add(
@@ -244,7 +252,7 @@ def test_budget_beyond_the_exported_one_is_refused(models: ModelStore) -> None:
 
 def test_disk_without_its_models_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ModelsMissingError, match="--models disk"):
-        build_localizer(tmp_path, 40_000_000, "disk")
+        build_localizer(EngineConfig.resolve(tmp_path, 40_000_000, "disk"))
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.components import build_localizer
+from services.components import EngineConfig, build_localizer
 from services.geometry.intrinsics_adaptation import rotate_camera, rotated_from_camera
 from services.geometry.rigid import Rigid3d, pose_error
 from services.localization.localizer import LocalizeParams, Localizer
@@ -21,7 +21,7 @@ WORLD_DOWN = np.array([0.0, 1.0, 0.0])
 
 @pytest.fixture(scope="module")
 def aliked(models: object) -> Localizer:
-    return build_localizer(MODELS_DIR, 40_000_000, "aliked")
+    return build_localizer(EngineConfig.resolve(MODELS_DIR, 40_000_000, "aliked"))
 
 
 @pytest.fixture(scope="module")

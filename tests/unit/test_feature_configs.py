@@ -9,7 +9,13 @@ from typing import Any
 import pytest
 
 from app.settings import Settings
-from services.components import ModelsMissingError, ModelStore, build_features, build_localizer
+from services.components import (
+    EngineConfig,
+    ModelsMissingError,
+    ModelStore,
+    build_features,
+    build_localizer,
+)
 from services.errors import UnknownComponentError
 from services.features.configs import (
     AUTO,
@@ -75,11 +81,11 @@ def test_preset_builds_its_components_from_the_models_it_declares(name: str) -> 
 def test_preset_without_its_models_is_refused(name: str, tmp_path: Path) -> None:
     config = FEATURE_CONFIGS[name]
     if not config.models:
-        localizer = build_localizer(tmp_path, 40_000_000, name)
+        localizer = build_localizer(EngineConfig.resolve(tmp_path, 40_000_000, name))
         assert (localizer.extractor.name, localizer.matcher.name) == BUILDS[name]
         return
     with pytest.raises(ModelsMissingError, match=f"--models {config.models[0]}`"):
-        build_localizer(tmp_path, 40_000_000, name)
+        build_localizer(EngineConfig.resolve(tmp_path, 40_000_000, name))
 
 
 def test_unknown_name_lists_the_known_ones() -> None:

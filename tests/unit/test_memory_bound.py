@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from app.localizer_factory import model_file_bytes, service_memory_bound
+from app.engine_config import engine_config, service_memory_bound, thread_plan
 from app.settings import Settings
 from services.features.configs import get_feature_config
 from services.runtime.manifest import read_manifest
@@ -21,7 +21,7 @@ from services.runtime.memory import (
     RUNTIME_MIB,
     MemoryBound,
 )
-from services.runtime.threads import plan_threads
+from services.runtime.threads import ThreadPlan, plan_threads
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -45,9 +45,18 @@ def _settings(**values: object) -> Settings:
     return Settings(**{**base, **values})  # type: ignore[arg-type]
 
 
+def _bound(settings: Settings, plan: ThreadPlan | None = None) -> MemoryBound:
+    plan = plan or thread_plan(settings)
+    return service_memory_bound(settings, engine_config(settings, plan=plan), plan)
+
+
+def _model_file_bytes(settings: Settings) -> int:
+    return engine_config(settings).model_file_bytes()
+
+
 def test_terms_follow_the_settings_arithmetic() -> None:
     settings = _settings()
-    bound = service_memory_bound(settings)
+    bound = _bound(settings)
     workers = 2
     expected = {
         "runtime": RUNTIME_MIB,
@@ -81,8 +90,8 @@ def test_terms_follow_the_settings_arithmetic() -> None:
     ],
 )
 def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> None:
-    before = service_memory_bound(_settings())
-    after = service_memory_bound(_settings(**change))
+    before = _bound(_settings())
+    after = _bound(_settings(**change))
     assert after.terms[term] != before.terms[term]
     assert after.fixed_mib != before.fixed_mib
 
@@ -90,8 +99,8 @@ def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> No
 def test_workers_come_from_the_thread_plan() -> None:
     settings = _settings(localize_workers=0, cpu_cores=1)
     assert plan_threads(1).workers == 1
-    one = service_memory_bound(settings)
-    two = service_memory_bound(settings, plan_threads(2))
+    one = _bound(settings)
+    two = _bound(settings, plan_threads(2))
     assert two.terms["extraction"] == pytest.approx(2 * one.terms["extraction"], abs=0.1)
     assert two.terms["uploads"] - one.terms["uploads"] == pytest.approx(50.0)
 
@@ -103,13 +112,13 @@ def test_models_term_is_the_configurations_files() -> None:
         pytest.skip("aliked's models are not built (scripts/build_models.sh)")
     size = sum((MODELS / entries[m].file).stat().st_size for m in config.models)
     settings = _settings(features="aliked", localize_workers=1)
-    assert model_file_bytes(settings) == size
-    mib = service_memory_bound(settings).terms["models"]
+    assert _model_file_bytes(settings) == size
+    mib = _bound(settings).terms["models"]
     assert mib == pytest.approx(MODEL_RESIDENT_PER_FILE_MIB * size / MIB, abs=0.06)
     assert 100 < mib < 200  # measured: 137 MiB resident for aliked + lightglue
     # two workers: the extractor has a second session, on both workers' threads
     extractor = (MODELS / entries[config.extractor].file).stat().st_size
-    assert model_file_bytes(_settings(features="aliked")) == size + extractor
+    assert _model_file_bytes(_settings(features="aliked")) == size + extractor
 
 
 def test_retrieval_index_adds_to_the_total() -> None:

@@ -9,7 +9,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from services.components import build_localizer
+from services.components import EngineConfig, build_localizer
 from services.retrieval.onnx_global import OnnxGlobalDescriptor
 from services.runtime.onnx import create_session
 from tools.synthetic.scene import SyntheticScene, unrelated_image
@@ -63,7 +63,9 @@ def test_model_with_the_wrong_input_is_refused(tmp_path: Path) -> None:
 def test_localizer_uses_the_model(tmp_path: Path, scene: SyntheticScene) -> None:
     path = tmp_path / "pool.onnx"
     _pooling_model(path, "height", "width")
-    localizer = build_localizer(tmp_path / "no-models", 40_000_000, "sift", global_model=path)
+    localizer = build_localizer(
+        EngineConfig.resolve(tmp_path / "no-models", 40_000_000, "sift", global_model=path)
+    )
     assert localizer.global_descriptor.name.startswith("onnx-pool-")
     view = scene.views(1, stream=5, prefix="v")[0]
     vector = localizer.global_descriptor.compute(

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import cv2
 
-from services.components import build_localizer
+from services.components import EngineConfig, build_localizer
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.imaging import DecodedImage, decode_image_reduced
@@ -66,7 +66,9 @@ def measure(
 ) -> dict[str, object]:
     """Median ms of add (describe) and localize, and peak MiB above the built localizer."""
     data, camera = _large_jpeg(width, height)
-    localizer = build_localizer(models, max_pixels=width * height, features=features)
+    localizer = build_localizer(
+        EngineConfig.resolve(models, max_pixels=width * height, features=features)
+    )
     if mode == "full":  # what the pipeline did before reduced decoding
         vars(single_frame)["decode_image_reduced"] = _decode_in_full
     pid = os.getpid()

@@ -32,7 +32,7 @@ from app.usecases.maps import create_map
 from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
-from services.components import build_localizer
+from services.components import EngineConfig, build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
 from services.localization.answer import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
@@ -123,7 +123,7 @@ class InProcessRunner:
         max_side: int | None = None,
     ) -> None:
         """``max_keypoints``, ``max_side``: the map's feature options (None: the default)."""
-        self.localizer = build_localizer(models_dir, max_pixels, features)
+        self.localizer = build_localizer(EngineConfig.resolve(models_dir, max_pixels, features))
         self.features = features
         self._tmp = tempfile.TemporaryDirectory(prefix="slloc-eval-")
         self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")

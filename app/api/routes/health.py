@@ -14,8 +14,8 @@ from starlette.datastructures import State
 
 from app.api.deps import LocalizerDep, SessionsDep
 from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOut
-from app.settings import Settings
 from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
+from services.components import EngineConfig
 from services.estimators.registry import estimator_names
 from services.reference_cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
@@ -138,11 +138,11 @@ def _unservable(state: State, localizer: MapLocalizer) -> tuple[int, list[Unserv
     now = time.monotonic()
     if cached is not None and now - cached[0] < UNSERVABLE_TTL_S:
         return cached[1], cached[2]
-    settings: Settings = state.settings
+    engine: EngineConfig = state.engine_config
     try:
         with state.sessions() as session:
             count, found = unservable_maps(
-                session, localizer, settings.models_dir, settings.features, UNSERVABLE_LISTED
+                session, localizer, engine.models_dir, engine.features, UNSERVABLE_LISTED
             )
     except SQLAlchemyError:
         return 0, []
