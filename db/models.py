@@ -59,7 +59,9 @@ class Map(Base):
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
     name: Mapped[str] = mapped_column(String(255), unique=True)
     description: Mapped[str | None] = mapped_column(Text)
-    default_estimator: Mapped[str] = mapped_column(String(64), default="e5p1")
+    # services.estimators.registry.DEFAULT_ESTIMATOR, as maps made through the API (a test
+    # checks they agree; the repository and ``open_map`` pass it explicitly)
+    default_estimator: Mapped[str] = mapped_column(String(64), default="auto")
     # per-map feature options (None = the service's default)
     max_keypoints: Mapped[int | None] = mapped_column(Integer)
     max_side: Mapped[int | None] = mapped_column(Integer)

@@ -31,6 +31,7 @@ from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine
+from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.geo.geodesy import Geodetic
 from services.geo.registration import GeoRegistration
 from services.localization.localizer import Localizer
@@ -231,6 +232,9 @@ def test_colmap_import(
     with TestClient(app) as client:
         maps = client.get("/v1/maps").json()["items"]
         assert [(m["name"], m["image_count"]) for m in maps] == [("scene", NUM_VIEWS)]
+        # an imported map defaults like a map created through the API (once e5p1 vs auto)
+        made = client.post("/v1/maps", json={"name": "through-the-api"}).json()
+        assert maps[0]["default_estimator"] == made["default_estimator"] == DEFAULT_ESTIMATOR
         page = client.get(f"/v1/maps/{maps[0]['id']}/images").json()
     assert page["total"] == NUM_VIEWS
     api = {item["name"]: item for item in page["items"]}

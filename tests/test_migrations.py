@@ -75,3 +75,13 @@ def test_concurrent_upgrades_of_a_fresh_database(database_url: str) -> None:
     with engine.connect() as conn:
         assert len(conn.execute(text("SELECT version_num FROM alembic_version")).all()) == 1
     engine.dispose()
+
+
+def test_map_default_estimator_is_the_services() -> None:
+    """A map row made without an estimator (``slloc import``, the repository) defaults like a
+    map made through the API."""
+    from db.models import Map
+    from services.estimators.registry import DEFAULT_ESTIMATOR
+
+    default = Map.__table__.c.default_estimator.default
+    assert default is not None and getattr(default, "arg", None) == DEFAULT_ESTIMATOR

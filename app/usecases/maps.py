@@ -15,6 +15,7 @@ from db.originals import remove_blobs
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
+from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.localization.localizer import Localizer
 from services.reference_cache import ReferenceFeatureCache
 
@@ -102,7 +103,8 @@ def create_map(
 
 
 def open_map(sessions: sessionmaker[Session], name: str) -> MapRecord:
-    """The map named ``name``, created empty with the service's defaults when there is none.
+    """The map named ``name``, created empty with the service's defaults when there is none
+    (those of a map created through the API: ``DEFAULT_ESTIMATOR``, the service's features).
     A creation that loses the race with another one (another import) opens the winner's map.
 
     Raises:
@@ -113,7 +115,8 @@ def open_map(sessions: sessionmaker[Session], name: str) -> MapRecord:
         return found
     try:
         with sessions.begin() as session:
-            return _record(MapRepository(session).create(name, None), 0)
+            row = MapRepository(session).create(name, None, DEFAULT_ESTIMATOR)
+            return _record(row, 0)
     except IntegrityError:  # another creation of the name committed first
         found = _find_by_name(sessions, name)
         if found is None:
