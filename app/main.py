@@ -13,6 +13,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
 
 from app.admission import Admission
+from app.api.openapi import install_openapi
 from app.api.routes import geo, gpp, health, images, localize, maps
 from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
@@ -22,7 +23,6 @@ from app.limits import BodySizeLimit
 from app.logs import install_request_id_records
 from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
-from app.openapi import install_openapi
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
 from app.viewer import install_viewer

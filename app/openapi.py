@@ -1,51 +1,14 @@
-"""The OpenAPI document: every error as problem+json, the schemas of the JSON form fields in
-the components, and the copy committed in ``openapi/openapi.json``."""
+"""The OpenAPI document of the app as ``create_app`` builds it (its hook:
+``app/api/openapi.py``), as committed in ``openapi/openapi.json`` (``slloc openapi``)."""
 
 from __future__ import annotations
 
 import json
-from typing import Any
 
-from fastapi import FastAPI
-from pydantic import BaseModel
-
-from app.errors import document_problems
-from app.schemas.images import ImageMetadata
-from app.schemas.localize import LocalizeParamsIn
+from app.main import create_app
 from app.settings import Settings
-
-# models sent as JSON strings in multipart form fields (see ``app.api.deps.json_form_schema``)
-JSON_FORM_MODELS: tuple[type[BaseModel], ...] = (ImageMetadata, LocalizeParamsIn)
-
-
-def install_openapi(app: FastAPI) -> None:
-    """Make ``app.openapi()`` return the completed document."""
-    generate = app.openapi
-
-    def openapi() -> dict[str, Any]:
-        if app.openapi_schema:
-            return app.openapi_schema
-        schema = generate()
-        document_problems(schema)
-        publish_json_form_models(schema)
-        app.openapi_schema = schema
-        return schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
-
-
-def publish_json_form_models(schema: dict[str, Any]) -> None:
-    """Add the schemas of ``JSON_FORM_MODELS`` (and the models they use) to the components."""
-    components = schema.setdefault("components", {}).setdefault("schemas", {})
-    for model in JSON_FORM_MODELS:
-        model_schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
-        for name, definition in model_schema.pop("$defs", {}).items():
-            components.setdefault(name, definition)
-        components[model.__name__] = model_schema
 
 
 def openapi_document() -> str:
-    from app.main import create_app  # app.main installs this module's hook
-
     app = create_app(Settings(database_url="sqlite://", api_keys=""))
     return json.dumps(app.openapi(), indent=2, sort_keys=True) + "\n"

@@ -1,5 +1,5 @@
 """The ``slloc`` command: serve, import, db upgrade, blobs check|sweep, synth, models build,
-features, openapi, eval, bench."""
+features, openapi, eval, bench (``serve`` and ``db upgrade`` are the app's: ``app/cli.py``)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+from app.cli import SERVER_COMMANDS, add_db_parser, add_serve_parser, run_server_command
 from app.logs import configure_logging
 from app.settings import get_settings
 from services.features.configs import PREFERRED_MODELS
@@ -21,15 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="slloc", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    serve = sub.add_parser("serve", help="run the HTTP API")
-    serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument(
-        "--log-level",
-        default="info",
-        choices=("critical", "error", "warning", "info", "debug", "trace"),
-        help="the least severe records written (the access lines are info)",
-    )
+    add_serve_parser(sub)
 
     imp = sub.add_parser("import", help="bulk-load posed images into a map (resumable)")
     imp.add_argument("--map", required=True, help="map name; created when missing")
@@ -51,9 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     reindex.add_argument("--map", required=True, help="map name")
 
-    db = sub.add_parser("db", help="database maintenance")
-    db_sub = db.add_subparsers(dest="db_command", required=True)
-    db_sub.add_parser("upgrade", help="migrate the schema to the newest revision")
+    add_db_parser(sub)
 
     blobs = sub.add_parser(
         "blobs", help="the originals of reference images in the blob store (SLLOC_BLOB_URL)"
@@ -124,13 +115,11 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     args = parser.parse_args(argv)
-    if args.command == "serve":
-        return _serve(args.host, args.port, args.log_level)
+    if args.command in SERVER_COMMANDS:
+        return run_server_command(args)
     configure_logging("text")
     if args.command == "import":
         return _import(args)
-    if args.command == "db":
-        return _db_upgrade()
     if args.command == "blobs":
         return _blobs(args)
     if args.command == "reindex":
@@ -180,42 +169,6 @@ def main(argv: list[str] | None = None) -> int:
 def _missing_modules(*names: str) -> list[str]:
     """The named top-level modules that cannot be imported in this environment."""
     return [name for name in names if importlib.util.find_spec(name) is None]
-
-
-def _serve(host: str, port: int, log_level: str) -> int:
-    import uvicorn
-    from uvicorn.config import LOG_LEVELS
-
-    from app.main import create_app
-    from app.slow_clients import MAX_REQUEST_HEAD_BYTES, HeadTimeoutH11Protocol
-
-    settings = get_settings()
-    configure_logging(settings.log_format, LOG_LEVELS[log_level])
-    uvicorn.run(
-        create_app(settings),
-        host=host,
-        port=port,
-        log_level=log_level,
-        # uvicorn's records go to the handler above; the app writes the access lines
-        log_config=None,
-        access_log=False,
-        http=HeadTimeoutH11Protocol,
-        timeout_keep_alive=settings.timeout_keep_alive_s,
-        limit_concurrency=settings.limit_concurrency,
-        h11_max_incomplete_event_size=MAX_REQUEST_HEAD_BYTES,
-    )
-    return 0
-
-
-def _db_upgrade() -> int:
-    from db.migrate import upgrade
-    from db.session import make_engine
-
-    settings = get_settings()
-    engine = make_engine(settings.database_url)
-    upgrade(engine)
-    print(f"database at {engine.url.render_as_string(hide_password=True)} is at head")
-    return 0
 
 
 def _blobs(args: argparse.Namespace) -> int:

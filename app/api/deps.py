@@ -140,7 +140,7 @@ ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
 def json_form_schema(model: type[BaseModel]) -> dict[str, Any]:
-    """OpenAPI keywords of a form field holding ``model`` as a JSON string; ``app.openapi``
+    """OpenAPI keywords of a form field holding ``model`` as a JSON string; ``app.api.openapi``
     publishes the model's schema in the components."""
     return {
         "contentMediaType": "application/json",

@@ -1,0 +1,42 @@
+"""The app's OpenAPI hook: every error as problem+json, and the schemas of the JSON form fields
+in the components (the committed copy is written by ``app/openapi.py``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI
+from pydantic import BaseModel
+
+from app.errors import document_problems
+from app.schemas.images import ImageMetadata
+from app.schemas.localize import LocalizeParamsIn
+
+# models sent as JSON strings in multipart form fields (see ``app.api.deps.json_form_schema``)
+JSON_FORM_MODELS: tuple[type[BaseModel], ...] = (ImageMetadata, LocalizeParamsIn)
+
+
+def install_openapi(app: FastAPI) -> None:
+    """Make ``app.openapi()`` return the completed document."""
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = generate()
+        document_problems(schema)
+        publish_json_form_models(schema)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def publish_json_form_models(schema: dict[str, Any]) -> None:
+    """Add the schemas of ``JSON_FORM_MODELS`` (and the models they use) to the components."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    for model in JSON_FORM_MODELS:
+        model_schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, definition in model_schema.pop("$defs", {}).items():
+            components.setdefault(name, definition)
+        components[model.__name__] = model_schema
