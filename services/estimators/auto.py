@@ -55,6 +55,17 @@ from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
 from services.geometry.rigid import rotation_error_deg
 
+# the roles of the plans, by the registry's names (``check_roles`` holds them against the
+# registry when it builds auto): an epipolar estimator, first where the references
+# spread around the query; local triangulation, which ends on a 2D–3D refinement and is
+# preferred by ``choose``; motion averaging, the fallback (a 2D–3D refinement last too); and
+# the fallback that needs depth (scale from depth), tried only when the request has some
+EPIPOLAR = "e5p1"
+TRIANGULATION = "local_tri_all"
+AVERAGING = "motion_averaging"
+DEPTH_SCALE = "e3p1"
+ROLES = (EPIPOLAR, TRIANGULATION, AVERAGING, DEPTH_SCALE)
+
 # local triangulation's pose is kept unless it has fewer epipolar inliers than this share of
 # the other verified pose's, or fewer of its triangulated points fit it than this share
 PREFER_RATIO = 0.97
@@ -73,6 +84,22 @@ class Plan:
     @property
     def estimators(self) -> tuple[str, ...]:
         return self.first + self.fallbacks
+
+
+def check_roles(candidates: Mapping[str, PoseEstimator]) -> None:
+    """Check that every role of the plans names one of ``candidates`` (the registry's, which
+    calls this as it builds ``auto``) with the ``needs_depth`` the plans assume: only
+    ``DEPTH_SCALE`` needs depth.
+
+    Raises:
+        ValueError: a role names no candidate, or one that declares otherwise.
+    """
+    missing = [name for name in ROLES if name not in candidates]
+    if missing:
+        raise ValueError(f"auto's plans name estimators that are not registered: {missing}")
+    wrong = [name for name in ROLES if candidates[name].needs_depth != (name == DEPTH_SCALE)]
+    if wrong:
+        raise ValueError(f"auto's plans assume otherwise of these estimators' depth: {wrong}")
 
 
 def has_depth(references: list[ReferenceObservation]) -> bool:
@@ -97,18 +124,18 @@ def layout_of(references: list[ReferenceObservation]) -> ReferenceLayout:
 
 def plan_estimators(layout: ReferenceLayout, depth: bool) -> Plan:
     """What to run for a request with this reference layout, with or without depth."""
-    depth_fallback = ("e3p1",) if depth else ()
+    depth_fallback = (DEPTH_SCALE,) if depth else ()
     if layout.forward_motion:
         return Plan(
-            ("local_tri_all",),
-            ("motion_averaging", *depth_fallback),
+            (TRIANGULATION,),
+            (AVERAGING, *depth_fallback),
             f"forward motion: reference centres on a line (collinearity "
             f"{layout.collinearity:.2f}) {layout.line_view_angle_deg:.0f}° from their viewing "
             "direction, where epipolar constraints leave the position along it unobservable",
         )
     return Plan(
-        ("e5p1", "local_tri_all"),
-        ("motion_averaging", *depth_fallback),
+        (EPIPOLAR, TRIANGULATION),
+        (AVERAGING, *depth_fallback),
         f"references spread around the query (collinearity {layout.collinearity:.2f})",
     )
 
@@ -117,17 +144,17 @@ def choose(verified: dict[str, EstimateResult]) -> tuple[str, str]:
     """The name of the verified pose to answer (``verified`` non-empty) and why."""
     if len(verified) == 1:
         return next(iter(verified)), "the only verified pose"
-    others = {name: r for name, r in verified.items() if name != "local_tri_all"}
+    others = {name: r for name, r in verified.items() if name != TRIANGULATION}
     best = max(others, key=lambda name: others[name].num_inliers)
-    if "local_tri_all" not in verified:
+    if TRIANGULATION not in verified:
         return best, "the most inliers"
-    local, other = verified["local_tri_all"].num_inliers, others[best].num_inliers
+    local, other = verified[TRIANGULATION].num_inliers, others[best].num_inliers
     if local < PREFER_RATIO * other:
-        return best, f"{other} inliers vs local_tri_all's {local}: its triangulation went wrong"
-    share = point_inlier_share(verified["local_tri_all"])
+        return best, f"{other} inliers vs {TRIANGULATION}'s {local}: its triangulation went wrong"
+    share = point_inlier_share(verified[TRIANGULATION])
     if share < MIN_POINT_INLIER_SHARE:
-        return best, f"{share:.0%} of local_tri_all's triangulated points fit its pose"
-    return "local_tri_all", f"2D–3D refined, {local} inliers vs {best}'s {other}"
+        return best, f"{share:.0%} of {TRIANGULATION}'s triangulated points fit its pose"
+    return TRIANGULATION, f"2D–3D refined, {local} inliers vs {best}'s {other}"
 
 
 def point_inlier_share(result: EstimateResult) -> float:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from collections.abc import Set as AbstractSet
+
 from services.errors import UnknownComponentError
-from services.estimators.auto import AutoEstimator
+from services.estimators.auto import AutoEstimator, check_roles
 from services.estimators.base import PoseEstimator
 from services.estimators.e3p1 import E3p1Estimator
 from services.estimators.e5p1 import E5p1Estimator
@@ -27,13 +30,38 @@ _ESTIMATORS: dict[str, PoseEstimator] = {
         LocalTriPairsEstimator(),
     )
 }
-# auto runs the others, chosen per query
+# auto runs the others, chosen per query: its plans' roles must name registered estimators
+check_roles(_ESTIMATORS)
 _ESTIMATORS[AutoEstimator.name] = AutoEstimator(_ESTIMATORS)
 
+
+class _Declaring(AbstractSet[str]):
+    """The names of the registered estimators that ``declares`` holds for, read at each use:
+    an estimator added with ``register()`` appears."""
+
+    def __init__(self, declares: Callable[[PoseEstimator], bool]) -> None:
+        self._declares = declares
+
+    def __contains__(self, name: object) -> bool:
+        estimator = _ESTIMATORS.get(name) if isinstance(name, str) else None
+        return estimator is not None and self._declares(estimator)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(name for name, e in _ESTIMATORS.items() if self._declares(e)))
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def __repr__(self) -> str:
+        return f"{{{', '.join(self)}}}"
+
+
 # the estimators that need depth for the query and the references, as each declares
-DEPTH_ESTIMATORS = frozenset(name for name, e in _ESTIMATORS.items() if e.needs_depth)
+DEPTH_ESTIMATORS: AbstractSet[str] = _Declaring(lambda e: e.needs_depth)
 # the estimators that use the query's depth when it is sent: those that need it, and auto
-DEPTH_USING_ESTIMATORS = DEPTH_ESTIMATORS | {AutoEstimator.name}
+DEPTH_USING_ESTIMATORS: AbstractSet[str] = _Declaring(
+    lambda e: e.needs_depth or e.name == AutoEstimator.name
+)
 
 DEFAULT_ESTIMATOR = AutoEstimator.name
 
