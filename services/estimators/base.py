@@ -26,6 +26,8 @@ class FailureReason(StrEnum):
     # no intrinsics were sent and the matches do not determine the focal length
     FOCAL_UNOBSERVABLE = "focal_unobservable"
     GRAVITY_MISMATCH = "gravity_mismatch"  # the pose disagrees with the query's gravity hint
+    # several frames: frames localized alone disagree with the pose their session poses give
+    INCONSISTENT_FRAMES = "inconsistent_frames"
     # a verified pose whose confidence is below the request's floor (the pose is the candidate)
     LOW_CONFIDENCE = "low_confidence"
 

@@ -20,6 +20,19 @@ Structureless Visual Localization", generalised to a rig):
 A frame with too few points to be localized alone (P3P needs four, the verification ten) still
 adds its points to the joint problem: the rig needs them only in total.
 
+Consistency (the session poses are checked against the images, not trusted): every frame with
+at least ``OWN_POSE_MIN_INLIERS`` triangulated points is also localized alone (P3P LO-RANSAC on
+its own 2D–3D matches; a *witness* when its own pose has that many point inliers). A witness
+whose own pose lies farther than ``consistency_bound_m`` (max(0.25 m, 5 % of the session extent,
+5 % of its median scene depth)) or 5° from its pose under the joint estimate is *inconsistent*:
+its session pose and its image disagree. When the witnesses that agree outnumber the
+inconsistent ones, the inconsistent frames are dropped (no pose, no inliers) and the joint
+estimate is redone without them; otherwise, or when the redone estimate still has an
+inconsistent frame, the answer is ``inconsistent_frames``. The confidence reads the agreement:
+the pooled ``confidence_from_inliers`` times the fraction of frames *supported* by the joint
+estimate (at least ``MIN_FRAME_SUPPORT`` of a frame's 2D–3D points are inliers of the joint
+pose), so a dropped frame or one without support lowers it.
+
 Scale: the session is metric (ARKit, ARCore, WebXR) and the map is taken to be metric; a map in
 other units gives a wrong ``session_from_map`` (no scale is estimated).
 """
@@ -38,18 +51,34 @@ from services.estimators.correspondences import (
     stack_matches,
 )
 from services.estimators.options import EstimatorOptions
-from services.estimators.poselib_bridge import estimate_generalized_absolute_pose, ransac_options
+from services.estimators.poselib_bridge import (
+    estimate_absolute_pose,
+    estimate_generalized_absolute_pose,
+    ransac_options,
+)
 from services.estimators.ransac import Deadline
 from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
 from services.estimators.verification import count_verified_points
 from services.geometry.camera import Camera
-from services.geometry.rigid import Rigid3d
+from services.geometry.rigid import Rigid3d, rotation_error_deg
 from services.types import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
 
 # the method's name in results (the family of ``local_tri_all``)
 RIG_METHOD = "local_tri_all"
+
+# a frame is localized alone (a witness of its session pose) from this many 2D–3D inliers
+OWN_POSE_MIN_INLIERS = 15
+# a frame's own pose and its joint pose agree within max(these) metres ...
+CONSISTENCY_MIN_M = 0.25
+CONSISTENCY_EXTENT_FRACTION = 0.05  # of the session extent (largest distance between frames)
+CONSISTENCY_DEPTH_FRACTION = 0.05  # of the frame's median depth of its own inlier points
+# ... and this many degrees
+CONSISTENCY_MAX_DEG = 5.0
+# a frame supports the joint estimate with this many 2D–3D inliers of the joint pose (Sampson
+# inliers are no evidence: an unrelated image has a few by chance)
+MIN_FRAME_SUPPORT = 3
 
 
 @dataclass(frozen=True)
@@ -76,9 +105,11 @@ class RigEstimate:
         inliers: per frame, one (M,) mask per reference: matches within ``max_error_px``
             Sampson error of the frame's pose (all False on failure).
         point_inliers: per frame, its 2D–3D inliers of the generalized absolute pose.
-        confidence: ``confidence_from_inliers`` of the pooled inliers, 0 on failure.
+        confidence: ``confidence_from_inliers`` of the pooled inliers times the fraction of
+            supported frames, 0 on failure.
         stats: numbers describing the run.
         failure_reason: set exactly when ``session_from_map`` is None.
+        dropped: indices of the frames left out as inconsistent (no pose, no inliers).
     """
 
     session_from_map: Rigid3d | None
@@ -87,14 +118,15 @@ class RigEstimate:
     confidence: float = 0.0
     stats: dict[str, float] = field(default_factory=dict)
     failure_reason: FailureReason | None = None
+    dropped: frozenset[int] = frozenset()
 
     @property
     def num_inliers(self) -> int:
         return int(sum(int(m.sum()) for masks in self.inliers for m in masks))
 
-    def cam_from_map(self, frame: RigFrame) -> Rigid3d | None:
-        """``frame``'s pose in the map (None on failure)."""
-        if self.session_from_map is None:
+    def cam_from_map(self, frame: RigFrame, index: int | None = None) -> Rigid3d | None:
+        """``frame``'s pose in the map (None on failure, or when frame ``index`` was dropped)."""
+        if self.session_from_map is None or (index is not None and index in self.dropped):
             return None
         return frame.cam_from_session.compose(self.session_from_map)
 
@@ -135,7 +167,8 @@ def estimate_rig_pose(frames: list[RigFrame], options: EstimatorOptions) -> RigE
     Failures: ``no_references`` (no frame retrieved any), ``too_few_matches`` (fewer than four
     triangulated points over all frames), ``degenerate_geometry`` (many tracks, too few
     triangulable, or a singular system), ``no_consensus`` (RANSAC found nothing, or the pooled
-    support is below ``options.verification``), ``time_budget_exceeded``.
+    support is below ``options.verification``), ``inconsistent_frames`` (frames localized alone
+    disagree with their session poses, see the module), ``time_budget_exceeded``.
     """
     stats: dict[str, float] = {"frames": float(len(frames))}
     if not any(frame.references for frame in frames):
@@ -164,21 +197,50 @@ def _estimate(
             else FailureReason.TOO_FEW_MATCHES
         )
         return _failure(reason, frames, stats)
-    used = [i for i, c in enumerate(counts) if c > 0]
     threshold = options.ransac.max_error_px
-    found = estimate_generalized_absolute_pose(
-        [per_frame[i].pixels for i in used],
-        [per_frame[i].points for i in used],
-        [frames[i].cam_from_session for i in used],
-        [frames[i].camera for i in used],
-        ransac_options(
-            options.ransac, deadline, reprojection_px=threshold, num_matches=sum(counts)
-        ),
-        threshold / 4.0,
-    )
-    if found is None:
-        return _failure(FailureReason.NO_CONSENSUS, frames, stats)
-    session_from_map, point_masks, iterations = found
+    own = [
+        _own_pose(frame, points, options, deadline)
+        for frame, points in zip(frames, per_frame, strict=True)
+    ]
+    witnesses = [i for i, pose in enumerate(own) if pose is not None]
+    extent = _session_extent(frames)
+    stats["frames_localized_alone"] = float(len(witnesses))
+    stats["frames_inconsistent"] = 0.0
+    dropped: set[int] = set()
+    for attempt in range(2):
+        used = [i for i, c in enumerate(counts) if c > 0 and i not in dropped]
+        if sum(counts[i] for i in used) < 4:
+            return _failure(FailureReason.INCONSISTENT_FRAMES, frames, stats)
+        found = estimate_generalized_absolute_pose(
+            [per_frame[i].pixels for i in used],
+            [per_frame[i].points for i in used],
+            [frames[i].cam_from_session for i in used],
+            [frames[i].camera for i in used],
+            ransac_options(
+                options.ransac,
+                deadline,
+                reprojection_px=threshold,
+                num_matches=sum(counts[i] for i in used),
+            ),
+            threshold / 4.0,
+        )
+        if found is None:
+            return _failure(FailureReason.NO_CONSENSUS, frames, stats)
+        session_from_map, point_masks, iterations = found
+        inconsistent = [
+            i
+            for i in witnesses
+            if i not in dropped
+            and not _agrees(own[i], frames[i].cam_from_session.compose(session_from_map), extent)
+        ]
+        if not inconsistent:
+            break
+        stats["frames_inconsistent"] = float(len(inconsistent) + len(dropped))
+        agreeing = len(witnesses) - len(dropped) - len(inconsistent)
+        if attempt > 0 or agreeing <= len(inconsistent):
+            return _failure(FailureReason.INCONSISTENT_FRAMES, frames, stats)
+        dropped.update(inconsistent)
+    stats["frames_dropped"] = float(len(dropped))
     point_inliers = [0] * len(frames)
     for i, mask in zip(used, point_masks, strict=True):
         point_inliers[i] = int(mask.sum())
@@ -188,16 +250,65 @@ def _estimate(
 
     inliers: list[list[BoolArray]] = []
     verified = 0
-    for frame, points in zip(frames, per_frame, strict=True):
+    for i, (frame, points) in enumerate(zip(frames, per_frame, strict=True)):
         pose = frame.cam_from_session.compose(session_from_map)
-        if not frame.references:
-            inliers.append([])
+        if not frame.references or i in dropped:
+            inliers.append([np.zeros(ref.num_matches, bool) for ref in frame.references])
             continue
         errors = pose_sampson_errors_px(points.stacked, pose.rotation[None], pose.center[None])[0]
         masks = points.stacked.split(errors < threshold)
         inliers.append(masks)
         verified += count_verified_points(frame.camera, pose, frame.references, masks, threshold)[0]
-    return _accept(session_from_map, frames, inliers, point_inliers, verified, options, stats)
+    return _accept(
+        session_from_map, frames, inliers, point_inliers, verified, options, stats, dropped
+    )
+
+
+def _own_pose(
+    frame: RigFrame, points: _FramePoints, options: EstimatorOptions, deadline: Deadline
+) -> tuple[Rigid3d, float] | None:
+    """The frame localized alone from its own 2D–3D matches and the median depth of its inlier
+    points, or None when it has fewer than ``OWN_POSE_MIN_INLIERS`` (points or inliers)."""
+    count = int(points.pixels.shape[0])
+    if count < OWN_POSE_MIN_INLIERS or deadline.expired():
+        return None
+    threshold = options.ransac.max_error_px
+    found = estimate_absolute_pose(
+        points.pixels,
+        points.points,
+        frame.camera,
+        ransac_options(options.ransac, deadline, reprojection_px=threshold, num_matches=count),
+        threshold / 4.0,
+    )
+    if found is None or int(found[1].sum()) < OWN_POSE_MIN_INLIERS:
+        return None
+    pose, mask, _ = found
+    depth = pose.apply(points.points[mask])[:, 2]
+    return pose, float(np.median(depth))
+
+
+def _session_extent(frames: list[RigFrame]) -> float:
+    """The largest distance between two frames' centres in the session (metres)."""
+    centres = np.array([frame.cam_from_session.center for frame in frames])
+    return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+
+
+def consistency_bound_m(extent_m: float, depth_m: float) -> float:
+    """How far (metres) a frame's own pose may lie from its joint pose."""
+    return max(
+        CONSISTENCY_MIN_M,
+        CONSISTENCY_EXTENT_FRACTION * extent_m,
+        CONSISTENCY_DEPTH_FRACTION * max(depth_m, 0.0),
+    )
+
+
+def _agrees(own: tuple[Rigid3d, float] | None, joint: Rigid3d, extent_m: float) -> bool:
+    if own is None:
+        return True
+    pose, depth = own
+    moved = float(np.linalg.norm(pose.center - joint.center))
+    turned = rotation_error_deg(pose.rotation, joint.rotation)
+    return moved <= consistency_bound_m(extent_m, depth) and turned <= CONSISTENCY_MAX_DEG
 
 
 def _accept(
@@ -208,8 +319,10 @@ def _accept(
     verified: int,
     options: EstimatorOptions,
     stats: dict[str, float],
+    dropped: set[int],
 ) -> RigEstimate:
-    """The pooled acceptance of ``VerificationOptions`` over all frames."""
+    """The pooled acceptance of ``VerificationOptions`` over all frames, and the confidence
+    scaled by the fraction of frames the estimate supports."""
     num_inliers = int(sum(int(m.sum()) for masks in inliers for m in masks))
     references_with_inliers = len(
         {
@@ -235,5 +348,10 @@ def _accept(
         or sum(point_inliers) < 4
     ):
         return RigEstimate(None, inliers, point_inliers, 0.0, stats, FailureReason.NO_CONSENSUS)
-    confidence = confidence_from_inliers(num_inliers, references_with_inliers)
-    return RigEstimate(session_from_map, inliers, point_inliers, confidence, stats)
+    supported = sum(1 for n in point_inliers if n >= MIN_FRAME_SUPPORT)
+    agreement = supported / len(frames)
+    stats["frames_supported"] = float(supported)
+    confidence = confidence_from_inliers(num_inliers, references_with_inliers) * agreement
+    return RigEstimate(
+        session_from_map, inliers, point_inliers, confidence, stats, None, frozenset(dropped)
+    )

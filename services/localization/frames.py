@@ -179,7 +179,7 @@ def _answer(
         masks = estimate.inliers[i]
         frame_results.append(
             FrameResult(
-                cam_from_world=estimate.cam_from_map(frame),
+                cam_from_world=estimate.cam_from_map(frame, i),
                 num_inliers=int(sum(int(m.sum()) for m in masks)),
                 num_point_inliers=estimate.point_inliers[i],
                 retrieved=retrieved_references(frame.references, masks, names),

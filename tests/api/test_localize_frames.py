@@ -266,3 +266,87 @@ def test_frames_share_the_pixel_and_byte_limits(
         response = _post(client, map_id, [image] * 3, params)
         assert response.status_code == 413, response.text
         assert "bytes together" in response.json()["detail"]
+
+
+def _moved(pose: dict[str, Any], offset: list[float]) -> dict[str, Any]:
+    """``pose`` (a matrix) with its position moved by ``offset`` metres in the session."""
+    matrix = np.array(pose["matrix"])
+    matrix[:3, 3] += offset
+    return {"matrix": matrix.tolist()}
+
+
+def test_frame_with_a_moved_session_pose_is_refused(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    """Issue "Holds under every fault", N6: two frames whose session poses disagree by 10 m
+    with their images used to answer localized at confidence 0.98 with frame 0 10 m off."""
+    views = session_views[:2]
+    images = [encode_png(v.image) for v in views]
+    poses = [_session_pose(v) for v in views]
+    poses[0] = _moved(poses[0], [10.0, 0.0, 0.0])
+    params = {"camera": _camera(views[0]), "frames": [{"session_pose": p} for p in poses]}
+    response = _post(client, scene_map, images, params)
+    assert response.status_code == 200, response.text
+    result = response.json()
+    print("moved:", result["localized"], result["reason"], result["confidence"])
+    assert result["localized"] is False and result["reason"] == "inconsistent_frames"
+    assert result["map_from_session"] is None and result["cam_from_world"] is None
+    assert [f["cam_from_world"] for f in result["frames"]] == [None, None]
+
+
+def test_frames_sharing_one_session_pose_are_refused(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    """N6: three different images with one session pose used to answer at confidence 0.98."""
+    views = session_views[:3]
+    images = [encode_png(v.image) for v in views]
+    params = {
+        "camera": _camera(views[0]),
+        "frames": [{"session_pose": _session_pose(views[0])} for _ in views],
+    }
+    response = _post(client, scene_map, images, params)
+    assert response.status_code == 200, response.text
+    result = response.json()
+    print("shared:", result["localized"], result["reason"], result["confidence"])
+    assert result["localized"] is False and result["reason"] == "inconsistent_frames"
+    assert result["map_from_session"] is None
+
+
+def test_one_inconsistent_frame_of_several_is_dropped(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    """Four frames agree, the fifth's session pose is 10 m off: it is dropped (no pose, no
+    inliers), the four place the session, and the confidence is lower than all five agreeing."""
+    images = [encode_png(v.image) for v in session_views]
+    agreeing = _localize(client, scene_map, session_views, images)
+    poses = [_session_pose(v) for v in session_views]
+    poses[4] = _moved(poses[4], [0.0, 10.0, 0.0])
+    params = {"camera": _camera(session_views[0]), "frames": [{"session_pose": p} for p in poses]}
+    response = _post(client, scene_map, images, params)
+    assert response.status_code == 200, response.text
+    result = response.json()
+    print("dropped:", result["confidence"], "vs", agreeing["confidence"])
+    assert result["localized"] is True, result["reason"]
+    dt, dr = _alignment_error(result)
+    assert dt < 0.01 and dr < 0.2, (dt, dr)
+    assert result["frames"][4]["cam_from_world"] is None
+    assert result["frames"][4]["num_inliers"] == 0
+    assert all(f["cam_from_world"] is not None for f in result["frames"][:4])
+    assert result["confidence"] < agreeing["confidence"]
+
+
+def test_frame_without_support_lowers_the_confidence(
+    client: TestClient, scene_map: str, session_views: list[SyntheticView]
+) -> None:
+    """A frame that matches nothing (an unrelated image) neither refuses nor goes unnoticed:
+    the joint estimate rests on the other frames and its confidence is lower."""
+    from tools.synthetic.scene import unrelated_image
+
+    views = session_views[:3]
+    images = [encode_png(v.image) for v in views]
+    agreeing = _localize(client, scene_map, views, images)
+    images[2] = encode_png(unrelated_image(5))
+    result = _localize(client, scene_map, views, images)
+    print("unsupported:", result["confidence"], "vs", agreeing["confidence"])
+    assert result["localized"] is True, result["reason"]
+    assert result["confidence"] < agreeing["confidence"]
