@@ -14,6 +14,6 @@ scripts/build_web.sh || echo "WARNING: the viewer's three.js could not be instal
   "works without its 3D view" >&2
 .venv/bin/slloc db upgrade
 # two glibc malloc arenas instead of eight per core: the server's peak under 4 clients fell from
-# 781–1306 MiB to 797–969 MiB in the same benchmark (README, Memory)
+# 781–1306 MiB to 797–969 MiB in the same benchmark (docs/deploying.md, Memory)
 export MALLOC_ARENA_MAX="${MALLOC_ARENA_MAX:-2}"
 exec .venv/bin/slloc serve "$@"

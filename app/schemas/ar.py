@@ -1,5 +1,5 @@
 """What an AR client adds to a localize request and gets back: camera rotation, gravity,
-pose conventions (README "Integrating an AR app")."""
+pose conventions (the docs' AR page, "Integrating an AR app")."""
 
 from __future__ import annotations
 
@@ -55,7 +55,8 @@ class OutputIn(BaseModel):
     frames: list[PoseConvention] = Field(
         default_factory=list,
         max_length=3,
-        description="Also answer world_from_cam in these conventions (README 'Pose conventions')",
+        description="Also answer world_from_cam in these conventions (the docs' AR page, "
+        "'Pose conventions')",
     )
     pose_of: Literal["upload", "camera"] = Field(
         "upload",

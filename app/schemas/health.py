@@ -31,7 +31,7 @@ class RuntimeOut(BaseModel):
     reference_cache_used_mib: float = Field(description="Decoded features it holds now")
     memory_bound_mib: float = Field(
         description="What the server's resident memory can reach with these settings: the "
-        "sum of memory_terms_mib (README, Memory)"
+        "sum of memory_terms_mib (the docs' Deploying page, Memory)"
     )
     memory_terms_mib: dict[str, float] = Field(
         description="The bound's terms, MiB: runtime, models, reference_cache, extraction, "

@@ -68,10 +68,10 @@ class LocalizeParamsIn(BaseModel):
         max_length=MAX_FRAMES_SCHEMA,
         description="One entry per `image` part, in order: the frame's AR-session pose and "
         "optional camera. With frames the answer adds map_from_session and per-frame poses; "
-        "two or more frames (at most SLLOC_MAX_FRAMES) are localized jointly. See README "
-        "'Several frames'",
+        "two or more frames (at most SLLOC_MAX_FRAMES) are localized jointly. See the docs' AR "
+        "page, 'Several frames'",
     )
-    # AR clients (README "Integrating an AR app")
+    # AR clients (the docs' AR page, "Integrating an AR app")
     camera_rotation_deg: Literal[0, 90, 180, 270] | None = Field(
         None,
         description="Clockwise turn from the image `camera` describes to the upload as "
@@ -203,7 +203,7 @@ class LocalizeResult(BaseModel):
         "params.min_confidence (not an answer; `confidence` is its confidence)",
     )
     num_inliers: int
-    confidence: float = Field(description="In [0, 1]; see README 'Reading the result'")
+    confidence: float = Field(description="In [0, 1]; see the docs' API page, 'Reading the result'")
     retrieved: list[RetrievedOut]
     inliers: list[InliersOut] | None = None
     timings_ms: Timings
@@ -214,7 +214,7 @@ class LocalizeResult(BaseModel):
     map_from_session: SessionAlignmentOut | None = Field(
         None,
         description="With params.frames, once localized: the transform from the AR session "
-        "to the map (README 'Several frames')",
+        "to the map (the docs' AR page, 'Several frames')",
     )
     frames: list[FrameOut] | None = Field(
         None, description="With params.frames: one per uploaded frame, in order"
@@ -226,7 +226,7 @@ class LocalizeResult(BaseModel):
     uncertainty: UncertaintyOut | None = Field(
         None, description="Pose uncertainty; null without a pose or enough verified points"
     )
-    # AR clients (README "Integrating an AR app")
+    # AR clients (the docs' AR page, "Integrating an AR app")
     camera_adaptation: CameraAdaptationOut | None = Field(
         None, description="How `camera` was adapted to the upload (when a camera was given)"
     )

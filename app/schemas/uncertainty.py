@@ -6,8 +6,8 @@ from services.estimators.uncertainty import PoseUncertainty
 
 
 class UncertaintyOut(BaseModel):
-    """First-order uncertainty of the returned pose (README 'Uncertainty and queries without
-    intrinsics')."""
+    """First-order uncertainty of the returned pose (the docs' API page, 'Queries
+    without intrinsics and the pose uncertainty')."""
 
     position_m: float = Field(
         description="Root-mean-square camera-centre error predicted by the pose covariance, "

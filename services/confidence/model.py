@@ -35,7 +35,7 @@ def _ratio(stats: Mapping[str, float], num: str, den: str) -> float:
     return stats.get(num, 0.0) / max(stats.get(den, 0.0), 1.0)
 
 
-# the pose uncertainty's clamps (``services.pose_uncertainty``; no uncertainty reads as the
+# the pose uncertainty's clamps (``services.estimators.uncertainty``; no uncertainty reads as the
 # largest); map units and degrees
 POSITION_SIGMA_RANGE_M = (1e-3, 1.0)
 ROTATION_SIGMA_RANGE_DEG = (1e-2, 10.0)

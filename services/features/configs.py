@@ -2,8 +2,8 @@
 the matcher for its features, one row each.
 
 ``SLLOC_FEATURES`` and ``slloc eval --features`` take these names; the settings help, the
-README table (``slloc features`` prints it) and the feature benchmark read this table, and
-``services/components.py`` builds an (extractor, matcher) pair from a row.
+docs' table (Models and presets; ``slloc features`` prints it) and the feature benchmark read
+this table, and ``services/components.py`` builds an (extractor, matcher) pair from a row.
 """
 
 from __future__ import annotations
