@@ -1,6 +1,6 @@
 """Prometheus metrics of one app (``GET /metrics``): HTTP requests by route template, localize
-stage timings and outcomes, and, read at each scrape, the admission queue, the retrieval cache
-and the size of the largest maps."""
+stage timings and outcomes, and, read at each scrape, the admission queue, the retrieval cache,
+the size of the largest maps and the process (``process_*``, ``python_*``)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,9 @@ from collections.abc import Iterable, Mapping, Sequence
 from fastapi import APIRouter, Depends, Request, Response
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
+    GC_COLLECTOR,
+    PLATFORM_COLLECTOR,
+    PROCESS_COLLECTOR,
     CollectorRegistry,
     Counter,
     Histogram,
@@ -79,6 +82,11 @@ class ServiceMetrics:
             registry=self.registry,
         )
         self.registry.register(_StateCollector(state))
+        # the process (process_*: CPU, resident memory, open file descriptors, start time),
+        # the interpreter (python_info) and its garbage collector (python_gc_*), as the default
+        # registry has them: read at scrape time, shared by every app of the process
+        for collector in (PROCESS_COLLECTOR, PLATFORM_COLLECTOR, GC_COLLECTOR):
+            self.registry.register(collector)
 
     def observe_localization(
         self, estimator: str, reason: str | None, timings_ms: Mapping[str, float]

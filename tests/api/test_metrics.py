@@ -137,3 +137,16 @@ def test_metrics_access_with_auth_on(
         requests = metrics["slloc_http_requests"]
         # answered by the key gate before routing, still counted under its route template
         assert value(requests, "slloc_http_requests_total", route=LOCALIZE_ROUTE) == 1
+
+
+def test_process_and_python_series(client: TestClient) -> None:
+    """The process collector's series (and the interpreter's and its GC's) are on /metrics, as
+    on the default registry, though the app keeps a registry of its own."""
+    families = scrape(client)
+    assert value(families["process_resident_memory_bytes"], "process_resident_memory_bytes") > 0
+    assert value(families["process_cpu_seconds"], "process_cpu_seconds_total") > 0
+    assert value(families["process_open_fds"], "process_open_fds") > 0
+    assert value(families["process_start_time_seconds"], "process_start_time_seconds") > 0
+    assert value(families["python_info"], "python_info", implementation="CPython") == 1.0
+    collected = families["python_gc_objects_collected"]
+    assert {s.labels["generation"] for s in collected} == {"0", "1", "2"}
