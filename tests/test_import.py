@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 import pytest
 from fastapi.testclient import TestClient
-from kapture.io.csv import kapture_to_dir
+from kapture.io.csv import kapture_from_dir, kapture_to_dir
 from kapture.io.records import get_image_fullpath
 from sqlalchemy import inspect, select
 from sqlalchemy.orm import Session
@@ -663,3 +663,74 @@ def test_csv_gps_columns(
     assert run.rc == 0, run.out + run.err
     for row in stored(slloc_env).images:
         assert row.gps_accuracy_m == 2.5 and row.gps_latitude == pytest.approx(48.8584, abs=1e-3)
+
+
+def test_kapture_bad_camera_and_missing_image_fail_their_records_only(
+    slloc_env: str,
+    views: list[SyntheticView],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A record of a camera slloc refuses (an UNKNOWN_CAMERA, a fisheye with fx = 1e-300)
+    and a record whose image is missing fail on their own lines; a fisheye camera's
+    records are added with its model; the command exits 1 and says what failed."""
+    root = tmp_path / "kapture"
+    write_kapture(views, root)
+    data = kapture_from_dir(str(root))
+    assert data.sensors is not None and data.records_camera is not None
+    fx, fy, cx, cy = views[0].camera.params
+    data.sensors["unknown"] = kapture.Camera(kapture.CameraType.UNKNOWN_CAMERA, [640, 480])
+    data.sensors["implausible"] = kapture.Camera(
+        kapture.CameraType.OPENCV_FISHEYE, [640, 480, 1e-300, fy, cx, cy, 0.0, 0.0, 0.0, 0.0]
+    )
+    data.sensors["fisheye"] = kapture.Camera(
+        kapture.CameraType.OPENCV_FISHEYE, [640, 480, fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0]
+    )
+    names = {i: _name(i, view) for i, view in enumerate(views)}
+    for timestamp, sensor in ((1, "unknown"), (2, "implausible"), (3, "fisheye")):
+        assert data.trajectories is not None
+        pose = data.trajectories[timestamp, "cam"]
+        del data.trajectories[timestamp]
+        del data.records_camera[timestamp]
+        data.trajectories[timestamp, sensor] = pose
+        data.records_camera[timestamp, sensor] = names[timestamp]
+    kapture_to_dir(str(root), data)
+    Path(get_image_fullpath(str(root), names[4])).unlink()
+
+    run = run_import(capsys, "--map", "scene", "--kapture", root)
+    assert run.rc == 1, run.out + run.err
+    assert run.summary() == (len(views), 0, len(views) - 2)
+    failed = {
+        line.split("] ", 1)[1].split(": ", 1)[0]: line
+        for line in run.out.splitlines()
+        if "FAILED" in line
+    }
+    assert set(failed) == {names[1], names[2], names[4]}, run.out
+    assert "UNKNOWN_CAMERA" in failed[names[1]]
+    assert "camera fx = 1e-300 px is implausible" in failed[names[2]]
+    assert f"done: {len(views) - 3} added, 3 failed" in run.out
+    rows = stored(slloc_env).by_name()
+    assert set(rows) == {names[i] for i in (0, 3, 5)}
+    assert rows[names[3]].camera_model == "OPENCV_FISHEYE"
+
+
+def test_read_colmap_every_model_and_unknown_ones(
+    views: list[SyntheticView], dataset: Path, tmp_path: Path
+) -> None:
+    """A fisheye camera's images are read with its model; those of a model slloc does not
+    know (SIMPLE_DIVISION) are refused on their own, naming it."""
+    model = tmp_path / "model"
+    write_colmap_model(views, model, "text")
+    rec = pycolmap.Reconstruction(str(model))
+    fx, fy, cx, cy = rec.cameras[1].params
+    rec.cameras[1].model = pycolmap.CameraModelId.OPENCV_FISHEYE
+    rec.cameras[1].params = [fx, fy, cx, cy, 0.05, -0.01, 0.0, 0.0]
+    f, cx, cy = rec.cameras[2].params
+    rec.cameras[2].model = pycolmap.CameraModelId.SIMPLE_DIVISION
+    rec.cameras[2].params = [f, cx, cy, 0.0]
+    rec.write_text(str(model))
+    colmap = read_colmap(model, dataset)
+    assert {item.metadata.camera.model for item in colmap.items} == {"OPENCV_FISHEYE"}
+    assert len(colmap.items) == len(colmap.rejected) == NUM_VIEWS // 2
+    for refused in colmap.rejected:
+        assert "camera model SIMPLE_DIVISION is not supported" in refused.reason

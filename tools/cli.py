@@ -302,7 +302,7 @@ def _import(args: argparse.Namespace) -> int:
             colmap = read_colmap(args.colmap, args.images)
             items, rejected = colmap.items, colmap.rejected
         elif args.kapture is not None:
-            items = read_kapture(args.kapture)
+            items, rejected = read_kapture(args.kapture)
         else:
             items = read_csv(args.csv)
     except (OSError, ValueError) as exc:

@@ -7,6 +7,7 @@ import csv
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pycolmap
@@ -15,6 +16,7 @@ from pydantic import ValidationError
 from app.schemas.geo import GpsSchema
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
+from services.geometry.camera import CAMERA_MODELS
 from services.geometry.rigid import Rigid3d
 
 CSV_COLUMNS = (
@@ -54,9 +56,9 @@ class RejectedItem:
     reason: str
 
 
-@dataclass(frozen=True)
-class ColmapImages:
-    """The images of a COLMAP model: those to import and those whose camera or pose is refused."""
+class SourceImages(NamedTuple):
+    """The images of a COLMAP model or a kapture dataset: those to import and those whose
+    camera or pose is refused (each on its own: the others are imported)."""
 
     items: list[ImportItem]
     rejected: list[RejectedItem]
@@ -72,24 +74,37 @@ def validation_message(exc: ValidationError) -> str:
     return "; ".join(parts)
 
 
-def read_colmap(model_dir: Path, image_dir: Path) -> ColmapImages:
+def read_colmap(model_dir: Path, image_dir: Path) -> SourceImages:
     """Images of a COLMAP sparse model (``cameras``/``images`` in text or binary form).
 
     Image names are COLMAP's (paths relative to ``image_dir``); poses are its cam_from_world.
-    An image whose camera is implausible (``check_plausible``) is rejected on its own.
+    An image whose camera slloc refuses (a model it does not know, implausible intrinsics:
+    ``check_plausible``) is rejected on its own.
     """
     reconstruction = pycolmap.Reconstruction(str(model_dir))
     items: list[ImportItem] = []
     rejected: list[RejectedItem] = []
     for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
-        camera = reconstruction.cameras[image.camera_id]
         try:
+            camera = reconstruction.cameras[image.camera_id]
+            _check_model(camera.model.name)
             metadata = _colmap_metadata(image.name, camera, image.cam_from_world())
         except ValidationError as exc:
             rejected.append(RejectedItem(image.name, validation_message(exc)))
             continue
+        except (KeyError, ValueError) as exc:  # no such camera, a model slloc does not know
+            rejected.append(RejectedItem(image.name, str(exc)))
+            continue
         items.append(ImportItem(metadata, image_dir / image.name))
-    return ColmapImages(items, rejected)
+    return SourceImages(items, rejected)
+
+
+def _check_model(name: str) -> None:
+    """Raises ValueError naming the camera model when slloc does not know it."""
+    if name not in CAMERA_MODELS:
+        raise ValueError(
+            f"camera model {name} is not supported (known: {', '.join(CAMERA_MODELS)})"
+        )
 
 
 def _colmap_metadata(name: str, camera: pycolmap.Camera, pose: pycolmap.Rigid3d) -> ImageMetadata:
@@ -110,14 +125,17 @@ def _colmap_metadata(name: str, camera: pycolmap.Camera, pose: pycolmap.Rigid3d)
     )
 
 
-def read_kapture(root: Path) -> list[ImportItem]:
+def read_kapture(root: Path) -> SourceImages:
     """Posed camera records of a kapture dataset (read with the ``kapture`` package: rigs
     resolved, trajectories are cam_from_world), with the GPS position of a WGS84 GNSS record
     of the same timestamp when there is one. Image names are the records' paths (relative to
     ``sensors/records_data``).
 
+    A record whose camera slloc refuses (a model it does not know, implausible intrinsics,
+    malformed parameters) is rejected on its own.
+
     Raises:
-        ValueError: no posed camera record, or a camera model slloc does not know.
+        ValueError: not a kapture dataset, or no posed camera record.
     """
     import kapture  # optional: the `kapture` extra
     from kapture.io.csv import kapture_from_dir
@@ -136,12 +154,20 @@ def read_kapture(root: Path) -> list[ImportItem]:
         for sensor_id, sensor in data.sensors.items()
         if sensor.sensor_type == "gnss" and set(sensor.sensor_params or ()) & KAPTURE_WGS84
     }
-    items = []
+    items: list[ImportItem] = []
+    rejected: list[RejectedItem] = []
     for timestamp, sensor_id, name in kapture.flatten(data.records_camera, is_sorted=True):
         if (timestamp, sensor_id) not in trajectories:
             continue
-        sensor = data.sensors[sensor_id]
-        width, height, *params = (float(v) for v in sensor.camera_params)
+        sensor = data.sensors.get(sensor_id)
+        try:
+            if sensor is None:
+                raise ValueError(f"no camera sensor {sensor_id!r}")
+            _check_model(sensor.camera_type.name)
+            width, height, *params = (float(v) for v in sensor.camera_params)
+        except (TypeError, ValueError) as exc:
+            rejected.append(RejectedItem(name, f"camera {sensor_id!r} is unusable: {exc}"))
+            continue
         pose = trajectories[timestamp, sensor_id]
         gps = None
         for gnss_id in gnss_ids:
@@ -165,11 +191,12 @@ def read_kapture(root: Path) -> list[ImportItem]:
                 gps=gps,
             )
         except ValidationError as exc:
-            raise ValueError(f"{root}: record {name!r}: {validation_message(exc)}") from None
+            rejected.append(RejectedItem(name, validation_message(exc)))
+            continue
         items.append(ImportItem(metadata, Path(get_image_fullpath(str(root), name))))
-    if not items:
+    if not items and not rejected:
         raise ValueError(f"{root}: no camera record has a pose")
-    return items
+    return SourceImages(items, rejected)
 
 
 def read_csv(path: Path) -> list[ImportItem]:

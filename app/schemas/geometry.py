@@ -20,7 +20,21 @@ from services.geometry.rigid import MAX_TRANSLATION_M, Rigid3d, pose_problem
 
 # numbers as JSON numbers: strict, so that a string ("500") or a boolean is refused
 FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
-CameraModelName = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+# services.geometry.camera.CAMERA_MODELS (a test checks they agree)
+CameraModelName = Literal[
+    "SIMPLE_PINHOLE",
+    "PINHOLE",
+    "SIMPLE_RADIAL",
+    "RADIAL",
+    "OPENCV",
+    "OPENCV_FISHEYE",
+    "FULL_OPENCV",
+    "FOV",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE",
+]
 
 
 class CameraSchema(BaseModel):

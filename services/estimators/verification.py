@@ -33,11 +33,11 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-import poselib
 
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
+from services.geometry.projection import normalized_from_pixels
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray, IntArray
 
@@ -257,11 +257,8 @@ def verify_by_reference_triangulation(
 
 
 def _normalized(camera: Camera, xy: FloatArray) -> FloatArray:
-    """(M, 2) pixels → (M, 2) undistorted normalised coordinates (PoseLib's camera models)."""
-    if xy.shape[0] == 0:
-        return np.zeros((0, 2))
-    model = poselib.Camera(camera.model, list(camera.params), camera.width, camera.height)
-    return np.asarray(model.unproject(np.ascontiguousarray(xy, dtype=np.float64)), np.float64)
+    """(M, 2) pixels → (M, 2) undistorted normalised coordinates (pycolmap's camera models)."""
+    return normalized_from_pixels(camera, xy)
 
 
 def check_structure(

@@ -13,14 +13,34 @@ import numpy as np
 from services.errors import InvalidInputError
 from services.types import FloatArray
 
-# model name -> parameter names, in COLMAP order
+# model name -> parameter names, in COLMAP order (pycolmap's ``Camera.params_info``; a test
+# checks they agree). Distorted models are undistorted through pycolmap
+# (``services.geometry.projection``) before the estimators, which see pinhole cameras.
 CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
     "PINHOLE": ("fx", "fy", "cx", "cy"),
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+    "FULL_OPENCV": (
+        *("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+        *("k3", "k4", "k5", "k6"),
+    ),
+    "FOV": ("fx", "fy", "cx", "cy", "omega"),
+    "SIMPLE_RADIAL_FISHEYE": ("f", "cx", "cy", "k"),
+    "RADIAL_FISHEYE": ("f", "cx", "cy", "k1", "k2"),
+    "THIN_PRISM_FISHEYE": (
+        *("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+        *("k3", "k4", "sx1", "sy1"),
+    ),
+    "RAD_TAN_THIN_PRISM_FISHEYE": (
+        *("fx", "fy", "cx", "cy", "k0", "k1", "k2", "k3", "k4", "k5"),
+        *("p0", "p1", "s0", "s1", "s2", "s3"),
+    ),
 }
+# models whose distortion is none (the pinhole models)
+PINHOLE_MODELS = frozenset({"SIMPLE_PINHOLE", "PINHOLE"})
 
 
 @dataclass(frozen=True)
@@ -63,6 +83,11 @@ class Camera:
         names = CAMERA_MODELS[self.model]
         i = names.index("cx")
         return self.params[i], self.params[i + 1]
+
+    @property
+    def distorted(self) -> bool:
+        """Whether the model has lens distortion (any model but the pinhole ones)."""
+        return self.model not in PINHOLE_MODELS
 
     @property
     def K(self) -> FloatArray:

@@ -17,8 +17,9 @@ Pixel convention: COLMAP's (the top-left pixel's centre at (0.5, 0.5)), so a W×
     270°: (x', y') = (y, W − x)      fx' = fy, fy' = fx, cx' = cy,     cy' = W − cx
   The rotated camera is the same camera turned about its optical axis: a point X in the
   camera frame is ``R_z(rotation) @ X`` in the rotated one (``rotated_from_camera``), radial
-  distortion is unchanged and OPENCV's tangential terms turn with the image:
-  (p1', p2') = (p2, −p1) at 90°, (−p1, −p2) at 180°, (−p2, p1) at 270°.
+  distortion is unchanged and the tangential and thin-prism terms turn with the image, e.g.
+  OPENCV's (p1', p2') = (p2, −p1) at 90°, (−p1, −p2) at 180°, (−p2, p1) at 270°
+  (``_quarter_turn_distortion`` for every model).
 """
 
 from __future__ import annotations
@@ -40,8 +41,15 @@ SIZE_TOLERANCE_PX = 1.0
 MAX_SCALE_RATIO = 64.0
 
 # a model with one focal length and its equivalent with two, for resizes that are not exactly
-# uniform: SIMPLE_RADIAL's and RADIAL's distortion is OPENCV's with the other terms zero
-_TWO_FOCAL_MODEL = {"SIMPLE_PINHOLE": "PINHOLE", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV"}
+# uniform: SIMPLE_RADIAL's and RADIAL's distortion is OPENCV's with the other terms zero, and
+# SIMPLE_RADIAL_FISHEYE's and RADIAL_FISHEYE's OPENCV_FISHEYE's
+_TWO_FOCAL_MODEL = {
+    "SIMPLE_PINHOLE": "PINHOLE",
+    "SIMPLE_RADIAL": "OPENCV",
+    "RADIAL": "OPENCV",
+    "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE",
+    "RADIAL_FISHEYE": "OPENCV_FISHEYE",
+}
 
 
 @dataclass(frozen=True)
@@ -117,13 +125,26 @@ def rotate_camera(camera: Camera, rotation_deg: int) -> Camera:
     new_cx, new_cy = rotate_points(np.array([[cx, cy]]), rotation_deg, camera.width, camera.height)[
         0
     ]
+    for _ in range(rotation_deg // 90):
+        _quarter_turn_distortion(camera.model, values)
     values["cx"], values["cy"] = float(new_cx), float(new_cy)
-    if rotation_deg != 180 and "fx" in values:
-        values["fx"], values["fy"] = values["fy"], values["fx"]
-    if "p1" in values:
-        p1, p2 = values["p1"], values["p2"]
-        values["p1"], values["p2"] = {90: (p2, -p1), 180: (-p1, -p2), 270: (-p2, p1)}[rotation_deg]
     return Camera(camera.model, width, height, tuple(values[name] for name in names))
+
+
+def _quarter_turn_distortion(model: str, values: dict[str, float]) -> None:
+    """Turn the focal lengths and the non-radial distortion terms of ``values`` by 90°
+    clockwise, in place: the distortion's displacement turns with the image, (dx, dy) →
+    (−dy, dx). Radial terms are unchanged. (A test checks every model against pycolmap.)"""
+    if "fx" in values:
+        values["fx"], values["fy"] = values["fy"], values["fx"]
+    if model == "RAD_TAN_THIN_PRISM_FISHEYE":
+        values["p0"], values["p1"] = -values["p1"], values["p0"]
+        s0, s1, s2, s3 = (values[f"s{i}"] for i in range(4))
+        values["s0"], values["s1"], values["s2"], values["s3"] = -s2, -s3, s0, s1
+    elif "p1" in values:  # OPENCV, FULL_OPENCV, THIN_PRISM_FISHEYE
+        values["p1"], values["p2"] = values["p2"], -values["p1"]
+    if "sx1" in values:  # THIN_PRISM_FISHEYE
+        values["sx1"], values["sy1"] = -values["sy1"], values["sx1"]
 
 
 def scale_camera(camera: Camera, width: int, height: int) -> Camera:
@@ -137,13 +158,10 @@ def scale_camera(camera: Camera, width: int, height: int) -> Camera:
         values = {
             "fx": values["f"],
             "fy": values["f"],
-            "cx": values["cx"],
-            "cy": values["cy"],
-            "k1": values.get("k", values.get("k1", 0.0)),
-            "k2": values.get("k2", 0.0),
-            "p1": 0.0,
-            "p2": 0.0,
+            "k1": values.get("k", 0.0),  # the single-term models' k is k1
+            **values,
         }
+        values = {name: values.get(name, 0.0) for name in CAMERA_MODELS[model]}
     scales = {"f": sx, "fx": sx, "cx": sx, "fy": sy, "cy": sy}
     names = CAMERA_MODELS[model]
     return Camera(model, width, height, tuple(values[n] * scales.get(n, 1.0) for n in names))

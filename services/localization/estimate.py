@@ -21,6 +21,7 @@ from services.estimators.ransac import Deadline
 from services.estimators.uncertainty import PoseUncertainty, with_uncertainty
 from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
+from services.localization.undistort import undistort_matches
 
 
 @dataclass(frozen=True)
@@ -49,13 +50,20 @@ def answer_pose(
     the camera estimated from the matches (``camera`` gives only the image size then); a
     depth estimator without depth fails as ``missing_depth`` before any focal estimation. The
     confidence is ``confidence_model``'s (of the estimator ``auto`` chose, for ``auto``) over
-    the result's stats, the uncertainty's included, then capped by the uncertainty."""
+    the result's stats, the uncertainty's included, then capped by the uncertainty. Distorted
+    cameras are undistorted first (``undistort_matches``); the answer's masks are over the
+    matches as given and its camera is the one given (or estimated)."""
+    given_camera, given_references = camera, references
+    # distorted cameras (any COLMAP model) become pinholes with undistorted keypoints
+    undistorted = undistort_matches(camera, references)
+    camera, references = undistorted.camera, undistorted.references
     focal_stats: dict[str, float] = {}
     if focal_estimated and not (estimator.needs_depth and missing_depth(references)):
         focal = estimate_focal(camera.width, camera.height, references, options, deadline)
         if focal.camera is None:
             reason = focal.failure_reason or FailureReason.FOCAL_UNOBSERVABLE
-            return PoseAnswer(EstimateResult.failure(reason, references, focal.stats), None, None)
+            failure = EstimateResult.failure(reason, given_references, focal.stats)
+            return PoseAnswer(failure, None, None)
         camera, focal_stats = focal.camera, focal.stats
         # the estimator gets what the focal estimation left of the budget
         left = deadline.remaining_s()
@@ -75,4 +83,5 @@ def answer_pose(
     result, uncertainty = with_uncertainty(
         verified, camera, references, options, focal_estimated, score
     )
-    return PoseAnswer(replace(result, stats={**result.stats, **focal_stats}), camera, uncertainty)
+    result = undistorted.result_as_given(replace(result, stats={**result.stats, **focal_stats}))
+    return PoseAnswer(result, camera if focal_estimated else given_camera, uncertainty)
