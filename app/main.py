@@ -31,7 +31,7 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import build_localizer
 from services.localization.localizer import Localizer
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer

@@ -19,8 +19,8 @@ from services.features.base import LocalFeatures
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_problem
-from services.reference_cache import CachedFeatures, ReferenceFeatureCache
-from services.references import ReferenceView
+from services.references.cache import CachedFeatures, ReferenceFeatureCache
+from services.references.store import ReferenceView
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.contracts import RetrievalIndex, VocabularyState, empty_index
 

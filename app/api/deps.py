@@ -17,7 +17,7 @@ from app.usecases.localize import LocalizeContext
 from db.blobs import BlobStore
 from services.components import EngineConfig
 from services.localization.localizer import Localizer
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 
 

@@ -23,10 +23,10 @@ from db.vocabulary import SqlVocabularyStore
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import check_pixel_limit, decode_image_reduced
+from services.imaging.decode import check_pixel_limit, decode_image_reduced
+from services.imaging.preview import Preview, make_preview
 from services.localization.localizer import Localizer
-from services.preview import Preview, make_preview
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer
 

@@ -20,7 +20,7 @@ from services.geometry.camera import Camera
 from services.localization.answer import LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import QueryFrameHints
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer

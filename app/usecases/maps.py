@@ -17,7 +17,7 @@ from db.repositories.maps import MapRepository
 from services.errors import InvalidInputError
 from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.localization.localizer import Localizer
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from db.originals import StoredOriginals
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.preview import Preview
-from services.references import ReferenceData
+from services.imaging.preview import Preview
+from services.references.store import ReferenceData
 
 
 class ImageRepository:

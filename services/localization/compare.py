@@ -12,7 +12,7 @@ from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.stages import MatchedQuery
 from services.localization.turns import search_turns, searched_answer
-from services.references import ReferenceStore
+from services.references.store import ReferenceStore
 from services.runtime.spare_workers import SpareWorkers
 
 

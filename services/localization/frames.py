@@ -15,7 +15,7 @@ from services.estimators.rig_pose import RIG_METHOD, RigEstimate, RigFrame, esti
 from services.features.base import LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import DecodedImage
+from services.imaging.decode import DecodedImage
 from services.localization.answer import (
     LocalizationResult,
     RetrievedReference,
@@ -30,7 +30,7 @@ from services.localization.stages import (
     match,
     retrieve,
 )
-from services.references import ReferenceStore
+from services.references.store import ReferenceStore
 from services.runtime.spare_workers import SpareWorkers
 
 

@@ -17,7 +17,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
-from services.imaging import DecodedImage, decode_image, decode_image_reduced
+from services.imaging.decode import DecodedImage, decode_image, decode_image_reduced
 from services.localization.answer import LocalizationResult, out_of_time, retrieved_references
 from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.estimate import answer_pose
@@ -39,7 +39,7 @@ from services.localization.stages import (
 )
 from services.localization.turns import search_turns, searched_answer
 from services.matching.base import Matcher
-from services.references import ReferenceData, ReferenceStore
+from services.references.store import ReferenceData, ReferenceStore
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior
 from services.runtime.spare_workers import SpareWorkers

@@ -13,14 +13,14 @@ from services.errors import ImageTooLargeError, InvalidInputError
 from services.estimators.base import ReferenceObservation
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera
-from services.imaging import (
+from services.imaging.decode import (
     DecodedImage,
     decode_depth,
     decode_image_reduced,
     image_size_from_header,
 )
 from services.matching.base import Matcher
-from services.references import ReferenceView
+from services.references.store import ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.search import PositionPrior

@@ -20,7 +20,7 @@ from sqlalchemy import create_engine, update
 from app.metrics import KNOWN_METHODS
 from db.models import Map, ReferenceImage
 from services.geo.gps import gps_from_exif
-from services.imaging import MAX_DEPTH_M, decode_depth
+from services.imaging.decode import MAX_DEPTH_M, decode_depth
 from services.localization.localizer import Localizer
 from tests.conftest import create_map, image_metadata, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png

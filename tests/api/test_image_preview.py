@@ -10,8 +10,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, func, select
 
 from db.models import ReferencePreview
+from services.imaging.preview import make_preview
 from services.localization.localizer import Localizer
-from services.preview import make_preview
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView
 

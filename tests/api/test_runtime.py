@@ -16,7 +16,7 @@ from app.engine_config import service_memory_bound
 from app.usecases.images import delete_image
 from app.usecases.localize import reference_store
 from services.localization.localizer import Localizer
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.runtime.threads import usable_cores
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png

@@ -11,7 +11,7 @@ import pytest
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
-from services.imaging import decode_image_reduced
+from services.imaging.decode import decode_image_reduced
 from services.localization.localizer import LocalizeParams, Localizer
 from services.runtime.spare_workers import SpareWorkers
 from services.types import UInt8Array

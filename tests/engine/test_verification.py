@@ -20,7 +20,7 @@ from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
 from services.localization.localizer import LocalizeParams, Localizer
 from services.matching.nearest_neighbor import NearestNeighborMatcher
-from services.references import ReferenceView
+from services.references.store import ReferenceView
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from tools.synthetic.scene import SyntheticScene, encode_png, unrelated_image

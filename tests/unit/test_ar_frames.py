@@ -18,7 +18,7 @@ from services.geometry.pose_conventions import (
     world_from_cam,
 )
 from services.geometry.rigid import Rigid3d, quaternion_to_matrix
-from services.imaging import decode_image
+from services.imaging.decode import decode_image
 from services.localization.exif_orientation import (
     MIRRORED_ORIENTATIONS,
     ORIENTATION_ROTATION_DEG,

@@ -10,7 +10,7 @@ from PIL import Image
 
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 from services.geometry.camera import Camera, check_plausible, default_camera
-from services.imaging import decode_depth, decode_image, image_size_from_header
+from services.imaging.decode import decode_depth, decode_image, image_size_from_header
 
 
 class TestCamera:

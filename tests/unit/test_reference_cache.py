@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.features.base import LocalFeatures
-from services.reference_cache import CachedFeatures, ReferenceFeatureCache
+from services.references.cache import CachedFeatures, ReferenceFeatureCache
 
 
 def entry(keypoints: int, depth: bool = False) -> CachedFeatures:

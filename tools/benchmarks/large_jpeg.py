@@ -28,7 +28,7 @@ import cv2
 from services.components import EngineConfig, build_localizer
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
-from services.imaging import DecodedImage, decode_image_reduced
+from services.imaging.decode import DecodedImage, decode_image_reduced
 from services.localization import localizer as single_frame
 from services.localization.localizer import LocalizeParams
 from tools.evaluation.server import memory_mb

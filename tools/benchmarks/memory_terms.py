@@ -65,7 +65,7 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         ok, png = cv2.imencode(".png", _image(side))
         assert ok
         data = png.tobytes()
-        from services.imaging import decode_image
+        from services.imaging.decode import decode_image
 
         before = _rss()
         reset_peak()

@@ -14,7 +14,7 @@ from typing import Any
 
 from app.schemas.geometry import CameraSchema
 from services.geometry.camera import CAMERA_MODELS, Camera
-from services.imaging import decode_image
+from services.imaging.decode import decode_image
 from tools.evaluation.confidence_curve import curve_of, curve_summary
 from tools.evaluation.datasets import PosedImage
 from tools.evaluation.metrics import (

@@ -17,7 +17,7 @@ from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOu
 from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
 from services.components import EngineConfig
 from services.estimators.registry import estimator_names
-from services.reference_cache import ReferenceFeatureCache
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.runtime.memory import MemoryBound
 from services.runtime.threads import ThreadPlan

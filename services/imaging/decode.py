@@ -13,7 +13,7 @@ import numpy as np
 from numpy.lib import format as npy_format
 
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
-from services.jpeg_integrity import check_jpeg_complete
+from services.imaging.jpeg_integrity import check_jpeg_complete
 from services.types import Float32Array, UInt8Array
 
 # depth beyond this is read as unknown: no sensor or stereo rig measures it, and its squares

@@ -1,0 +1,1 @@
+"""Images as uploaded: decoding (with the JPEG integrity check) and previews."""
