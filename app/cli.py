@@ -43,21 +43,28 @@ def serve(host: str, port: int, log_level: str) -> int:
     from uvicorn.config import LOG_LEVELS
 
     from app.main import create_app
-    from app.slow_clients import MAX_REQUEST_HEAD_BYTES, HeadTimeoutH11Protocol
+    from app.slow_clients import MAX_REQUEST_HEAD_BYTES, ClientAdmission, IdleConnectionGuard
 
     settings = get_settings()
     configure_logging(settings.log_format, LOG_LEVELS[log_level])
-    uvicorn.run(
+    app = ClientAdmission(
         create_app(settings),
+        max_in_flight=settings.limit_concurrency,
+        max_per_client=settings.max_requests_per_client,
+        body_timeout_s=settings.request_body_timeout_s,
+    )
+    uvicorn.run(
+        app,
         host=host,
         port=port,
         log_level=log_level,
         # uvicorn's records go to the handler above; the app writes the access lines
         log_config=None,
         access_log=False,
-        http=HeadTimeoutH11Protocol,
+        http=IdleConnectionGuard,
         timeout_keep_alive=settings.timeout_keep_alive_s,
-        limit_concurrency=settings.limit_concurrency,
+        # admission is the app's (ClientAdmission): uvicorn's counts idle connections too
+        limit_concurrency=None,
         h11_max_incomplete_event_size=MAX_REQUEST_HEAD_BYTES,
     )
     return 0

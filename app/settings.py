@@ -202,7 +202,22 @@ class Settings(BaseSettings):
     limit_concurrency: int = Field(
         64,
         gt=0,
-        description="`slloc serve`: open connections and tasks at once; more get 503",
+        description="`slloc serve`: requests in flight at once (bodies being received or "
+        "requests being handled), over all clients; more get 503 with Retry-After. /livez, "
+        "/readyz, /v1/health and /metrics are not counted. Idle connections count for nothing",
+    )
+    max_requests_per_client: int = Field(
+        16,
+        gt=0,
+        description="`slloc serve`: requests in flight at once from one client address (the "
+        "peer, or X-Forwarded-For from a trusted proxy); more get 503 with Retry-After",
+    )
+    request_body_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="`slloc serve`: a request body must arrive within this long (s) of its "
+        "head; else 408 and the connection is closed",
     )
 
     cors_origins: str = Field(
