@@ -55,7 +55,24 @@ CONFIG = schemathesis.Config.from_dict(
     {"auth": {"openapi": {"APIKeyHeader": {"api_key": ADMIN_KEY}}}}
 )
 DOCUMENT = create_app(Settings(database_url="sqlite://")).openapi()
-schema = schemathesis.openapi.from_dict(DOCUMENT, config=CONFIG)
+
+
+def _without_binary_format(node: object) -> object:
+    """The document with ``format: binary`` left out of file fields: schemathesis's coverage
+    phase cannot generate it (``Unsupported type: 'Binary'``); ``contentMediaType`` still
+    marks them as bytes."""
+    if isinstance(node, dict):
+        return {
+            k: _without_binary_format(v)
+            for k, v in node.items()
+            if not (k == "format" and v == "binary")
+        }
+    if isinstance(node, list):
+        return [_without_binary_format(v) for v in node]
+    return node
+
+
+schema = schemathesis.openapi.from_dict(_without_binary_format(DOCUMENT), config=CONFIG)
 
 CHECKS = [
     not_a_server_error,
