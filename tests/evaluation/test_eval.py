@@ -62,10 +62,10 @@ def test_in_process_reaches_guaranteed_recall(
 def test_outputs_written(
     synthetic_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, _ = run_eval(synthetic_csv, tmp_path, "--estimators", "pose_approx")
+    code, _ = run_eval(synthetic_csv, tmp_path, "--estimators", "e5p1")
     assert code == 0
     table = capsys.readouterr().out
-    assert "| sift/pose_approx | 4/4 |" in table and "(10 cm, 10°)" in table
+    assert "| sift/e5p1 | 4/4 |" in table and "(10 cm, 10°)" in table
     assert (tmp_path / "report.md").read_text() in table
     for plot in ("errors.png", "timings.png"):
         assert (tmp_path / plot).read_bytes().startswith(b"\x89PNG")
@@ -129,14 +129,14 @@ def test_a_query_that_raises_is_its_failure_and_the_run_goes_on(
         return original(self, *args)
 
     monkeypatch.setattr(InProcessRunner, "localize_each", singular_once)
-    code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "pose_approx")
+    code, results = run_eval(synthetic_csv, tmp_path, "--estimators", "e5p1")
     assert code == 0
     assert results["meta"]["error"] is None
     queries = results["queries"]
     assert len(queries) == NUM_QUERIES
     assert [q["localized"] for q in queries] == [True, False, True, True]
     assert queries[1]["reason"] == "error: LinAlgError"
-    summary = results["summaries"]["sift/pose_approx"]
+    summary = results["summaries"]["sift/e5p1"]
     assert summary["failures"] == {"error: LinAlgError": 1}
 
 
