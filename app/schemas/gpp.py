@@ -6,17 +6,21 @@ whose kind is the type of the sensor of that id in ``sensors`` (camera intrinsic
 the sensor's ``params``); version 2 carries an object of per-kind lists (``cameraReadings``,
 ``geolocationReadings``, …). Only what a visual positioning answer uses is read: the first
 camera reading, the first geolocation reading and the last prior pose; other readings and
-fields (privacy, wifi, accelerometer…) are accepted and ignored."""
+fields (privacy, wifi, accelerometer…) are accepted and ignored. ``GeoPoseReq.to_query`` reads
+either shape into the use case's ``GppQuery``."""
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, TypeVar
 
-from pydantic import AliasChoices, BaseModel, ConfigDict, Field, field_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic.alias_generators import to_camel
 
 from app.schemas.geo import GeoPoseSchema
+from app.usecases.gpp import GppAccuracy, GppIntrinsics, GppQuery, GppReading
+from services.errors import InvalidInputError
+from services.geo.gps import GpsFix
 
 # timestamps: milliseconds since the Unix epoch, or (gpp-access before 0.1) an ISO string
 Timestamp = float | str | None
@@ -34,6 +38,10 @@ class CameraParam(_Lenient):
         None, description="COLMAP model name (UNKNOWN_CAMERA, UNKNOWN or absent: no intrinsics)"
     )
     model_params: list[float] | None = Field(None, description="COLMAP parameter order")
+
+    def to_intrinsics(self) -> GppIntrinsics:
+        params = None if self.model_params is None else tuple(self.model_params)
+        return GppIntrinsics(self.model, params)
 
 
 class ImageOrientation(_Lenient):
@@ -62,6 +70,16 @@ class CameraReading(_Lenient):
     image_bytes: str = Field(description="base64")
     image_orientation: ImageOrientation | None = None
     params: CameraParam | None = None
+
+    def to_reading(self) -> GppReading:
+        orientation = self.image_orientation or ImageOrientation()
+        return GppReading(
+            self.image_bytes,
+            self.image_format,
+            None if self.size is None else (self.size[0], self.size[1]),
+            orientation.mirrored,
+            orientation.rotation,
+        )
 
 
 def _finite_or_none(value: object) -> object:
@@ -124,6 +142,10 @@ class GeoPoseAccuracy(BaseModel):
     position: float = Field(description="metres: the mean of the three axes' 1-σ")
     orientation: float = Field(description="degrees: the mean of the three angles' 1-σ")
 
+    @classmethod
+    def from_accuracy(cls, accuracy: GppAccuracy) -> GeoPoseAccuracy:
+        return cls(position=accuracy.position_m, orientation=accuracy.orientation_deg)
+
 
 class PriorPosition(_Lenient):
     lat: float = Field(ge=-90, le=90, allow_inf_nan=False)
@@ -165,6 +187,81 @@ class GeoPoseReq(_Lenient):
         description="earlier answers: the last one with a geopose narrows retrieval (before "
         "the GPS fix)",
     )
+
+    def to_query(self) -> GppQuery:
+        """The camera reading, position hint and protocol version of either request shape.
+
+        Raises:
+            InvalidInputError: no camera reading, or a version 1 reading that is not one.
+        """
+        sensors = {str(s.id): s for s in self.sensors if s.id is not None}
+        if isinstance(self.sensor_readings, SensorReadings):
+            cameras = self.sensor_readings.camera_readings
+            fixes = self.sensor_readings.geolocation_readings or []
+            version = 2
+        else:
+            cameras, fixes = [], []
+            for i, item in enumerate(self.sensor_readings):
+                sensor = sensors.get(str(item.sensor_id))
+                kind = (sensor.type or "").lower() if sensor is not None else ""
+                data = item.reading or {}
+                if kind == "camera" or (not kind and "imageBytes" in data):
+                    cameras.append(_v1_reading(CameraReading, data, i, item.sensor_id))
+                elif kind == "geolocation" or (not kind and "latitude" in data):
+                    fixes.append(_v1_reading(GeolocationReading, data, i, item.sensor_id))
+            if not cameras:
+                raise InvalidInputError(
+                    "sensorReadings: no camera reading (a sensor of type camera)"
+                )
+            version = 1
+        reading = cameras[0]
+        params = reading.params
+        if params is None and reading.sensor_id is not None:
+            sensor = sensors.get(str(reading.sensor_id))
+            params = sensor.params if sensor is not None else None
+        return GppQuery(
+            reading.to_reading(),
+            None if params is None else params.to_intrinsics(),
+            self._hint(fixes),
+            version,
+        )
+
+    def _hint(self, fixes: list[GeolocationReading]) -> GpsFix | None:
+        """The last prior pose with a position, else the first GPS fix (accuracy 0:
+        unknown)."""
+        for prior in reversed(self.prior_poses or []):
+            if prior.geopose is not None:
+                p = prior.geopose.position
+                accuracy = prior.accuracy.position if prior.accuracy is not None else None
+                return GpsFix(p.lat, p.lon, p.h, accuracy or None)
+        if fixes:
+            fix = fixes[0]
+            return GpsFix(fix.latitude, fix.longitude, fix.altitude, fix.accuracy or None)
+        return None
+
+
+T = TypeVar("T", CameraReading, GeolocationReading)
+
+
+def _v1_reading(
+    model: type[T], data: dict[str, object], index: int, sensor_id: str | int | None
+) -> T:
+    """Version 1's ``reading`` object validated as ``model``, with the reading's sensor id.
+
+    Raises:
+        InvalidInputError: the first of its validation errors, located in the request.
+    """
+    try:
+        reading = model.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise InvalidInputError(
+            f"sensorReadings[{index}].reading.{where}: {first['msg']}"
+        ) from None
+    if reading.sensor_id is None:
+        reading = reading.model_copy(update={"sensor_id": sensor_id})
+    return reading
 
 
 class GeoPoseResp(BaseModel):

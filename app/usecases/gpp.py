@@ -1,5 +1,8 @@
 """The Open AR Cloud GeoPose Protocol's request as a localize request (its image, intrinsics,
-GPS fix and prior pose), the version its answer is given in, and the answer itself."""
+GPS fix and prior pose), the version its answer is given in, and the answer itself.
+
+The route reads the protocol's JSON (``app/schemas/gpp.py``) into a ``GppQuery`` and writes the
+answer from ``GeoPose`` and ``GppAccuracy``: nothing here knows the HTTP schema."""
 
 from __future__ import annotations
 
@@ -8,25 +11,15 @@ import binascii
 import io
 import math
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Literal
 
 import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
-from pydantic import ValidationError
 
-from app.schemas.gpp import (
-    CameraParam,
-    CameraReading,
-    GeolocationReading,
-    GeoPoseAccuracy,
-    GeoPoseReq,
-    SensorReadings,
-)
 from app.usecases.localize import LocalizeRequest
 from services.errors import InvalidInputError
-from services.geo.geopose import GeoPose
-from services.geo.geopose import GeoPoseAccuracy as PoseAccuracy
+from services.geo.geopose import GeoPose, GeoPoseAccuracy
 from services.geo.gps import GpsFix
 from services.geometry.camera import CAMERA_MODELS, Camera, check_plausible
 from services.types import FloatArray
@@ -50,7 +43,27 @@ GL_FROM_FLU = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
 OSCP_MEDIA_TYPE = "application/vnd.oscp+json"
 VERSIONS = ("1.0", "2.0")
 
-T = TypeVar("T", CameraReading, GeolocationReading)
+
+@dataclass(frozen=True)
+class GppReading:
+    """A camera reading: ``image_bytes`` base64 (or a data URL), ``image_format`` as the
+    client labels it, ``size`` (width, height) in pixels when given, and the image's
+    orientation (``rotation_deg`` degrees, ``mirrored``)."""
+
+    image_bytes: str
+    image_format: str | None = None
+    size: tuple[int, int] | None = None
+    mirrored: bool = False
+    rotation_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class GppIntrinsics:
+    """A camera's intrinsics as the protocol gives them: a COLMAP model name (None, ``""``,
+    ``UNKNOWN_CAMERA`` or ``UNKNOWN``: none) and its parameters in COLMAP's order."""
+
+    model: str | None
+    model_params: tuple[float, ...] | None
 
 
 @dataclass(frozen=True)
@@ -58,90 +71,35 @@ class GppQuery:
     """What a GeoPose request asks: its first camera reading (with the intrinsics its sensor
     may carry instead), its position hint and the version of its shape (1 or 2)."""
 
-    reading: CameraReading
-    params: CameraParam | None
+    reading: GppReading
+    params: GppIntrinsics | None
     hint: GpsFix | None
     version: int
 
 
-def read_request(body: GeoPoseReq) -> GppQuery:
-    """The camera reading, position hint and protocol version of either request shape.
+@dataclass(frozen=True)
+class GppAccuracy:
+    """The answer's accuracy as the protocol gives it: ``position_m`` the mean of the three
+    axes' 1-σ (metres), ``orientation_deg`` the mean of the three angles' 1-σ (degrees)."""
 
-    Raises:
-        InvalidInputError: no camera reading, or a version 1 reading that is not one.
-    """
-    sensors = {str(s.id): s for s in body.sensors if s.id is not None}
-    if isinstance(body.sensor_readings, SensorReadings):
-        cameras = body.sensor_readings.camera_readings
-        fixes = body.sensor_readings.geolocation_readings or []
-        version = 2
-    else:
-        cameras, fixes = [], []
-        for i, item in enumerate(body.sensor_readings):
-            sensor = sensors.get(str(item.sensor_id))
-            kind = (sensor.type or "").lower() if sensor is not None else ""
-            data = item.reading or {}
-            if kind == "camera" or (not kind and "imageBytes" in data):
-                cameras.append(_v1_reading(CameraReading, data, i, item.sensor_id))
-            elif kind == "geolocation" or (not kind and "latitude" in data):
-                fixes.append(_v1_reading(GeolocationReading, data, i, item.sensor_id))
-        if not cameras:
-            raise InvalidInputError("sensorReadings: no camera reading (a sensor of type camera)")
-        version = 1
-    reading = cameras[0]
-    params = reading.params
-    if params is None and reading.sensor_id is not None:
-        sensor = sensors.get(str(reading.sensor_id))
-        params = sensor.params if sensor is not None else None
-    return GppQuery(reading, params, _hint(body, fixes), version)
+    position_m: float
+    orientation_deg: float
 
 
-def _v1_reading(
-    model: type[T], data: dict[str, object], index: int, sensor_id: str | int | None
-) -> T:
-    try:
-        reading = model.model_validate(data)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise InvalidInputError(
-            f"sensorReadings[{index}].reading.{where}: {first['msg']}"
-        ) from None
-    if reading.sensor_id is None:
-        reading = reading.model_copy(update={"sensor_id": sensor_id})
-    return reading
-
-
-def _hint(body: GeoPoseReq, fixes: list[GeolocationReading]) -> GpsFix | None:
-    """The last prior pose with a position, else the first GPS fix (accuracy 0: unknown)."""
-    for prior in reversed(body.prior_poses or []):
-        if prior.geopose is not None:
-            p = prior.geopose.position
-            accuracy = prior.accuracy.position if prior.accuracy is not None else None
-            return GpsFix(p.lat, p.lon, p.h, accuracy or None)
-    if fixes:
-        fix = fixes[0]
-        return GpsFix(fix.latitude, fix.longitude, fix.altitude, fix.accuracy or None)
-    return None
-
-
-def check_orientation(reading: CameraReading) -> None:
+def check_orientation(reading: GppReading) -> None:
     """Raises:
     InvalidInputError: a mirrored or rotated image (not served: it would be localized as
         another camera's).
     """
-    orientation = reading.image_orientation
-    if orientation is None:
-        return
-    if orientation.mirrored or orientation.rotation % 360.0 != 0.0:
+    if reading.mirrored or reading.rotation_deg % 360.0 != 0.0:
         raise InvalidInputError(
-            f"cameraReadings[0].imageOrientation (mirrored {orientation.mirrored}, rotation "
-            f"{orientation.rotation:g}) is not supported: send the image upright as the camera "
+            f"cameraReadings[0].imageOrientation (mirrored {reading.mirrored}, rotation "
+            f"{reading.rotation_deg:g}) is not supported: send the image upright as the camera "
             "took it (mirrored false, rotation 0)"
         )
 
 
-def image_bytes(reading: CameraReading, max_pixels: int) -> tuple[bytes, tuple[int, int]]:
+def image_bytes(reading: GppReading, max_pixels: int) -> tuple[bytes, tuple[int, int]]:
     """The reading's image as JPEG/PNG bytes (raw pixels are encoded as PNG), and its width
     and height. JPEG and PNG bytes are recognised by their signature whatever
     ``imageFormat`` says; raw pixels are read only when labelled so with ``size`` and their
@@ -262,9 +220,9 @@ def answer_rotation(pose: GeoPose, axes: CameraAxes) -> FloatArray:
     return enu_from_gl if axes == "opengl" else enu_from_gl @ GL_FROM_FLU
 
 
-def answer_accuracy(accuracy: PoseAccuracy) -> GeoPoseAccuracy:
+def answer_accuracy(accuracy: GeoPoseAccuracy) -> GppAccuracy:
     """The protocol's means over all components: the three axes' 1-σ (horizontal_m is the
     2-D RMS of East and North, each horizontal_m/√2) and the three angles' (the pose's RMS
     rotation angle spread evenly over them: 1/√3 each)."""
     position = (math.sqrt(2.0) * accuracy.horizontal_m + accuracy.vertical_m) / 3.0
-    return GeoPoseAccuracy(position=position, orientation=accuracy.yaw_deg / math.sqrt(3.0))
+    return GppAccuracy(position, accuracy.yaw_deg / math.sqrt(3.0))

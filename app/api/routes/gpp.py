@@ -20,7 +20,7 @@ from app.api.deps import (
 )
 from app.errors import ProblemError, problem_responses
 from app.schemas.geo import GeoPoseSchema
-from app.schemas.gpp import GeoPoseReq, GeoPoseResp
+from app.schemas.gpp import GeoPoseAccuracy, GeoPoseReq, GeoPoseResp
 from app.usecases import geo, gpp
 from app.usecases.localize import localize as localize_image
 from services.geo.geopose import GeoPose
@@ -73,7 +73,7 @@ def geopose(
     first geolocation reading, narrows retrieval to references near it. The map must be
     geo-registered (else 422); an image that cannot be localized is 404 ``not-localized`` with
     the reason, since the protocol's answer has no way to say it."""
-    query = gpp.read_request(body)
+    query = body.to_query()
     negotiated = gpp.answer_version(accept, query.version)
     if negotiated is None:
         raise ProblemError(
@@ -110,7 +110,7 @@ def geopose(
     response = GeoPoseResp(
         id=body.id,
         timestamp=time.time() * 1000.0,
-        accuracy=gpp.answer_accuracy(accuracy),
+        accuracy=GeoPoseAccuracy.from_accuracy(gpp.answer_accuracy(accuracy)),
         geopose=GeoPoseSchema.from_geopose(pose),
     )
     return JSONResponse(response.model_dump(mode="json"), media_type=negotiated[1])
