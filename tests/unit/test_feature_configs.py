@@ -19,6 +19,7 @@ from services.components import (
 from services.errors import UnknownComponentError
 from services.features.configs import (
     AUTO,
+    AUTO_CHOICES,
     FEATURE_CONFIGS,
     PREFERRED_FEATURES,
     PREFERRED_MODELS,
@@ -27,7 +28,10 @@ from services.features.configs import (
     get_feature_config,
 )
 from services.runtime.manifest import ModelEntry
+from tools import cli
 from tools.cli import main
+from tools.export import build
+from tools.export.build import models_for_features
 from tools.feature_table import feature_table
 
 MODELS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "models.md"
@@ -96,6 +100,52 @@ def test_unknown_name_lists_the_known_ones() -> None:
 def test_auto_prefers_the_models_of_the_preferred_preset() -> None:
     assert PREFERRED_MODELS == ("xfeat", "lighterglue-xfeat")
     assert FEATURE_CONFIGS[PREFERRED_FEATURES].models == PREFERRED_MODELS
+
+
+class TestModelsForFeatures:
+    """``slloc models build --features``: presets and sets resolved through the table."""
+
+    def test_presets_give_their_models_in_order_each_once(self) -> None:
+        assert models_for_features(["xfeat-lg", "aliked", "aliked-fast", "xfeat"]) == (
+            "xfeat",
+            "lighterglue-xfeat",
+            "aliked-n16",
+            "lightglue-aliked",
+        )
+
+    def test_sift_needs_none(self) -> None:
+        assert models_for_features(["sift"]) == ()
+
+    def test_auto_is_every_preset_auto_may_pick(self) -> None:
+        assert models_for_features([AUTO]) == models_for_features(AUTO_CHOICES)
+        assert models_for_features([AUTO])[: len(PREFERRED_MODELS)] == PREFERRED_MODELS
+
+    def test_all_is_every_preset(self) -> None:
+        assert set(models_for_features(["all"])) == {
+            m for c in FEATURE_CONFIGS.values() for m in c.models
+        }
+
+    def test_unknown_name_lists_the_known_ones(self) -> None:
+        with pytest.raises(ValueError, match="'superpoint'; known: auto, all, aliked, "):
+            models_for_features(["xfeat-lg", "superpoint"])
+
+    def test_cli_builds_the_models_of_the_presets(
+        self, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+    ) -> None:
+        built: list[tuple[str, ...]] = []
+        monkeypatch.setattr(cli, "_missing_modules", lambda *names: [])
+        monkeypatch.setattr(build, "build_models", lambda _dir, names, force: built.append(names))
+        args = ["models", "build", "--models-dir", str(tmp_path)]
+        assert main([*args, "--features", "disk,xfeat-lg", "--models", "aliked-n32,xfeat"]) == 0
+        assert main(args) == 0
+        assert built == [
+            ("disk", "lightglue-disk", "xfeat", "lighterglue-xfeat", "aliked-n32"),
+            PREFERRED_MODELS,
+        ]
+
+    def test_cli_refuses_an_unknown_preset(self, capsys: pytest.CaptureFixture[str]) -> None:
+        assert main(["models", "build", "--features", "superpoint"]) == 1
+        assert "unknown feature configuration 'superpoint'" in capsys.readouterr().err
 
 
 def test_lightglue_settings_need_lightglue() -> None:

@@ -1,16 +1,61 @@
-"""``slloc models build``: export every requested model, skipping valid existing ones."""
+"""``slloc models build``: export every requested model, skipping valid existing ones.
+
+Scripts and images name what to build by feature configuration (``--features``), never by model
+file: ``models_for_features`` reads the models from the presets table
+(``services/features/configs.py``), so a preset with a new exported extractor or matcher is
+built by the scripts that build every preset (``all``) or auto's choices (``auto``) as it is.
+"""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import partial
 from pathlib import Path
 
-from services.features.configs import PREFERRED_MODELS
+from services.features.configs import (
+    AUTO,
+    AUTO_CHOICES,
+    FEATURE_CONFIGS,
+    PREFERRED_MODELS,
+    feature_config_names,
+)
 from services.runtime.manifest import ModelEntry, read_manifest, verified_path, write_entry
 
 DEFAULT_MODELS = PREFERRED_MODELS  # the models of the feature configuration auto prefers
+ALL_FEATURES = "all"  # in ``--features``: every preset
+# the names ``--features`` takes besides the presets: the presets each stands for
+FEATURE_SETS: dict[str, tuple[str, ...]] = {
+    AUTO: AUTO_CHOICES,  # every preset auto may pick
+    ALL_FEATURES: tuple(FEATURE_CONFIGS),
+}
+
+
+def feature_set_names() -> list[str]:
+    """Every name ``--features`` takes: the sets, then the presets."""
+    return [*FEATURE_SETS, *feature_config_names()]
+
+
+def models_for_features(names: Iterable[str]) -> tuple[str, ...]:
+    """The exported models the feature configurations ``names`` need, in the table's order
+    within each and each once (SIFT's none). ``auto`` stands for every preset auto may pick,
+    ``all`` for every preset.
+
+    Raises:
+        ValueError: a name that is neither a preset nor a set, with the known names.
+    """
+    models: dict[str, None] = {}
+    for name in names:
+        presets = FEATURE_SETS.get(name, (name,))
+        for preset in presets:
+            config = FEATURE_CONFIGS.get(preset)
+            if config is None:
+                raise ValueError(
+                    f"unknown feature configuration {name!r}; known: "
+                    f"{', '.join(feature_set_names())}"
+                )
+            models.update(dict.fromkeys(config.models))
+    return tuple(models)
 
 
 def _exporter(name: str) -> tuple[Callable[[Path], ModelEntry], int]:
