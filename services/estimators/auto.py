@@ -219,12 +219,14 @@ class AutoEstimator:
                 break
             left = deadline.remaining_s()
             budget = replace(options, time_budget_s=None if left == float("inf") else left)
-            results[name] = verify_pose(
-                self.candidates[name].estimate(query_camera, references, budget),
-                query_camera,
-                references,
-                budget,
-            )
+            found = self.candidates[name].estimate(query_camera, references, budget)
+            if found.cam_from_world is not None and deadline.expired():
+                # not verified in time: no answer (100 references: verifying takes ~0.5 s)
+                results[name] = EstimateResult.failure(
+                    FailureReason.TIME_BUDGET_EXCEEDED, references, found.stats
+                )
+                break
+            results[name] = verify_pose(found, query_camera, references, budget)
         attempts = {"auto_attempts": float(len(results))}
         verified = self._verified(results)
         if verified:

@@ -130,7 +130,9 @@ def _jackknife_sigma(
         if not observed.observed[:, left_out].any():
             continue
         views = np.delete(np.arange(num_views), left_out)
-        tri = triangulate_tracks(stacked, observed, options.triangulation.max_error_px, views)
+        tri = triangulate_tracks(
+            stacked, observed, options.triangulation.max_error_px, views, deadline=deadline
+        )
         keep = np.flatnonzero(tri.valid)
         if keep.size < options.focal.min_points:
             continue
@@ -175,13 +177,13 @@ def estimate_focal(
         return unobservable()
     if deadline.expired():
         return out_of_time()
-    tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px)
+    tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px, deadline=deadline)
+    if deadline.expired():
+        return out_of_time()
     valid = np.flatnonzero(tri.valid)
     stats["focal_tracks"] = float(valid.size)
     if valid.size < focal_options.min_points:
         return unobservable()
-    if deadline.expired():
-        return out_of_time()
     xy = stacked.query_xy[tracks.query_match[valid]]
     points3d = tri.points[valid]
     fit = _fit(

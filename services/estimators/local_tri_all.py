@@ -28,9 +28,11 @@ class LocalTriAllEstimator(Estimator):
         stats["tracks_multi_view"] = float(tracks.size)
         if tracks.size < 4:
             request.fail(FailureReason.TOO_FEW_MATCHES)
-        tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px)
-        stats["points_triangulated"] = float(tri.valid.sum())
+        tri = triangulate_tracks(
+            stacked, tracks, options.triangulation.max_error_px, deadline=request.deadline
+        )
         request.fail_if_expired()
+        stats["points_triangulated"] = float(tri.valid.sum())
         if tri.valid.sum() < 4:
             request.fail(
                 FailureReason.DEGENERATE_GEOMETRY

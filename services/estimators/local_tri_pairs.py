@@ -63,7 +63,9 @@ class LocalTriPairsEstimator(Estimator):
             in_pair = tracks.observed[:, a] & tracks.observed[:, b]
             sub = tracks.subset(in_pair)
             views = np.array([a, b], dtype=np.int64)
-            tri = triangulate_tracks(stacked, sub, options.triangulation.max_error_px, views)
+            tri = triangulate_tracks(
+                stacked, sub, options.triangulation.max_error_px, views, deadline=request.deadline
+            )
             tried += 1
             if tri.valid.sum() < MIN_SHARED_TRACKS:
                 continue

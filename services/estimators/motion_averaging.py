@@ -55,7 +55,9 @@ class MotionAveragingEstimator(Estimator):
         sub = sub.subset(random_subset(sub.size, MAX_REFINEMENT_TRACKS, rng))
         stats["refined"] = 0.0
         if sub.size >= MIN_POINTS and not request.deadline.expired():
-            tri = triangulate_tracks(stacked, sub, options.triangulation.max_error_px)
+            tri = triangulate_tracks(
+                stacked, sub, options.triangulation.max_error_px, deadline=request.deadline
+            )
             points = tri.points[tri.valid]
             query_xy = stacked.query_xy[sub.query_match[tri.valid]]
             stats["points_triangulated"] = float(points.shape[0])

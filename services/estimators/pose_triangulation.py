@@ -32,6 +32,7 @@ from services.estimators.depth_relative_pose import (
 from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
+    affordable_refinement,
     estimate_relative_pose,
     ransac_options,
     refine_query_pose,
@@ -273,13 +274,14 @@ def local_optimisation(
         if deadline.expired():
             break
         refine_thr = adaptive_threshold_px(errors, thr)
+        selected = errors < refine_thr
         refined = refine_query_pose(
             references,
-            stacked.split(errors < refine_thr),
+            stacked.split(selected),
             query_camera,
             pose,
             refine_thr / 4.0,
-            refine_iterations,
+            affordable_refinement(refine_iterations, deadline, int(selected.sum())),
         )
         new_errors = pose_sampson_errors_px(stacked, refined.rotation[None], refined.center[None])[
             0

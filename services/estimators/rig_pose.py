@@ -141,12 +141,13 @@ class _FramePoints:
     points: FloatArray
 
 
-def _frame_points(frame: RigFrame, options: EstimatorOptions) -> _FramePoints:
+def _frame_points(frame: RigFrame, options: EstimatorOptions, deadline: Deadline) -> _FramePoints:
+    """The frame's triangulated points; none once ``deadline`` has passed."""
     stacked = stack_matches(frame.camera, frame.references)
     tracks = build_tracks(stacked, options.triangulation.track_merge_px).multi_view()
-    if tracks.size == 0:
+    if tracks.size == 0 or deadline.expired():
         return _FramePoints(stacked, tracks, np.zeros((0, 2)), np.zeros((0, 3)))
-    tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px)
+    tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px, deadline=deadline)
     valid = np.flatnonzero(tri.valid)
     return _FramePoints(
         stacked, tracks, stacked.query_xy[tracks.query_match[valid]], tri.points[valid]
@@ -184,7 +185,7 @@ def estimate_rig_pose(frames: list[RigFrame], options: EstimatorOptions) -> RigE
 def _estimate(
     frames: list[RigFrame], options: EstimatorOptions, deadline: Deadline, stats: dict[str, float]
 ) -> RigEstimate:
-    per_frame = [_frame_points(frame, options) for frame in frames]
+    per_frame = [_frame_points(frame, options, deadline) for frame in frames]
     counts = [int(p.pixels.shape[0]) for p in per_frame]
     stats["tracks_multi_view"] = float(sum(p.tracks.size for p in per_frame))
     stats["points_triangulated"] = float(sum(counts))
@@ -251,6 +252,8 @@ def _estimate(
     inliers: list[list[BoolArray]] = []
     verified = 0
     for i, (frame, points) in enumerate(zip(frames, per_frame, strict=True)):
+        if deadline.expired():  # a pose not verified in time is no answer
+            return _failure(FailureReason.TIME_BUDGET_EXCEEDED, frames, stats)
         pose = frame.cam_from_session.compose(session_from_map)
         if not frame.references or i in dropped:
             inliers.append([np.zeros(ref.num_matches, bool) for ref in frame.references])

@@ -52,7 +52,11 @@ def answer_pose(
     confidence is ``confidence_model``'s (of the estimator ``auto`` chose, for ``auto``) over
     the result's stats, the uncertainty's included, then capped by the uncertainty. Distorted
     cameras are undistorted first (``undistort_matches``); the answer's masks are over the
-    matches as given and its camera is the one given (or estimated)."""
+    matches as given and its camera is the one given (or estimated).
+
+    ``deadline`` is checked between the steps: a pose found or verified after it has passed
+    is a ``time_budget_exceeded`` answer, not verified or scored further (with 100 references
+    of 1000 matches each, verification, uncertainty and rescoring take about a second)."""
     given_camera, given_references = camera, references
     # distorted cameras (any COLMAP model) become pinholes with undistorted keypoints
     undistorted = undistort_matches(camera, references)
@@ -72,16 +76,30 @@ def answer_pose(
             options = replace(
                 options, time_budget_s=max(0.0, left if own is None else min(own, left))
             )
-    verified = verify_pose(
-        estimator.estimate(camera, references, options), camera, references, options
-    )
+    answer_camera = camera if focal_estimated else given_camera
+
+    def spent(result: EstimateResult) -> EstimateResult | None:
+        """The ``time_budget_exceeded`` failure once the deadline has passed on a pose."""
+        if result.cam_from_world is None or not deadline.expired():
+            return None
+        stats = {**result.stats, **focal_stats}
+        return EstimateResult.failure(FailureReason.TIME_BUDGET_EXCEEDED, references, stats)
+
+    estimated = estimator.estimate(camera, references, options)
+    late = spent(estimated)
+    verified = verify_pose(estimated, camera, references, options) if late is None else estimated
+    late = late or spent(verified)
+    if late is not None:
+        return PoseAnswer(undistorted.result_as_given(late), answer_camera, None)
     name = verified.estimator_used or estimator.name
 
     def score(result: EstimateResult) -> EstimateResult:
-        return rescore(result, camera, references, options, name, confidence_model)
+        return spent(result) or rescore(result, camera, references, options, name, confidence_model)
 
     result, uncertainty = with_uncertainty(
         verified, camera, references, options, focal_estimated, score
     )
+    if result.cam_from_world is None:
+        uncertainty = None
     result = undistorted.result_as_given(replace(result, stats={**result.stats, **focal_stats}))
-    return PoseAnswer(result, camera if focal_estimated else given_camera, uncertainty)
+    return PoseAnswer(result, answer_camera, uncertainty)

@@ -144,10 +144,16 @@ def _localize_frames(
     lap("decode")
 
     def extract(run: Sequence[DecodedImage]) -> list[LocalFeatures]:
-        return [localizer.extract_features(image) for image in run]
+        """The run's features; fewer once the budget is spent (checked between frames)."""
+        out = []
+        for image in run:
+            if clock.deadline.expired():
+                break
+            out.append(localizer.extract_features(image))
+        return out
 
     features = spread(extract, images) if spread is not None else extract(images)
-    lap("extract")
+    lap("extract")  # raises when a frame was left unextracted
     index = store.retrieval_index()
     retrieved_rows = [
         retrieve(index, localizer.global_descriptor, image.rgb, query, params.top_k, params.prior)

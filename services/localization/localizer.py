@@ -57,9 +57,10 @@ class LocalizeParams:
     """Attributes:
     estimator: the estimator (``services.estimators.registry.get_estimator`` resolves a name).
     time_budget_s: wall-clock budget of the whole localization in seconds (None =
-        unbounded). It is checked after each stage (decode, extract, retrieve) and before
-        the match of each reference, and it bounds the estimator's own budget; once spent,
-        the result is ``time_budget_exceeded``.
+        unbounded). It is checked after each stage (decode, extract, retrieve), before the
+        match of each reference, between the turns searched and inside the estimate's long
+        loops (focal estimation, the estimators' own, verification); once spent, the result
+        is ``time_budget_exceeded``.
     frame: what an AR client says about its frame (camera rotation, gravity, rotation search).
     min_confidence: a pose with a lower confidence is no answer: ``localized`` False, reason
         ``low_confidence``, the pose as ``candidate``.

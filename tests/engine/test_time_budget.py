@@ -1,0 +1,158 @@
+"""One time budget for the whole localization, held on every path: the stages, the turn search,
+the focal estimation, every estimator family (their RANSAC, triangulation and refinement loops)
+and the joint estimate of several frames. Each path is run at ``BUDGET_S`` on work that would
+take seconds unbounded (100 references; 1000 matches each for the estimators, where
+``local_tri_all`` alone took 21 s), and must answer ``time_budget_exceeded`` within
+``BUDGET_S + SLACK_S``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from services.confidence.model import default_confidence_model
+from services.estimators.base import FailureReason
+from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
+from services.estimators.registry import estimator_names, get_estimator
+from services.estimators.rig_pose import RigFrame, estimate_rig_pose
+from services.localization.estimate import answer_pose
+from services.localization.frames import QueryFrame, localize_frames
+from services.localization.localizer import LocalizeParams, Localizer
+from tools.fixtures.memory_store import MemoryReferenceStore
+from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
+from tools.synthetic.scene import SyntheticView, encode_png
+
+BUDGET_S = 0.3
+# the longest step between two checks of the deadline on 100 references (one Sampson-error
+# evaluation or refinement over 100k matches: ~0.2 s) on a loaded two-core machine
+SLACK_S = 0.5
+EXCEEDED = FailureReason.TIME_BUDGET_EXCEEDED
+# answers without correspondence work: they may finish in time
+INSTANT = {"pose_approx"}
+
+
+@pytest.fixture(scope="module")
+def large() -> SyntheticCorrespondences:
+    """100 references of 1000 matches (30 % outliers) with depth."""
+    return make_correspondences(
+        seed=5, num_references=100, matches_per_reference=1000, with_depth=True
+    )
+
+
+def _timed_answer(
+    name: str, scene: SyntheticCorrespondences, focal_estimated: bool
+) -> tuple[float, FailureReason | None, bool]:
+    options = EstimatorOptions(time_budget_s=BUDGET_S)
+    start = time.perf_counter()
+    answer = answer_pose(
+        get_estimator(name),
+        scene.query_camera,
+        focal_estimated,
+        scene.references,
+        options,
+        Deadline(BUDGET_S),
+        default_confidence_model(),
+    )
+    elapsed = time.perf_counter() - start
+    result = answer.result
+    return elapsed, result.failure_reason, result.cam_from_world is not None
+
+
+@pytest.mark.parametrize("name", estimator_names())
+def test_every_estimator_keeps_the_budget(name: str, large: SyntheticCorrespondences) -> None:
+    elapsed, reason, localized = _timed_answer(name, large, focal_estimated=False)
+    assert elapsed < BUDGET_S + SLACK_S, (name, elapsed)
+    if name in INSTANT:
+        assert localized or reason is EXCEEDED
+    else:
+        assert reason is EXCEEDED and not localized, (name, reason)
+
+
+def test_focal_estimation_keeps_the_budget(large: SyntheticCorrespondences) -> None:
+    """A query without a camera: the focal length is estimated first (100 references: one
+    triangulation over 4950 view pairs, then a refit per reference)."""
+    elapsed, reason, _ = _timed_answer("e5p1", large, focal_estimated=True)
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+    assert reason is EXCEEDED
+
+
+def test_joint_estimate_of_frames_keeps_the_budget(large: SyntheticCorrespondences) -> None:
+    frames = [
+        RigFrame(large.query_camera, large.query_pose, large.references),
+        RigFrame(large.query_camera, large.query_pose, large.references[::-1]),
+    ]
+    start = time.perf_counter()
+    found = estimate_rig_pose(frames, EstimatorOptions(time_budget_s=BUDGET_S))
+    elapsed = time.perf_counter() - start
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+    assert found.failure_reason is EXCEEDED and found.session_from_map is None
+
+
+# the localizer's stages on rendered images: 24 described views under four names each
+COPIES = 4
+TOP_K = 50
+
+
+@pytest.fixture(scope="module")
+def big_store(localizer: Localizer, reference_views: list[SyntheticView]) -> MemoryReferenceStore:
+    store = MemoryReferenceStore()
+    for view in reference_views:
+        data = localizer.describe_reference(encode_png(view.image), view.camera)
+        for copy in range(COPIES):
+            store.add(f"{view.name}-{copy}", view.camera, view.cam_from_world, data)
+    return store
+
+
+def _timed_localize(
+    localizer: Localizer, store: MemoryReferenceStore, image: bytes, params: LocalizeParams
+) -> tuple[float, str | None, bool]:
+    start = time.perf_counter()
+    result = localizer.localize(image, params, store)
+    return time.perf_counter() - start, result.reason, result.localized
+
+
+@pytest.mark.parametrize("with_camera", [True, False], ids=["camera", "no-camera"])
+def test_single_frame_keeps_the_budget(
+    with_camera: bool,
+    localizer: Localizer,
+    big_store: MemoryReferenceStore,
+    query_views: list[SyntheticView],
+) -> None:
+    view = query_views[0]
+    params = LocalizeParams(
+        camera=view.camera if with_camera else None, top_k=TOP_K, time_budget_s=BUDGET_S
+    )
+    elapsed, reason, localized = _timed_localize(
+        localizer, big_store, encode_png(view.image), params
+    )
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+    assert reason == EXCEEDED.value and not localized
+
+
+def test_turn_search_keeps_the_budget(
+    localizer: Localizer, big_store: MemoryReferenceStore, query_views: list[SyntheticView]
+) -> None:
+    """A sideways upload without gravity: the other quarter turns are searched."""
+    turned = np.ascontiguousarray(np.rot90(query_views[1].image))
+    params = LocalizeParams(camera=None, top_k=TOP_K, time_budget_s=BUDGET_S)
+    elapsed, reason, localized = _timed_localize(localizer, big_store, encode_png(turned), params)
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+    assert reason == EXCEEDED.value and not localized
+
+
+def test_several_frames_keep_the_budget(
+    localizer: Localizer, big_store: MemoryReferenceStore, query_views: list[SyntheticView]
+) -> None:
+    frames = [
+        QueryFrame(encode_png(view.image), view.camera, view.cam_from_world)
+        for view in query_views[:3]
+    ]
+    params = LocalizeParams(top_k=TOP_K, time_budget_s=BUDGET_S)
+    start = time.perf_counter()
+    answer = localize_frames(localizer, frames, params, big_store)
+    elapsed = time.perf_counter() - start
+    assert elapsed < BUDGET_S + SLACK_S, elapsed
+    assert answer.result.reason == EXCEEDED.value and answer.map_from_session is None
