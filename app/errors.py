@@ -30,6 +30,34 @@ PROBLEM_BASE = "https://slloc.dev/problems/"
 DATABASE_RETRY_AFTER_S = 5
 
 
+# SQLite's extended result codes of a write the file system refused: a read-only file or
+# folder (an open file made immutable or on a file system remounted read-only fails its
+# write() as an I/O error), a full disk
+_SQLITE_NOT_WRITABLE = frozenset(
+    {
+        "SQLITE_FULL",
+        "SQLITE_IOERR_WRITE",
+        "SQLITE_IOERR_FSYNC",
+        "SQLITE_IOERR_DIR_FSYNC",
+        "SQLITE_IOERR_TRUNCATE",
+        "SQLITE_IOERR_DELETE",
+    }
+)
+# PostgreSQL's SQLSTATEs of the same: read_only_sql_transaction (a hot standby, or
+# default_transaction_read_only), disk_full
+_POSTGRES_NOT_WRITABLE = frozenset({"25006", "53100"})
+
+
+def database_not_writable(exc: BaseException) -> bool:
+    """Whether a database error is a write the database or its storage refused, while it
+    may still serve reads."""
+    orig = getattr(exc, "orig", None)
+    name = str(getattr(orig, "sqlite_errorname", ""))
+    if name.startswith("SQLITE_READONLY") or name in _SQLITE_NOT_WRITABLE:
+        return True
+    return getattr(orig, "sqlstate", None) in _POSTGRES_NOT_WRITABLE
+
+
 class Problem(BaseModel):
     """RFC 9457 problem details. ``type`` is a stable URI naming the kind of problem."""
 
@@ -235,7 +263,24 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
 
     async def _database_down(request: Request, exc: Exception) -> JSONResponse:
         """The database is unreachable (connection refused or lost, pool exhausted, a
-        read-only or locked file): 503 to retry, not a 500."""
+        locked file) or refuses writes (a read-only file, folder or server, a full disk):
+        503 to retry, not a 500."""
+        if database_not_writable(exc):
+            logger.warning(
+                "database not writable on %s %r: %s",
+                request.method,
+                request.url.path,
+                str(getattr(exc, "orig", None) or exc).splitlines()[0][:200],
+            )
+            return problem_response(
+                request,
+                503,
+                "database-not-writable",
+                "Database not writable",
+                "the database refuses writes (read-only file or folder, read-only server or "
+                f"full disk); reads are still served; retry after {DATABASE_RETRY_AFTER_S} s",
+                {"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+            )
         if (
             isinstance(exc, DBAPIError)
             and not isinstance(exc, OperationalError)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import time
 from pathlib import Path
@@ -33,6 +34,21 @@ def make_engine(url: str) -> Engine:
 
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+
+
+def sqlite_not_writable(engine: Engine) -> Path | None:
+    """Of a SQLite database's file, its WAL files and its folder, the first this process may
+    not write (read-only permissions, an immutable file, a file system mounted read-only),
+    else None; None for other databases. The kernel refuses such writes on files already
+    open too where the file is immutable or the file system read-only."""
+    url = engine.url
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        return None
+    path = Path(url.database)
+    for candidate in (path, Path(f"{path}-wal"), Path(f"{path}-shm"), path.parent):
+        if candidate.exists() and not os.access(candidate, os.W_OK):
+            return candidate
+    return None
 
 
 def make_session_factory(engine: Engine) -> sessionmaker[Session]:

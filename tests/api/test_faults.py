@@ -15,14 +15,21 @@ import pytest
 from fastapi.testclient import TestClient
 from numpy.lib import format as npy_format
 from prometheus_client.parser import text_string_to_metric_families
-from sqlalchemy import create_engine, update
+from sqlalchemy import create_engine, text, update
+from sqlalchemy.engine import make_url
 
 from app.metrics import KNOWN_METHODS
 from db.models import Map, ReferenceImage
 from services.geo.gps import gps_from_exif
 from services.imaging.decode import MAX_DEPTH_M, decode_depth
 from services.localization.localizer import Localizer
-from tests.conftest import create_map, image_metadata, make_client, upload_view
+from tests.conftest import (
+    create_map,
+    fresh_postgres_database,
+    image_metadata,
+    make_client,
+    upload_view,
+)
 from tools.synthetic.scene import SyntheticView, encode_png
 
 PROBLEM = "application/problem+json"
@@ -302,3 +309,46 @@ def test_camera_params_must_be_numbers(
     params[0] = bad
     metadata["camera"] = {**metadata["camera"], "params": params}  # type: ignore[dict-item]
     _assert_problem(_post_image(client, map_id, encode_png(view.image), metadata), 422)
+
+
+@pytest.mark.postgres
+def test_read_only_postgres_refuses_writes_with_503_and_serves_reads(
+    postgres_admin_url: str, localizer: Localizer
+) -> None:
+    """A database turned read-only (as a hot standby is): writes are 503
+    database-not-writable with Retry-After, reads are served, and writes work again once it
+    is writable, without a restart."""
+    database = next(fresh := fresh_postgres_database(postgres_admin_url))
+    name = make_url(database).database
+    admin = create_engine(postgres_admin_url, isolation_level="AUTOCOMMIT")
+
+    def read_only(on: bool) -> None:
+        with admin.connect() as conn:
+            conn.execute(text(f'ALTER DATABASE "{name}" SET default_transaction_read_only = {on}'))
+            # the pool's connections end: new ones read the setting (pre-ping reconnects)
+            conn.execute(
+                text(
+                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                    "WHERE datname = :name AND pid <> pg_backend_pid()"
+                ),
+                {"name": name},
+            )
+
+    try:
+        with make_client(database, localizer, raise_server_exceptions=False) as c:
+            map_id = create_map(c)
+            read_only(True)
+            for response in (
+                c.post("/v1/maps", json={"name": "refused"}),
+                c.delete(f"/v1/maps/{map_id}"),
+            ):
+                problem = _assert_problem(response, 503, "database-not-writable")
+                assert response.headers["retry-after"] == "5"  # type: ignore[attr-defined]
+                assert "reads are still served" in problem["detail"]
+            listed = c.get("/v1/maps")
+            assert listed.status_code == 200 and listed.json()["total"] == 1
+            read_only(False)
+            assert c.post("/v1/maps", json={"name": "accepted"}).status_code == 201
+    finally:
+        admin.dispose()
+        fresh.close()

@@ -15,6 +15,7 @@ from starlette.datastructures import State
 from app.api.deps import LocalizerDep, SessionsDep
 from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOut
 from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
+from db.session import sqlite_not_writable
 from services.components import EngineConfig
 from services.estimators.registry import estimator_names
 from services.references.cache import ReferenceFeatureCache
@@ -49,7 +50,9 @@ async def livez() -> Response:
 @probes.api_route("/readyz", methods=["GET", "HEAD"])
 async def readyz(request: Request) -> Response:
     """Readiness: the database answers within READY_DATABASE_TIMEOUT_S, the models are
-    loaded and the service is not draining; else 503 naming what is not ready."""
+    loaded and the service is not draining; else 503 naming what is not ready. A SQLite
+    database whose file or folder is read-only is ready (reads are served) and named
+    degraded."""
     state = request.app.state
     problems = []
     if getattr(state, "draining", False):
@@ -71,6 +74,14 @@ async def readyz(request: Request) -> Response:
             status_code=503,
             media_type="text/plain",
             headers={"Retry-After": "5"},
+        )
+    # reads are still served: ready, and says so
+    engine = getattr(state, "engine", None)
+    if engine is not None and sqlite_not_writable(engine) is not None:
+        return Response(
+            "ok; degraded: database: not writable (its file or folder is read-only); writes "
+            "answer 503\n",
+            media_type="text/plain",
         )
     return Response("ok\n", media_type="text/plain")
 
