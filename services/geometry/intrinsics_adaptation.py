@@ -181,6 +181,11 @@ def uniform_scale(
     return sx, sy
 
 
+def _turned_size(camera: Camera, turn: int) -> tuple[int, int]:
+    """(width, height) of ``camera``'s image turned by ``turn`` degrees."""
+    return (camera.height, camera.width) if turn % 180 else (camera.width, camera.height)
+
+
 def adapt_camera(
     camera: Camera,
     upload_size: tuple[int, int],
@@ -224,9 +229,27 @@ def adapt_camera(
     accepted = f"{w}×{h}" if rotation_deg in (None, 0, 180) else f"{h}×{w}"
     if rotation_deg is None:
         accepted += f" or {h}×{w}"
+    fitting = [
+        turn
+        for turn in (0, 90)
+        if uniform_scale(_turned_size(camera, turn), upload_size) is not None
+    ]
+    if rotation_deg is not None and fitting:
+        # the sizes fit: the stated turn is what disagrees
+        tw, th = _turned_size(camera, rotation_deg)
+        fits = "unturned (or half turned)" if fitting[0] == 0 else "a quarter turned"
+        problem = (
+            f"camera is {camera.width}×{camera.height} and the image {w}×{h} (as decoded"
+            f"{exif}): they fit {fits}, but camera_rotation_deg = {rotation_deg}° turns the "
+            f"camera's image to {tw}×{th}"
+        )
+    else:
+        problem = (
+            f"camera is {camera.width}×{camera.height} but the image is {w}×{h} (as decoded"
+            f"{exif}), a size the camera fits neither as it is nor turned a quarter"
+        )
     raise InvalidInputError(
-        f"camera is {camera.width}×{camera.height} but the image is {w}×{h} (as decoded{exif}); "
-        f"the camera must describe the image the upload was made from, {turn_text}and "
+        f"{problem}; the camera must describe the image the upload was made from, {turn_text}and "
         f"resized uniformly (within {SIZE_TOLERANCE_PX:g} px): a camera of {accepted} "
         f"or a multiple of it (e.g. ×2, ×3) is accepted"
     )

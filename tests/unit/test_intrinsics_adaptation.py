@@ -159,3 +159,21 @@ class TestAdaptCamera:
     ) -> None:
         with pytest.raises(InvalidInputError, match=r"camera is 1920×1440 .* is accepted"):
             adapt_camera(self.sensor, upload, rotation_deg=rotation)
+
+    def test_a_stated_turn_the_sizes_contradict_is_named(self) -> None:
+        """The message names what is wrong: not the sizes (640×480 fits 1920×1440 unturned)
+        but the stated quarter turn (it once read "camera is 640×480 but the image is
+        640×480")."""
+        with pytest.raises(InvalidInputError) as raised:
+            adapt_camera(self.sensor, (640, 480), rotation_deg=90)
+        message = str(raised.value)
+        assert "they fit unturned" in message
+        assert "camera_rotation_deg = 90° turns the camera's image to 1440×1920" in message
+        assert "but the image is" not in message
+
+    def test_sizes_that_fit_no_turn_are_named(self) -> None:
+        with pytest.raises(InvalidInputError) as raised:
+            adapt_camera(self.sensor, (640, 400))
+        assert "the image is 640×400 (as decoded), a size the camera fits neither" in str(
+            raised.value
+        )
