@@ -103,8 +103,11 @@ class JsonFormatter(logging.Formatter):
 
 def configure_logging(log_format: LogFormat, level: int = logging.INFO) -> None:
     """Send every record of ``level`` and above to stderr as ``log_format``, with its request
-    id; like ``logging.basicConfig``, nothing changes when the root logger has a handler."""
+    id; like ``logging.basicConfig``, nothing changes when the root logger has a handler.
+    Python warnings (numpy's RuntimeWarnings among them) become records of the
+    ``py.warnings`` logger, so they come out in the same format instead of as raw stderr."""
     install_request_id_records()
+    logging.captureWarnings(True)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if log_format == "json" else TextFormatter())
     logging.basicConfig(level=level, handlers=[handler])

@@ -174,3 +174,25 @@ def test_text_lines_indent_a_traceback() -> None:
     assert lines[0].endswith("ERROR t: failed\\r\\x1b[2J")
     assert all(line.startswith("    ") for line in lines[1:])
     assert any("ERROR forged" in line for line in lines[1:])
+
+
+def test_numpy_warnings_come_out_as_json_lines() -> None:
+    """A RuntimeWarning from numpy goes through logging (``py.warnings``), so the JSON log
+    format holds for it too instead of a raw two-line stderr message."""
+    import subprocess
+
+    script = (
+        "import numpy as np\n"
+        "from app.logs import configure_logging\n"
+        "configure_logging('json')\n"
+        "np.log(np.zeros(1))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True
+    )
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert lines, done.stderr
+    documents = [json.loads(line) for line in lines]
+    assert any(
+        d["logger"] == "py.warnings" and "divide by zero" in d["message"] for d in documents
+    ), documents
