@@ -76,14 +76,18 @@ def engine_config(
 
 
 def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) -> MemoryInputs:
-    """What the memory bound depends on: the engine's model files, the thread plan's workers
-    and the settings' limits."""
+    """What the memory bound depends on: the engine's model files and extractor, the keypoints
+    its LightGlue sees, the thread plan's workers and the settings' limits."""
+    config = engine.feature_config
+    lightglue_keypoints = (
+        0 if config.lightglue is None else config.lightglue_keypoints or settings.max_keypoints
+    )
     return MemoryInputs(
         model_file_bytes=engine.model_file_bytes(),
+        extractor=config.extractor,
+        lightglue_keypoints=lightglue_keypoints,
         workers=plan.workers,
-        queued=settings.max_queued,
-        connections=settings.limit_concurrency,
-        max_upload_bytes=settings.max_upload_bytes,
+        body_memory_mib=settings.body_memory_mib,
         max_image_pixels=settings.max_image_pixels,
         max_side=settings.max_side,
         max_keypoints=settings.max_keypoints,

@@ -1,23 +1,65 @@
-"""Refuses request bodies over the upload limit before they are read."""
+"""Refuses request bodies over the upload limit before they are read, and admits bodies only
+within the memory the server budgets for them (``SLLOC_BODY_MEMORY_MIB``)."""
 
 from __future__ import annotations
 
 import json
+import threading
 
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.errors import PROBLEM_BASE, PROBLEM_JSON
 from app.request_context import current_request_id
+from services.runtime.memory import JSON_BODY_FACTOR
+
+# seconds a client is asked to wait when the body memory is taken by other requests
+BODY_MEMORY_RETRY_AFTER_S = 1
+
+
+class BodyMemory:
+    """The bytes that request bodies being received or handled may hold at once."""
+
+    def __init__(self, budget_bytes: int) -> None:
+        self.budget_bytes = budget_bytes
+        self.held_bytes = 0
+        self._lock = threading.Lock()
+
+    def reserve(self, nbytes: int) -> bool:
+        with self._lock:
+            if self.held_bytes + nbytes > self.budget_bytes:
+                return False
+            self.held_bytes += nbytes
+            return True
+
+    def release(self, nbytes: int) -> None:
+        with self._lock:
+            self.held_bytes -= nbytes
+
+
+def body_cost(headers: dict[bytes, bytes], max_bytes: int) -> int:
+    """The memory a request's body may take: its declared length (a chunked body: the body
+    limit), times ``JSON_BODY_FACTOR`` for a JSON body, parsed whole; 0 without a body."""
+    length = headers.get(b"content-length")
+    if length is not None and length.isdigit():
+        size = int(length)
+    elif b"chunked" in headers.get(b"transfer-encoding", b"").lower():
+        size = max_bytes
+    else:
+        return 0
+    json_body = b"json" in headers.get(b"content-type", b"").lower()
+    return int(size * JSON_BODY_FACTOR) if json_body else size
 
 
 class BodySizeLimit:
     """ASGI middleware: 413 problem+json when Content-Length exceeds ``max_bytes``, and the
-    same when a chunked body grows past it."""
+    same when a chunked body grows past it; 503 with Retry-After when the body's cost
+    (``body_cost``) does not fit in ``memory`` beside the bodies already admitted."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, memory: BodyMemory) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.memory = memory
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -28,6 +70,16 @@ class BodySizeLimit:
         if length is not None and length.isdigit() and int(length) > self.max_bytes:
             await self._reject(scope, send)
             return
+        cost = body_cost(headers, self.max_bytes)
+        if not self.memory.reserve(cost):
+            await self._busy(scope, send)
+            return
+        try:
+            await self._limited(scope, receive, send)
+        finally:
+            self.memory.release(cost)
+
+    async def _limited(self, scope: Scope, receive: Receive, send: Send) -> None:
         received = 0
 
         async def limited_receive() -> Message:
@@ -47,28 +99,61 @@ class BodySizeLimit:
             await self._reject(scope, send)
 
     async def _reject(self, scope: Scope, send: Send) -> None:
-        body = json.dumps(
-            {
-                "type": PROBLEM_BASE + "payload-too-large",
-                "title": "Payload too large",
-                "status": 413,
-                "detail": _detail(self.max_bytes),
-                "instance": scope.get("path", ""),
-                "request_id": current_request_id(),
-            }
-        ).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [
-                    (b"content-type", PROBLEM_JSON.encode()),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close"),
-                ],
-            }
+        await _send_problem(
+            scope,
+            send,
+            413,
+            "payload-too-large",
+            "Payload too large",
+            _detail(self.max_bytes),
+            [(b"connection", b"close")],
         )
-        await send({"type": "http.response.body", "body": body})
+
+    async def _busy(self, scope: Scope, send: Send) -> None:
+        detail = (
+            f"the server is receiving other request bodies up to its body memory "
+            f"({self.memory.budget_bytes} bytes); retry after {BODY_MEMORY_RETRY_AFTER_S} s"
+        )
+        retry = [
+            (b"retry-after", str(BODY_MEMORY_RETRY_AFTER_S).encode()),
+            (b"connection", b"close"),
+        ]
+        await _send_problem(scope, send, 503, "body-memory-full", "Service busy", detail, retry)
+
+
+async def _send_problem(
+    scope: Scope,
+    send: Send,
+    status: int,
+    kind: str,
+    title: str,
+    detail: str,
+    headers: list[tuple[bytes, bytes]],
+) -> None:
+    """Answers a problem+json before the request's body was read (the connection then
+    closes, since the body is left unread)."""
+    body = json.dumps(
+        {
+            "type": PROBLEM_BASE + kind,
+            "title": title,
+            "status": status,
+            "detail": detail,
+            "instance": scope.get("path", ""),
+            "request_id": current_request_id(),
+        }
+    ).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", PROBLEM_JSON.encode()),
+                (b"content-length", str(len(body)).encode()),
+                *headers,
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
 
 
 class BodyTooLargeError(HTTPException):

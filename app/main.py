@@ -19,7 +19,7 @@ from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
 from app.engine_config import engine_config, service_memory_bound, thread_plan
 from app.errors import install_error_handlers
-from app.limits import BodySizeLimit
+from app.limits import BodyMemory, BodySizeLimit
 from app.logs import install_request_id_records
 from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
@@ -108,7 +108,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         lifespan=lifespan,
     )
     # Two uploads (image, depth) plus form fields may share one request.
-    app.add_middleware(BodySizeLimit, max_bytes=2 * settings.max_upload_bytes + 1024 * 1024)
+    memory = BodyMemory(settings.body_memory_mib * 2**20)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes, memory=memory)
     # outside the body limit: a missing or unknown key is answered before anything reads the
     # body
     routers = [m.router for m in (maps, images, geo, localize, gpp, health)]

@@ -6,7 +6,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, SecretStr, field_validator
+from pydantic import BaseModel, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from services.features.configs import (
@@ -15,6 +15,7 @@ from services.features.configs import (
     FALLBACK_FEATURES,
     feature_config_names,
 )
+from services.runtime.memory import JSON_BODY_FACTOR
 
 Role = Literal["admin", "client"]
 LogFormat = Literal["text", "json"]
@@ -105,11 +106,20 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(
         25 * 1024 * 1024, gt=0, description="Per-file upload limit in bytes; 413 above it"
     )
-    max_image_pixels: int = Field(
-        40_000_000,
+    body_memory_mib: int = Field(
+        256,
         gt=0,
-        description="Decoded image size limit in pixels, checked from the header before "
-        "decoding; 413 above it",
+        description="Memory that request bodies (and the uploads read from them) may hold at "
+        "once, MiB: a body's declared length (1.7× for JSON, parsed whole) is reserved before "
+        "it is read; a body that does not fit beside the others gets 503 with Retry-After. At "
+        "least one largest body: 1.7 × (2 × SLLOC_MAX_UPLOAD_BYTES + 1 MiB)",
+    )
+    max_image_pixels: int = Field(
+        24_000_000,
+        gt=0,
+        description="Decoded image size limit in pixels (6000×4000), checked from the header "
+        "before decoding; 413 above it. Each worker may decode one image this large and a "
+        "depth map of as many pixels at once: 12 bytes a pixel, 275 MiB at the default",
     )
     max_top_k: int = Field(
         50, gt=0, description="Largest top_k a localize request may ask for (422 above)"
@@ -227,6 +237,21 @@ class Settings(BaseSettings):
         "set); * = any origin; empty = CORS off (a browser's cross-origin preflight is "
         "refused)",
     )
+
+    @property
+    def max_body_bytes(self) -> int:
+        """The largest request body: two uploads (image, depth) and 1 MiB of form fields."""
+        return 2 * self.max_upload_bytes + 1024 * 1024
+
+    @model_validator(mode="after")
+    def _check_body_memory(self) -> Settings:
+        largest = JSON_BODY_FACTOR * self.max_body_bytes / 2**20
+        if self.body_memory_mib < largest:
+            raise ValueError(
+                f"body_memory_mib {self.body_memory_mib} is below the largest body's cost, "
+                f"{largest:.0f} MiB (1.7 × (2 × max_upload_bytes + 1 MiB))"
+            )
+        return self
 
     @field_validator("api_keys")
     @classmethod

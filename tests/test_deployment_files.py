@@ -18,6 +18,8 @@ import kubernetes_validate
 import pytest
 import yaml
 
+from app.engine_config import engine_config, service_memory_bound, thread_plan
+from app.settings import Settings
 from services.features.configs import AUTO_CHOICES, FEATURE_CONFIGS
 from tools.export.build import feature_set_names, models_for_features
 
@@ -108,6 +110,35 @@ def compose_validator() -> jsonschema.Draft201909Validator:
     if not COMPOSE_SCHEMA.is_file():
         pytest.fail("the compose-spec schema is not installed: run scripts/build_web.sh (npm)")
     return jsonschema.Draft201909Validator(json.loads(COMPOSE_SCHEMA.read_text()))
+
+
+def _mib(quantity: str) -> float:
+    units = {"Mi": 1.0, "Gi": 1024.0}
+    return float(quantity[:-2]) * units[quantity[-2:]]
+
+
+def test_pod_memory_matches_the_bound_of_the_settings_it_ships() -> None:
+    """The API pod's memory limit holds the server's memory bound for the environment the
+    manifest sets (the image serves auto's first choice), with at most 1 GiB left for the
+    retrieval indexes, which grow with the references; the request is the bound."""
+    [api] = [
+        d
+        for d in k8s_documents()
+        if d["kind"] == "Deployment" and d["metadata"]["name"] == "slloc-api"
+    ]
+    container = api["spec"]["template"]["spec"]["containers"][0]
+    env = {item["name"]: item["value"] for item in container["env"]}
+    settings = Settings(
+        _env_file=None,  # type: ignore[call-arg]
+        database_url="sqlite://",
+        features=AUTO_CHOICES[0],
+        **{name.removeprefix("SLLOC_").lower(): value for name, value in env.items()},
+    )
+    plan = thread_plan(settings)
+    bound = service_memory_bound(settings, engine_config(settings, plan=plan), plan).fixed_mib
+    resources = container["resources"]
+    assert bound <= _mib(resources["requests"]["memory"]) <= bound + 256
+    assert bound <= _mib(resources["limits"]["memory"]) <= bound + 1024
 
 
 def test_compose_file_is_valid_against_the_compose_spec() -> None:

@@ -11,18 +11,16 @@ The bound is the sum of:
 - ``reference_cache``: the decoded reference features kept between requests
   (``SLLOC_REFERENCE_CACHE_MIB``);
 - ``extraction``: per localize worker, one feature extraction of a square image at the
-  largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``): the feature network's
-  activations grow with the pixels it sees;
+  largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``) by the served extractor: the
+  feature network's activations grow with the pixels it sees, at a rate of its own;
 - ``decode``: per worker, one decoded image at the pixel limit (``SLLOC_MAX_IMAGE_PIXELS``;
   RGB uint8) and a depth upload of as many pixels (16-bit PNG decoded to float32);
 - ``matching``: per worker, the retrieved references' features (``SLLOC_MAX_TOP_K`` ×
-  ``SLLOC_MAX_KEYPOINTS``) and the matcher's buffers;
-- ``uploads``: per admitted request (workers + ``SLLOC_MAX_QUEUED``), its image and depth
-  uploads read into memory (``SLLOC_MAX_UPLOAD_BYTES`` each);
-- ``bodies``: per open connection (``SLLOC_LIMIT_CONCURRENCY``), a request body being
-  received (at most the body limit: two uploads and 1 MiB of form fields); multipart parts
-  over 1 MiB are spooled to temporary files, so this is the worst case of many small parts
-  or a JSON body;
+  ``SLLOC_MAX_KEYPOINTS`` of the served descriptor's size) and the matcher's buffers, which
+  grow with the keypoint pairs LightGlue sees;
+- ``bodies``: request bodies and the uploads read from them, which the server admits only
+  within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
+  is read and frees it when the answer is sent);
 - ``retrieval_index``: the retrieval indexes of the maps localized against, which grow with
   the references stored (a descriptor per reference) and have no setting: the service shows
   their present size.
@@ -48,36 +46,43 @@ RUNTIME_MIB = 260.0
 # resident MiB per MiB of ONNX files: aliked-n16 + lightglue-aliked, 48 MiB of files → 137 MiB
 # resident after building their sessions (memory_terms, 2026-11-24)
 MODEL_RESIDENT_PER_FILE_MIB = 2.9
-# peak MiB one aliked-n16 extraction adds per megapixel it sees: 1027 MiB at 640², 3092 at
-# 1024², 11612 at 2048² (2507, 2949, 2769 MiB/Mpx; memory_terms, 2026-11-24): the largest
-EXTRACTION_MIB_PER_MEGAPIXEL = 2950.0
+# peak MiB one extraction adds per megapixel it sees (memory_terms, 2026-11-24 and -26):
+# aliked-n16 1027 / 3092 / 11612 MiB at 640² / 1024² / 2048² (2507–2949 MiB/Mpx), disk
+# 655 / 2153 / 11002 (1600–2623), xfeat 52 / 123 / 493 (117–127), sift 88 / 232 / 940
+# (215–224); each the largest of its sizes. An extractor not listed counts as the largest.
+EXTRACTION_MIB_PER_MEGAPIXEL = {"aliked-n16": 2950.0, "disk": 2650.0, "xfeat": 130.0, "sift": 230.0}
 # decoded bytes per pixel: RGB uint8 (3) + a depth upload of as many pixels, its 16-bit PNG
 # (2) and float32 (4) at once; a 40 Mpx PNG decode peaked at +230 MiB = 6.0 B/px for the RGB
 # alone (the decoder's row buffers on top of the 3 B/px result; memory_terms, 2026-11-24)
 DECODE_BYTES_PER_PIXEL = 6.0 + 2.0 + 4.0
-# a reference's features per keypoint: (x, y) float32, a 128-float32 descriptor, a score;
+# a reference's features per keypoint: (x, y) float32, a descriptor of float32, a score;
 # held twice while decoding from the database (stored row, float32 array)
-FEATURE_BYTES_PER_KEYPOINT = 2 * (8 + 128 * 4 + 4)
-# the matcher's buffers matching one query against 10 references: 44–46 MiB at 512, 1024 and
-# 2048 keypoints (nearest neighbours pair by pair, LightGlue on 512 keypoints; memory_terms,
-# 2026-11-24)
-MATCHER_MIB = 50.0
-# form fields a request may carry besides its uploads (app.main's body limit)
-FORM_FIELDS_BYTES = 1 * MIB
+FEATURE_BYTES_PER_KEYPOINT = 8 + 4
+DESCRIPTOR_DIMS = {"xfeat": 64}  # the others' descriptors: 128 floats
+# the matcher matching one query against 10 references: nearest neighbours pair by pair
+# (sift 0 / 4 / 16 MiB at 512 / 1024 / 2048 keypoints) and LightGlue on the pairs it runs on,
+# which grows with the keypoints it sees squared (disk, every keypoint: 45 / 121 / 384 MiB;
+# aliked and xfeat at their 512: 44–46 and 16–32 MiB; memory_terms, 2026-11-24 and -26)
+MATCHER_MIB = 30.0
+LIGHTGLUE_MIB_PER_MILLION_PAIRS = 90.0
+# a JSON body's peak while parsed, per byte: 81 MiB for a 49 MiB GeoPose request (its text,
+# the parsed string, the decoded image); a multipart body costs its size (parts past 1 MiB
+# are spooled to files and read back once)
+JSON_BODY_FACTOR = 1.7
 
 
 @dataclass(frozen=True)
 class MemoryInputs:
     """The settings the bound depends on. ``model_file_bytes``: the sizes of the ONNX files
-    the feature configuration loads; ``workers``: localize workers (the thread plan);
-    ``queued``: admission queue (``SLLOC_MAX_QUEUED``); ``connections``: open connections at
-    once (``SLLOC_LIMIT_CONCURRENCY``)."""
+    the feature configuration loads; ``extractor``: its extractor's name; ``lightglue_keypoints``:
+    the keypoints LightGlue sees of each image (0: no LightGlue); ``workers``: localize workers
+    (the thread plan); ``body_memory_mib``: ``SLLOC_BODY_MEMORY_MIB``."""
 
     model_file_bytes: int
+    extractor: str
+    lightglue_keypoints: int
     workers: int
-    queued: int
-    connections: int
-    max_upload_bytes: int
+    body_memory_mib: int
     max_image_pixels: int
     max_side: int
     max_keypoints: int
@@ -115,16 +120,18 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
     """The bound's terms in MiB from ``inputs`` (the module docstring says what each holds)."""
     i = inputs
     megapixels = i.max_side * i.max_side / 1e6
-    body_bytes = 2 * i.max_upload_bytes + FORM_FIELDS_BYTES
+    extraction = EXTRACTION_MIB_PER_MEGAPIXEL.get(
+        i.extractor, max(EXTRACTION_MIB_PER_MEGAPIXEL.values())
+    )
+    feature_bytes = FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(i.extractor, 128)
+    matcher = MATCHER_MIB + LIGHTGLUE_MIB_PER_MILLION_PAIRS * i.lightglue_keypoints**2 / 1e6
     terms = {
         "runtime": RUNTIME_MIB,
         "models": MODEL_RESIDENT_PER_FILE_MIB * i.model_file_bytes / MIB,
         "reference_cache": float(i.reference_cache_mib),
-        "extraction": i.workers * EXTRACTION_MIB_PER_MEGAPIXEL * megapixels,
+        "extraction": i.workers * extraction * megapixels,
         "decode": i.workers * DECODE_BYTES_PER_PIXEL * i.max_image_pixels / MIB,
-        "matching": i.workers
-        * (MATCHER_MIB + i.max_top_k * i.max_keypoints * FEATURE_BYTES_PER_KEYPOINT / MIB),
-        "uploads": (i.workers + i.queued) * 2 * i.max_upload_bytes / MIB,
-        "bodies": i.connections * body_bytes / MIB,
+        "matching": i.workers * (matcher + i.max_top_k * i.max_keypoints * 2 * feature_bytes / MIB),
+        "bodies": float(i.body_memory_mib),
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})

@@ -15,6 +15,7 @@ from services.runtime.memory import (
     DECODE_BYTES_PER_PIXEL,
     EXTRACTION_MIB_PER_MEGAPIXEL,
     FEATURE_BYTES_PER_KEYPOINT,
+    LIGHTGLUE_MIB_PER_MILLION_PAIRS,
     MATCHER_MIB,
     MIB,
     MODEL_RESIDENT_PER_FILE_MIB,
@@ -33,14 +34,13 @@ def _settings(**values: object) -> Settings:
         "features": "sift",
         "cpu_cores": 2,
         "localize_workers": 2,
-        "max_queued": 8,
         "max_upload_bytes": 25 * MIB,
+        "body_memory_mib": 256,
         "max_image_pixels": 40_000_000,
         "max_side": 1024,
         "max_keypoints": 4096,
         "max_top_k": 50,
         "reference_cache_mib": 256,
-        "limit_concurrency": 64,
     }
     return Settings(**{**base, **values})  # type: ignore[arg-type]
 
@@ -58,20 +58,44 @@ def test_terms_follow_the_settings_arithmetic() -> None:
     settings = _settings()
     bound = _bound(settings)
     workers = 2
+    sift_feature_bytes = 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 128)  # 1048: xy, 128 floats, score
     expected = {
         "runtime": RUNTIME_MIB,
         "models": 0.0,  # sift loads no model
         "reference_cache": 256.0,
-        "extraction": workers * EXTRACTION_MIB_PER_MEGAPIXEL * 1024 * 1024 / 1e6,
+        "extraction": workers * EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 1024 * 1024 / 1e6,
         "decode": workers * DECODE_BYTES_PER_PIXEL * 40_000_000 / MIB,
-        "matching": workers * (MATCHER_MIB + 50 * 4096 * FEATURE_BYTES_PER_KEYPOINT / MIB),
-        "uploads": (workers + 8) * 2 * 25.0,
-        "bodies": 64 * (2 * 25.0 + 1),
+        "matching": workers * (MATCHER_MIB + 50 * 4096 * sift_feature_bytes / MIB),
+        "bodies": 256.0,
     }
     assert bound.terms == pytest.approx(expected, abs=0.06)
     assert bound.fixed_mib == pytest.approx(sum(expected.values()), abs=0.5)
-    # the extraction at the default 1024 px cap: about 3 GiB a worker (measured 3092 MiB)
-    assert 3000 < bound.terms["extraction"] / workers < 3200
+    # sift's extraction at the default 1024 px cap: about 240 MiB a worker (measured 232 MiB)
+    assert 220 < bound.terms["extraction"] / workers < 260
+
+
+@pytest.mark.parametrize(
+    ("features", "low", "high"),
+    [("aliked", 3000, 3200), ("xfeat-lg", 120, 150), ("disk", 2700, 2900)],
+)
+def test_extraction_is_the_served_extractors(features: str, low: float, high: float) -> None:
+    """Each extractor's own rate (measured at 1024²: aliked 3092, xfeat 123, disk 2153 MiB,
+    the largest rate of its sizes counted)."""
+    bound = _bound(_settings(features=features, localize_workers=1))
+    assert low < bound.terms["extraction"] < high
+
+
+def test_matching_grows_with_the_keypoints_lightglue_sees() -> None:
+    """disk's LightGlue sees every keypoint a map may ask for, xfeat-lg's its best 512 and
+    64-float descriptors."""
+    disk = _bound(_settings(features="disk", localize_workers=1)).terms["matching"]
+    xfeat = _bound(_settings(features="xfeat-lg", localize_workers=1)).terms["matching"]
+    lightglue_disk = LIGHTGLUE_MIB_PER_MILLION_PAIRS * 4096**2 / 1e6
+    features_128 = 50 * 4096 * 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 128) / MIB
+    assert disk == pytest.approx(MATCHER_MIB + lightglue_disk + features_128, abs=0.06)
+    features_64 = 50 * 4096 * 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 64) / MIB
+    lightglue_xfeat = LIGHTGLUE_MIB_PER_MILLION_PAIRS * 512**2 / 1e6
+    assert xfeat == pytest.approx(MATCHER_MIB + lightglue_xfeat + features_64, abs=0.06)
 
 
 @pytest.mark.parametrize(
@@ -82,10 +106,7 @@ def test_terms_follow_the_settings_arithmetic() -> None:
         ({"max_image_pixels": 10_000_000}, "decode"),
         ({"max_top_k": 10}, "matching"),
         ({"max_keypoints": 1024}, "matching"),
-        ({"max_queued": 0}, "uploads"),
-        ({"max_upload_bytes": 5 * MIB}, "uploads"),
-        ({"max_upload_bytes": 5 * MIB}, "bodies"),
-        ({"limit_concurrency": 16}, "bodies"),
+        ({"body_memory_mib": 512}, "bodies"),
         ({"reference_cache_mib": 0}, "reference_cache"),
     ],
 )
@@ -102,7 +123,7 @@ def test_workers_come_from_the_thread_plan() -> None:
     one = _bound(settings)
     two = _bound(settings, plan_threads(2))
     assert two.terms["extraction"] == pytest.approx(2 * one.terms["extraction"], abs=0.1)
-    assert two.terms["uploads"] - one.terms["uploads"] == pytest.approx(50.0)
+    assert two.terms["decode"] == pytest.approx(2 * one.terms["decode"], abs=0.2)
 
 
 def test_models_term_is_the_configurations_files() -> None:
@@ -119,6 +140,12 @@ def test_models_term_is_the_configurations_files() -> None:
     # two workers: the extractor has a second session, on both workers' threads
     extractor = (MODELS / entries[config.extractor].file).stat().st_size
     assert _model_file_bytes(_settings(features="aliked")) == size + extractor
+
+
+def test_body_memory_holds_at_least_the_largest_body() -> None:
+    with pytest.raises(ValueError, match="body_memory_mib 64 is below"):
+        _settings(body_memory_mib=64)  # 1.7 × 51 MiB = 87 MiB
+    assert _settings(body_memory_mib=64, max_upload_bytes=10 * MIB).body_memory_mib == 64
 
 
 def test_retrieval_index_adds_to_the_total() -> None:

@@ -90,9 +90,10 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         from services.features.base import LocalFeatures
 
         rng = np.random.default_rng(1)
+        dim = extractor.extract(_image(128)).descriptors.shape[1]
 
         def random_features() -> LocalFeatures:
-            descriptors = rng.standard_normal((value, 128)).astype(np.float32)
+            descriptors = rng.standard_normal((value, dim)).astype(np.float32)
             descriptors /= np.linalg.norm(descriptors, axis=1, keepdims=True)
             keypoints = rng.uniform(0, 2048, (value, 2)).astype(np.float32)
             return LocalFeatures(keypoints, descriptors, np.ones(value, np.float32), (2048, 2048))
