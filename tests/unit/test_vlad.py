@@ -30,6 +30,17 @@ class TestKmeans:
         expected = truth[np.lexsort((truth[:, 1], truth[:, 0]))]
         np.testing.assert_allclose(centers[order], expected, atol=0.05)
 
+    def test_as_many_points_as_centres_gives_the_points(self) -> None:
+        points = np.random.default_rng(2).standard_normal((5, 4)).astype(np.float32)
+        centers = kmeans(points, 5, np.random.default_rng(0))
+        np.testing.assert_array_equal(centers[np.lexsort(centers.T)], points[np.lexsort(points.T)])
+
+    def test_same_generator_state_same_centres(self) -> None:
+        points = np.random.default_rng(3).standard_normal((500, 8)).astype(np.float32)
+        a = kmeans(points, 6, np.random.default_rng(5))
+        np.testing.assert_array_equal(a, kmeans(points, 6, np.random.default_rng(5)))
+        assert not np.array_equal(a, kmeans(points, 6, np.random.default_rng(6)))
+
     def test_too_few_points(self) -> None:
         with pytest.raises(ValueError, match="at least k=4"):
             kmeans(np.zeros((3, 2), np.float32), 4, np.random.default_rng(0))
