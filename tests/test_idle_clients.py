@@ -17,6 +17,7 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
+from tests.polling import wait_until
 from tools.evaluation.server import LocalServer
 
 IDLE = 64
@@ -138,20 +139,23 @@ def _probe_all(server: LocalServer, label: str) -> None:
 def test_idle_connections_and_slow_bodies_do_not_starve_the_probes(server: LocalServer) -> None:
     idle = IdleClients(server.port, IDLE)
     slow = SlowBodies(server.port, SLOW)
+    refused = SLOW - PER_CLIENT
     try:
-        time.sleep(2.5)  # every slow body is under way, the idle ones held
-        _probe_all(server, "held")
-        # one address holds at most PER_CLIENT requests: the rest were refused at once
+        # One address holds at most PER_CLIENT requests: the rest are refused at once. Once
+        # every refusal is in, the server has read all the slow heads (accepted after the
+        # idle connections, which connected first): PER_CLIENT bodies under way, the idle
+        # connections held.
+        assert wait_until(lambda: len(slow.statuses()) >= refused, 30), slow.statuses()
         statuses = slow.statuses()
         print(f"slow bodies answered so far: {sorted(statuses)}")
-        assert statuses.count(503) == SLOW - PER_CLIENT
-        time.sleep(3.5)  # past the keep-alive timeout: the idle connections were closed ...
-        assert idle.reopened >= IDLE, idle.reopened
-        _probe_all(server, "reopened")  # ... and reopened; still answered
-        time.sleep(BODY_TIMEOUT_S - 4.5)
-        deadline = time.monotonic() + 5
-        while len(slow.statuses()) < SLOW and time.monotonic() < deadline:
-            time.sleep(0.2)
+        assert statuses == [503] * refused
+        _probe_all(server, "held")
+        # the probes ran while the admitted bodies were still under way
+        assert len(slow.statuses()) == refused, slow.statuses()
+        # past the keep-alive timeout the idle connections were closed, and reopened ...
+        assert wait_until(lambda: idle.reopened >= IDLE, 30), idle.reopened
+        _probe_all(server, "reopened")  # ... and the probes are still answered
+        assert wait_until(lambda: len(slow.statuses()) == SLOW, BODY_TIMEOUT_S + 30)
         statuses = slow.statuses()
         print(f"slow bodies answered: {sorted(set(statuses))}, {statuses.count(408)} × 408")
         assert statuses.count(408) == PER_CLIENT  # past the body timeout

@@ -5,7 +5,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
-import time
 
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
@@ -31,13 +30,16 @@ def test_upgrade_head_matches_models(database_url: str) -> None:
     assert diff == []
 
 
-# upgrades ``argv[1]`` once the clock passes ``argv[2]``, so two processes start together
-_UPGRADE_AT = """
-import sys, time
+# upgrades ``argv[1]`` once told to: says "ready" when imported and connected, then waits for a
+# line on stdin, so the test releases every process at once
+_UPGRADE_ON_GO = """
+import sys
 from db.migrate import upgrade
 from db.session import make_engine
 engine = make_engine(sys.argv[1])
-time.sleep(max(0.0, float(sys.argv[2]) - time.time()))
+engine.connect().close()
+print("ready", flush=True)
+sys.stdin.readline()
 upgrade(engine)
 """
 
@@ -45,23 +47,34 @@ upgrade(engine)
 def test_concurrent_upgrades_of_a_fresh_database(database_url: str) -> None:
     """Two processes (two imports, two server workers) and two threads upgrade one fresh
     database at once: every one succeeds and the schema is at head once."""
-    start = time.time() + 3.0
     processes = [
         subprocess.Popen(
-            [sys.executable, "-c", _UPGRADE_AT, database_url, str(start)],
+            [sys.executable, "-c", _UPGRADE_ON_GO, database_url],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
         for _ in range(2)
     ]
+    for process in processes:  # both imported and connected: neither is still starting
+        assert process.stdin is not None and process.stdout is not None
+        line = process.stdout.readline()
+        assert line == "ready\n", line + process.communicate(timeout=120)[1]
+    for process in processes:  # released together
+        assert process.stdin is not None
+        process.stdin.write("go\n")
+        process.stdin.flush()
     for process in processes:
         _, err = process.communicate(timeout=120)
         assert process.returncode == 0, err
     engine = make_engine(database_url)
     errors: list[BaseException] = []
+    together = threading.Barrier(2, timeout=60)
 
     def again() -> None:
         try:
+            together.wait()
             upgrade(engine)
         except BaseException as exc:  # the assertion below names it
             errors.append(exc)

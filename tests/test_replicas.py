@@ -5,12 +5,12 @@ by the other, and vocabulary training runs once across both (a PostgreSQL adviso
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import create_engine, select
 
 from db.locks import try_exclusive
@@ -18,6 +18,7 @@ from db.models import MapVocabulary, ReferenceImage
 from services.features.configs import SIFT
 from services.retrieval.policy import MIN_IMAGES
 from tests.conftest import create_map, fresh_postgres_database, upload_view
+from tests.polling import wait_until
 from tools.evaluation.server import LocalServer
 from tools.synthetic.scene import SyntheticView, encode_png
 
@@ -54,13 +55,15 @@ def localize(url: str, map_id: str, view: SyntheticView) -> list[str]:
     return [r["image_id"] for r in response.json()["retrieved"]]
 
 
-def wait_for(condition: Callable[[], bool], timeout_s: float = 60.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.2)
-    return condition()
+def vocabulary_jobs(url: str) -> float:
+    """Vocabulary trainings queued or running in the server at ``url`` (its ``/metrics``)."""
+    response = httpx.get(f"{url}/metrics", timeout=30)
+    assert response.status_code == 200, response.text
+    for family in text_string_to_metric_families(response.text):
+        for sample in family.samples:
+            if sample.name == "slloc_background_jobs" and sample.labels["kind"] == "vocabulary":
+                return sample.value
+    raise AssertionError(f"{url}/metrics has no vocabulary jobs gauge")
 
 
 def test_two_replicas_share_one_database(
@@ -85,6 +88,12 @@ def test_two_replicas_share_one_database(
                 select(ReferenceImage.feature_model).where(ReferenceImage.id == ids[0])
             )
 
+        def trainers_idle() -> bool:
+            """No training queued or running on either replica. An add or a localize
+            schedules the training it finds due before it answers, and a job leaves the
+            gauge only once it has ended (trained and published, or given way)."""
+            return vocabulary_jobs(a.url) == vocabulary_jobs(b.url) == 0
+
         def vocabulary_version() -> int | None:
             with engine.connect() as conn:
                 return conn.scalar(
@@ -104,7 +113,8 @@ def test_two_replicas_share_one_database(
                 ids.append(response.json()["id"])  # type: ignore[attr-defined]
             for server in (a, b):  # each saw the map due and tried
                 assert sorted(localize(server.url, map_id, query_views[0])) == sorted(ids)
-                assert wait_for(lambda s=server: "training runs elsewhere" in s.log_text())
+                assert wait_until(lambda s=server: "training runs elsewhere" in s.log_text())
+            assert wait_until(trainers_idle, 120)  # every training scheduled so far gave way
             assert vocabulary_version() is None
 
         # Released: an add on each replica at once finds the vocabulary due on both (a
@@ -118,9 +128,9 @@ def test_two_replicas_share_one_database(
                 ],
             )
             ids += [response.json()["id"] for response in both]  # type: ignore[attr-defined]
-        assert wait_for(lambda: vocabulary_version() == 1), a.log_text() + b.log_text()
-        time.sleep(3)  # a second trainer, were there one, would publish v2 by now
-        assert vocabulary_version() == 1
+        # Both trainings have ended: a second one, were there one, has published v2 by now.
+        assert wait_until(trainers_idle, 120)
+        assert vocabulary_version() == 1, a.log_text() + b.log_text()
         assert a.log_text().count(TRAINED) + b.log_text().count(TRAINED) == 1
 
         # An add acknowledged by A is retrieved by B's next localize (B's index is warm).

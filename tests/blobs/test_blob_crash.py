@@ -13,7 +13,6 @@ import os
 import random
 import signal
 import threading
-import time
 import uuid
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from db.session import make_engine, make_session_factory
 from services.features.configs import SIFT
 from tests.blobs.s3_server import SeaweedS3, s3_server  # noqa: F401
 from tests.conftest import image_metadata
+from tests.polling import wait_until
 from tools.evaluation.server import LocalServer
 from tools.synthetic.scene import SyntheticView, encode_png
 
@@ -113,9 +113,23 @@ def test_kill_9_during_adds_and_deletes(
                 )
                 for _ in range(WORKERS)
             ]
+            with lock:
+                before = dict(counts)
             for thread in threads:
                 thread.start()
-            time.sleep(rng.uniform(2.0, 4.0))
+            # killed while the clients are at work: once this cycle has seen adds and deletes
+            # answered (a random number of adds, so the kill lands at another point of the
+            # stream each time), the other clients' requests are in flight
+            adds = rng.randint(2, 5)
+
+            def at_work(adds: int = adds, before: dict[str, int] = before) -> bool:
+                with lock:
+                    return (
+                        counts["adds"] - before["adds"] >= adds
+                        and counts["deletes"] > before["deletes"]
+                    )
+
+            assert wait_until(at_work, 300), counts
             os.kill(server.pid, signal.SIGKILL)
             server.process.wait(timeout=30)
             stop.set()
@@ -139,10 +153,8 @@ def test_kill_9_during_adds_and_deletes(
         blobs.put(key, b"an add killed before its commit")
     # the next start sweeps (grace 0 here: no add is running)
     with LocalServer(env | {"SLLOC_BLOB_SWEEP_GRACE_S": "0"}, log_level="info") as server:
-        deadline = time.monotonic() + 60
-        while "blob sweep:" not in server.log_text() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert "blob sweep:" in server.log_text(), server.log_text()[-3000:]
+        swept = wait_until(lambda: "blob sweep:" in server.log_text(), 60)
+        assert swept, server.log_text()[-3000:]
     report = reconcile(sessions, blobs, 0.0, remove=False)
     print(
         f"{kind}: {counts['adds']} adds, {counts['deletes']} deletes in {CYCLES} kills; "

@@ -4,8 +4,8 @@ back after, the results in order (issue #13)."""
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,6 +13,7 @@ import pytest
 from services.features.base import LocalFeatures
 from services.features.keypoint_onnx import OnnxKeypointExtractor, ResizeOptions
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.runtime import spare_workers
 from services.runtime.spare_workers import SpareWorkers
 
 
@@ -114,22 +115,52 @@ def test_slots_come_back_when_the_work_raises(
     assert _free(slots) == 3
 
 
-def test_slots_come_back_only_after_every_run_ended(
-    slots: threading.BoundedSemaphore, spare: SpareWorkers
-) -> None:
+class _WatchedSlots(threading.BoundedSemaphore):
+    """Worker slots that record, each time one is given back, which borrowed runs had ended,
+    and set ``given_back``."""
+
+    def __init__(self, value: int, ended: list[int], given_back: threading.Event) -> None:
+        super().__init__(value)
+        self._ended = ended
+        self._given_back = given_back
+        self.ended_at_release: list[list[int]] = []
+
+    def release(self, n: int = 1) -> None:
+        self.ended_at_release.append(sorted(self._ended))
+        self._given_back.set()
+        super().release(n)
+
+
+def test_slots_come_back_only_after_every_run_ended(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The borrowed runs end only once the split has gone past the caller's failure, to
+    # waiting for them or to giving their slots back (the bug), whichever it does first.
+    moved_on = threading.Event()
     ended: list[int] = []
+    slots = _WatchedSlots(3, ended, given_back=moved_on)
+    spare = SpareWorkers(slots, most=2)
+    real_wait = spare_workers.wait
+
+    def wait_for_runs(*args: Any, **kwargs: Any) -> Any:
+        moved_on.set()
+        return real_wait(*args, **kwargs)
+
+    monkeypatch.setattr(spare_workers, "wait", wait_for_runs)
 
     def caller_run_fails_fast(items: Sequence[int]) -> list[int]:
         if items[0] == 0:
             raise RuntimeError("boom")
-        time.sleep(0.2)
+        assert moved_on.wait(10)
         ended.append(items[0])
         return list(items)
 
-    with pytest.raises(RuntimeError, match="boom"):
-        spare.split(caller_run_fails_fast, list(range(9)))
-    assert sorted(ended) == [3, 6]  # the borrowed runs finished before the slots went back
-    assert _free(slots) == 3
+    try:
+        with pytest.raises(RuntimeError, match="boom"):
+            spare.split(caller_run_fails_fast, list(range(9)))
+        # both borrowed runs had ended when their slots went back
+        assert slots.ended_at_release == [[3, 6], [3, 6]]
+        assert _free(slots) == 3
+    finally:
+        spare.shutdown()
 
 
 def test_a_single_item_borrows_nothing(
