@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import io
 import math
-import warnings
+import struct
 from dataclasses import dataclass
 
-from PIL import ExifTags, Image, UnidentifiedImageError
+from PIL import ExifTags
 
 from services.errors import InvalidInputError
 from services.geo.geodesy import HEIGHT_RANGE_M, Geodetic
+from services.imaging.exif import header_exif
 
 # EXIF GPS tags (EXIF 2.32, GPS IFD)
 _LAT_REF, _LAT, _LON_REF, _LON, _ALT_REF, _ALT = 1, 2, 3, 4, 5, 6
@@ -55,16 +55,11 @@ class GpsFix:
 def gps_from_exif(image_bytes: bytes) -> GpsFix | None:
     """The GPS position in the image's EXIF (JPEG, PNG eXIf), or None when it has none or an
     unreadable one. EXIF altitude is above sea level; it is taken as the height unchanged (the
-    geoid's offset from the ellipsoid is constant over a map and a registration absorbs it)."""
+    geoid's offset from the ellipsoid is constant over a map and a registration absorbs it).
+    Only the header is read (``header_exif``): the pixel limit is the caller's to enforce."""
     try:
-        # only the header and metadata are read: Pillow's decompression-bomb guard (which
-        # raises for a header claiming over 2 × Image.MAX_IMAGE_PIXELS) is not needed here;
-        # the pixel limit is the caller's to enforce, answered 413
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(io.BytesIO(image_bytes)) as image:
-                gps = image.getexif().get_ifd(ExifTags.IFD.GPSInfo)
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError, SyntaxError):
+        gps = header_exif(image_bytes).get_ifd(ExifTags.IFD.GPSInfo)
+    except (OSError, SyntaxError, ValueError, EOFError, struct.error):
         return None
     try:
         latitude = _degrees(gps[_LAT], gps.get(_LAT_REF, "N"), "S")
