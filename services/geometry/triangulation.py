@@ -28,6 +28,14 @@ def triangulate_dlt(
         weights: (T, V) weight of each observation; 0 drops it (a track needs two views > 0).
     Returns:
         (T, 3) world points (NaN-free; meaningless where fewer than two views have weight).
+
+    Kept rather than pycolmap's ``triangulate_point`` / ``triangulate_multi_view_point``,
+    which take one point per call: the same points to 1e-13 on exact data, and over 2000
+    points (one thread, median of 5) this took 4.5 ms for two views where a loop of
+    ``triangulate_point`` took 9.1 ms (2.0×), 5.3 ms for five views against 9.0 ms (1.7×),
+    and 4.2 ms for five views with a 0/1 weight per observation (the inlier refinement)
+    against 16.2 ms for the loop picking each point's views (3.9×). Real-valued weights and
+    per-track projections have no pycolmap counterpart.
     """
     P = np.broadcast_to(projections, (*normalized.shape[:2], 3, 4))
     rows_x = normalized[..., 0:1] * P[..., 2, :] - P[..., 0, :]  # (T, V, 4)
