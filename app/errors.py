@@ -20,6 +20,7 @@ from starlette.types import Scope
 from app.request_context import REQUEST_ID_HEADER, current_request_id
 from app.usecases.errors import ConflictError, NotFoundError
 from app.usecases.served_features import FeaturesUnavailableError
+from db.blobs import BlobStoreError
 from services.errors import ImageDecodeError, ImageTooLargeError, InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -28,6 +29,8 @@ PROBLEM_JSON = "application/problem+json"
 PROBLEM_BASE = "https://slloc.dev/problems/"
 # seconds a client is asked to wait after a 503 for an unreachable database
 DATABASE_RETRY_AFTER_S = 5
+# … and for a blob store that cannot be reached or refuses writes
+BLOB_STORE_RETRY_AFTER_S = 5
 
 
 # SQLite's extended result codes of a write the file system refused: a read-only file or
@@ -155,8 +158,8 @@ def _describe(status: int) -> str:
         "this server lacks (type feature-models-missing)",
         413: "Upload or image too large",
         422: "Invalid input",
-        503: "Busy (too many requests in progress or waiting) or the database unreachable: "
-        "retry after Retry-After seconds",
+        503: "Busy (too many requests in progress or waiting), the database unreachable, or "
+        "the blob store unreachable or refusing writes: retry after Retry-After seconds",
     }.get(status, "Problem")
 
 
@@ -304,6 +307,37 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
 
     for database_error in (OperationalError, DBAPIError, PoolTimeoutError):
         app.add_exception_handler(database_error, _database_down)
+
+    @app.exception_handler(BlobStoreError)
+    async def _blob_store_down(request: Request, exc: BlobStoreError) -> JSONResponse:
+        """The blob store of the originals cannot be reached (an S3 endpoint down or
+        answering with an error) or refuses a write (a read-only or full folder): 503 to
+        retry, not a 500. An add that fails so stored nothing (its blobs come before its
+        row)."""
+        logger.warning(
+            "blob store unavailable on %s %r: %s",
+            request.method,
+            request.url.path,
+            str(exc).splitlines()[0][:300],
+        )
+        if request.method in ("GET", "HEAD"):
+            what = (
+                "cannot be reached or refuses the read (S3 endpoint down or refusing, an I/O error)"
+            )
+        else:
+            what = (
+                "cannot be reached or refuses writes (read-only or full folder, S3 endpoint "
+                "down or refusing); nothing was stored"
+            )
+        return problem_response(
+            request,
+            503,
+            "blob-store-unavailable",
+            "Blob store unavailable",
+            f"the blob store that keeps the originals of reference images {what}; retry "
+            f"after {BLOB_STORE_RETRY_AFTER_S} s",
+            {"Retry-After": str(BLOB_STORE_RETRY_AFTER_S)},
+        )
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

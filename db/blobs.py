@@ -15,6 +15,7 @@ it after the row's deletion commits.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import time
@@ -39,7 +40,8 @@ class BlobNotFoundError(KeyError):
 
 
 class BlobStoreError(RuntimeError):
-    """The store could not be opened or answered with an error."""
+    """The store could not be opened, could not be reached, or refused a read or a write (a
+    read-only or full folder, an S3 endpoint down or answering with an error)."""
 
 
 @dataclass(frozen=True)
@@ -52,8 +54,8 @@ class BlobInfo:
 
 
 class BlobStore(Protocol):
-    """Where the blobs are kept. Every method may raise :class:`BlobStoreError` (or the
-    backend's own I/O error) when the store cannot be reached."""
+    """Where the blobs are kept. Every method raises :class:`BlobStoreError` when the store
+    cannot be reached or refuses the operation (never the backend's own error)."""
 
     @property
     def description(self) -> str:
@@ -114,16 +116,19 @@ class FileBlobStore:
 
     def put(self, key: str, data: bytes) -> None:
         path = self._path(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
         temporary = path.with_name(f".{path.name}{_TEMPORARY_MARK}{uuid.uuid4().hex}")
         try:
+            path.parent.mkdir(parents=True, exist_ok=True)
             with open(temporary, "wb") as file:
                 file.write(data)
                 file.flush()
                 os.fsync(file.fileno())
             os.replace(temporary, path)
-        except BaseException:
-            temporary.unlink(missing_ok=True)
+        except BaseException as exc:
+            with contextlib.suppress(OSError):  # a read-only folder refuses this too
+                temporary.unlink(missing_ok=True)
+            if isinstance(exc, OSError):
+                raise self._failed("write", key, exc) from exc
             raise
         _sync_directory(path.parent)
 
@@ -132,6 +137,8 @@ class FileBlobStore:
             return self._path(key).read_bytes()
         except (FileNotFoundError, NotADirectoryError):
             raise BlobNotFoundError(key) from None
+        except OSError as exc:
+            raise self._failed("read", key, exc) from exc
 
     def delete(self, key: str) -> None:
         path = self._path(key)
@@ -139,7 +146,16 @@ class FileBlobStore:
             path.unlink()
         except (FileNotFoundError, NotADirectoryError):
             return
+        except OSError as exc:
+            raise self._failed("delete", key, exc) from exc
         _sync_directory(path.parent)
+
+    def _failed(self, action: str, key: str, exc: OSError) -> BlobStoreError:
+        """The error of an ``action`` on ``key`` that the file system refused: a read-only
+        folder or file system (EROFS, or EPERM for an immutable folder), a full disk
+        (ENOSPC), no permission (EACCES), an I/O error."""
+        reason = exc.strerror or str(exc)
+        return BlobStoreError(f"{self.description}: cannot {action} {key}: {reason}")
 
     def exists(self, key: str) -> bool:
         return self._path(key).is_file()
@@ -219,41 +235,59 @@ class S3BlobStore:
         return f"{self.prefix}/{key}" if self.prefix else key
 
     def put(self, key: str, data: bytes) -> None:
-        self.client.put_object(Bucket=self.bucket, Key=self._name(key), Body=data)
+        name = self._name(key)
+        try:
+            self.client.put_object(Bucket=self.bucket, Key=name, Body=data)
+        except _s3_failures() as exc:
+            raise self._failed("write", key, exc) from exc
 
     def get(self, key: str) -> bytes:
+        name = self._name(key)
         try:
-            response = self.client.get_object(Bucket=self.bucket, Key=self._name(key))
-        except Exception as exc:
+            response = self.client.get_object(Bucket=self.bucket, Key=name)
+            body: bytes = response["Body"].read()
+        except _s3_failures() as exc:
             if _not_found(exc):
                 raise BlobNotFoundError(key) from None
-            raise
-        body: bytes = response["Body"].read()
+            raise self._failed("read", key, exc) from exc
         return body
 
     def delete(self, key: str) -> None:
-        self.client.delete_object(Bucket=self.bucket, Key=self._name(key))
+        name = self._name(key)
+        try:
+            self.client.delete_object(Bucket=self.bucket, Key=name)
+        except _s3_failures() as exc:
+            raise self._failed("delete", key, exc) from exc
 
     def exists(self, key: str) -> bool:
+        name = self._name(key)
         try:
-            self.client.head_object(Bucket=self.bucket, Key=self._name(key))
-        except Exception as exc:
+            self.client.head_object(Bucket=self.bucket, Key=name)
+        except _s3_failures() as exc:
             if _not_found(exc):
                 return False
-            raise
+            raise self._failed("check", key, exc) from exc
         return True
 
     def list(self, prefix: str = "") -> Iterator[BlobInfo]:
         base = f"{self.prefix}/" if self.prefix else ""
-        pages = self.client.get_paginator("list_objects_v2").paginate(
-            Bucket=self.bucket, Prefix=base + prefix
-        )
-        for page in pages:
-            for item in page.get("Contents", ()):
-                modified: datetime = item["LastModified"]
-                yield BlobInfo(
-                    item["Key"][len(base) :], int(item["Size"]), modified.astimezone(UTC)
-                )
+        try:
+            pages = self.client.get_paginator("list_objects_v2").paginate(
+                Bucket=self.bucket, Prefix=base + prefix
+            )
+            for page in pages:
+                for item in page.get("Contents", ()):
+                    modified: datetime = item["LastModified"]
+                    yield BlobInfo(
+                        item["Key"][len(base) :], int(item["Size"]), modified.astimezone(UTC)
+                    )
+        except _s3_failures() as exc:
+            raise self._failed("list", prefix or "the blobs", exc) from exc
+
+    def _failed(self, action: str, key: str, exc: Exception) -> BlobStoreError:
+        """The error of an ``action`` on ``key`` that failed: the endpoint unreachable or
+        timing out, or an error answer (access denied, no such bucket, a 5xx)."""
+        return BlobStoreError(f"{self.description}: cannot {action} {key}: {exc}")
 
     def check_bucket(self) -> None:
         """Raises:
@@ -263,6 +297,15 @@ class S3BlobStore:
             self.client.head_bucket(Bucket=self.bucket)
         except Exception as exc:
             raise BlobStoreError(f"{self.description}: {exc}") from exc
+
+
+def _s3_failures() -> tuple[type[Exception], ...]:
+    """The errors of a failed S3 call: botocore's (connection, timeout, an error answer)."""
+    try:
+        from botocore.exceptions import BotoCoreError, ClientError
+    except ImportError:  # pragma: no cover - a client of another library, passed in
+        return ()
+    return (BotoCoreError, ClientError)
 
 
 def _not_found(exc: Exception) -> bool:

@@ -82,19 +82,24 @@ def write_originals(
     image_bytes: bytes,
     depth_bytes: bytes | None = None,
 ) -> StoredOriginals:
-    """Write an image's originals (before its row is committed). A failure removes what was
-    written and raises the store's error."""
+    """Write an image's originals (before its row is committed). A failure removes what may
+    have been written (the puts tried: a failed one may still have stored its value) and
+    raises the store's error (:class:`~db.blobs.BlobStoreError` when the store cannot be
+    reached or refuses the write)."""
     stored = StoredOriginals(
         original_key(map_id, image_id),
         sha256_hex(image_bytes),
         depth_key(map_id, image_id) if depth_bytes is not None else None,
     )
+    tried: list[str] = []
     try:
+        tried.append(stored.original_key)
         blobs.put(stored.original_key, image_bytes)
         if stored.depth_key is not None and depth_bytes is not None:
+            tried.append(stored.depth_key)
             blobs.put(stored.depth_key, depth_bytes)
     except BaseException:
-        remove_blobs(blobs, stored.keys)
+        remove_blobs(blobs, tried)
         raise
     return stored
 

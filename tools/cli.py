@@ -284,7 +284,7 @@ def _import(args: argparse.Namespace) -> int:
     from app.usecases.errors import NameTakenError, NotFoundError
     from app.usecases.images import add_reference_image
     from app.usecases.maps import open_map
-    from db.blobs import open_blob_store
+    from db.blobs import BlobStoreError, open_blob_store
     from db.migrate import upgrade
     from db.repositories.images import ImageRepository
     from db.session import make_engine, make_session_factory
@@ -370,7 +370,7 @@ def _import(args: argparse.Namespace) -> int:
             else:  # another import of the same source stored it meanwhile
                 stored_meanwhile += 1
                 status = "exists (stored meanwhile by another run)"
-        except (OSError, InvalidInputError, NotFoundError) as exc:
+        except (OSError, BlobStoreError, InvalidInputError, NotFoundError) as exc:
             failed += 1
             status = f"FAILED: {exc}"
         elapsed = time.perf_counter() - start

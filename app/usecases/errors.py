@@ -10,6 +10,18 @@ class NotFoundError(Exception):
         super().__init__(f"{kind} {ident!r} does not exist")
 
 
+class MissingBlobError(NotFoundError):
+    """An image whose row names an original that the blob store does not hold (removed by
+    hand, or a store restored from an older backup)."""
+
+    def __init__(self, image_id: str) -> None:
+        Exception.__init__(  # not NotFoundError's "<kind> <id> does not exist"
+            self,
+            f"the original of image {image_id!r} is missing from the blob store; the image "
+            "still localizes; add it again to keep its original",
+        )
+
+
 class ConflictError(Exception):
     """The request contradicts the stored state (a name taken, nothing to reindex)."""
 

@@ -11,7 +11,7 @@ from datetime import datetime
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.usecases.errors import NameTakenError, NotFoundError
+from app.usecases.errors import MissingBlobError, NameTakenError, NotFoundError
 from app.usecases.maps import require_map
 from db.blobs import BlobStore
 from db.models import ReferenceImage
@@ -97,6 +97,8 @@ def add_reference_image(
             while this one was describing the image).
         ImageTooLargeError: the image's header claims more than the localizer's pixel limit.
         InvalidInputError: the image, depth or camera is unusable.
+        BlobStoreError: the blob store cannot be reached or refuses the write (nothing
+            stored).
     """
     taken = f"map already has an image named {image.name!r}"
     # before anything reads the image (EXIF included): a header claiming too many pixels is
@@ -212,6 +214,8 @@ def get_original(
     Raises:
         NotFoundError: unknown map or image, or an image stored without its original (added
             before originals were kept).
+        MissingBlobError: the row names an original the blob store does not hold.
+        BlobStoreError: the blob store cannot be reached or refuses the read.
     """
     with sessions() as session:
         row = ImageRepository(session).get(map_id, image_id)
@@ -219,9 +223,11 @@ def get_original(
             require_map(session, map_id)
             raise NotFoundError("image", image_id)
         key, sha256 = row.original_key, row.original_sha256
-    data = read_original(blobs, key) if key is not None else None
-    if data is None or sha256 is None:
+    if key is None or sha256 is None:
         raise NotFoundError("original of image", image_id)
+    data = read_original(blobs, key)
+    if data is None:
+        raise MissingBlobError(image_id)
     return Original(data, sha256, _media_type(data))
 
 

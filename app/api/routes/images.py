@@ -62,7 +62,9 @@ def add_image(
     ] = None,
 ) -> ImageOut:
     """The image's bytes as sent (and the depth's) are kept in the blob store
-    (``SLLOC_BLOB_URL``) beside its features: ``GET …/images/{image_id}/original``."""
+    (``SLLOC_BLOB_URL``) beside its features: ``GET …/images/{image_id}/original``. 503
+    ``blob-store-unavailable`` (nothing stored) while the blob store cannot be reached or
+    refuses writes."""
     meta = parse_json_form(ImageMetadata, metadata, "metadata")
     # admitted before the uploads are read: only admitted requests hold them in memory
     with admission.admit():
@@ -141,7 +143,7 @@ def get_image_preview(map_id: str, image_id: str, sessions: SessionsDep) -> Resp
             "content": {"image/jpeg": {}, "image/png": {}},
             "description": "The image's bytes as uploaded",
         },
-        **problem_responses(401, 404),
+        **problem_responses(401, 404, 503),
     },
 )
 def get_image_original(
@@ -149,7 +151,8 @@ def get_image_original(
 ) -> Response:
     """The reference image's bytes exactly as they were uploaded; the ``ETag`` is their
     SHA-256 (``original_sha256`` of the image). 404 for an image added before originals
-    were kept (``has_original`` false)."""
+    were kept (``has_original`` false) or whose original is missing from the blob store;
+    503 ``blob-store-unavailable`` while the blob store cannot be reached."""
     original = images.get_original(sessions, blobs, map_id, image_id)
     headers = {
         "Cache-Control": "private, max-age=86400, immutable",
