@@ -1,17 +1,35 @@
-// slloc map viewer: lists maps, draws a map's reference camera frusta in 3D (three.js), and
-// localizes a query image through the API, drawing its frustum and its inlier matches.
+// slloc map viewer: lists maps, draws a map's reference cameras in 3D (three.js) as frusta with
+// their previews on the image planes, over a ground grid (and a compass on geo-registered
+// maps), and localizes a query image through the API, drawing its frustum (or, for a
+// low-confidence answer, the candidate pose dashed), its GeoPose and its inlier matches.
 // Poses are cam_from_world (x_cam = R·x_world + t), quaternions [w, x, y, z]; pixel
 // coordinates follow COLMAP (the centre of the top-left pixel is (0.5, 0.5)), which is also the
 // canvas convention, so they are drawn without an offset.
 
 const KEY_STORAGE = "slloc.apiKey";
 const MAX_IMAGES = 5000; // frusta drawn per map
-const MAX_LINES = 300; // inlier lines drawn per reference
-const MATCH_HEIGHT = 240; // px, height of each image in a match view
-const COLORS = { reference: 0x7f8c9a, retrieved: 0xf39c12, inliers: 0x27ae60, query: 0xe74c3c };
+const MAX_THUMBNAILS = 64; // previews textured on image planes per map (GPU memory bound)
+const THUMBNAIL_SIDE = 192; // px, longer side of a texture
+const THUMBNAIL_LOADS = 4; // previews fetched at once
+const MAX_LINES = 50; // inlier lines drawn per match figure
+const MATCH_HEIGHT = 320; // px, height of each image in a match figure
+const COLORS = {
+  reference: 0x7f8c9a, retrieved: 0xf39c12, inliers: 0x27ae60, query: 0xe74c3c,
+  candidate: 0x8e44ad, grid: 0xb8c0c8, gridCentre: 0x8a939c, north: 0x1f5fbf, east: 0x6c7a89,
+};
 
 const $ = (id) => document.getElementById(id);
-const state = { mapId: null, images: new Map(), frusta: new Map(), query: null, three: null };
+const state = {
+  mapId: null,
+  images: new Map(),
+  frusta: new Map(), // image id → { group, lines, plane }
+  query: null, // the query's (or candidate's) frustum
+  three: null,
+  geo: null, // the map's geo-registration, null when it has none
+  frame: null, // { mid, up, north, radius, ground } of the drawn map
+  thumbnails: { queue: [], running: 0, loaded: 0, requested: new Set(), generation: 0 },
+  matches: { pairs: [], index: 0, queryBitmap: null, token: 0 },
+};
 
 // --- API --------------------------------------------------------------------------------
 
@@ -26,7 +44,9 @@ async function api(path, options = {}) {
       const problem = await response.json();
       detail = `${problem.title}: ${problem.detail}`;
     } catch (_) { /* not a problem document */ }
-    throw new Error(`HTTP ${response.status} ${detail}`);
+    const error = new Error(`HTTP ${response.status} ${detail}`);
+    error.status = response.status;
+    throw error;
   }
   return response;
 }
@@ -53,6 +73,20 @@ function toWorld(R, t, p) {
   return [0, 1, 2].map((j) => R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2]);
 }
 
+// world direction of camera direction d: Rᵀ d
+function directionToWorld(R, d) {
+  return [0, 1, 2].map((j) => R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2]);
+}
+
+const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+const add = (a, b, s = 1) => [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]];
+const cross = (a, b) =>
+  [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+function normalize(v) {
+  const n = Math.hypot(...v);
+  return n > 1e-9 ? v.map((x) => x / n) : null;
+}
+
 function pinhole(camera) {
   const p = camera.params;
   // COLMAP parameter order: SIMPLE_* and RADIAL start with one focal length f, cx, cy
@@ -62,7 +96,8 @@ function pinhole(camera) {
   return { fx: p[0], fy: p[1], cx: p[2], cy: p[3] };
 }
 
-// apex and the four image-corner rays at `depth` in front of the camera, in world coordinates
+// apex and the four image corners (top-left, top-right, bottom-right, bottom-left) at `depth`
+// in front of the camera, in world coordinates
 function frustumCorners(camera, pose, depth) {
   const R = rotation(pose.rotation);
   const t = pose.translation;
@@ -72,6 +107,32 @@ function frustumCorners(camera, pose, depth) {
   const rim = corners.map(([u, v]) =>
     toWorld(R, t, [((u - cx) / fx) * depth, ((v - cy) / fy) * depth, depth]));
   return { apex, rim };
+}
+
+function centre(pose) {
+  return toWorld(rotation(pose.rotation), pose.translation, [0, 0, 0]);
+}
+
+// The map's up direction: East-North-Up's up through the geo-registration when there is one
+// (x_enu = s·R·x_map + t, so a map direction is Rᵀ of an ENU one), else the mean of the
+// reference cameras' "up" (−y in COLMAP's camera axes), else COLMAP's usual −y.
+function mapFrame(images, geo) {
+  let up = null;
+  let north = null;
+  if (geo) {
+    const R = rotation(geo.enu_from_map.rotation);
+    up = directionToWorld(R, [0, 0, 1]);
+    north = directionToWorld(R, [0, 1, 0]);
+  } else {
+    let sum = [0, 0, 0];
+    for (const image of images) {
+      sum = add(sum, directionToWorld(rotation(image.cam_from_world.rotation), [0, -1, 0]));
+    }
+    // cameras that disagree (sum much shorter than the count) say little about up
+    up = images.length && Math.hypot(...sum) > 0.3 * images.length ? normalize(sum) : null;
+  }
+  up = up || [0, -1, 0];
+  return { up, north };
 }
 
 // --- 3D view ----------------------------------------------------------------------------
@@ -99,34 +160,65 @@ function setUpScene({ THREE, OrbitControls }) {
   scene.background = new THREE.Color(0xf7f7f7);
   const camera = new THREE.PerspectiveCamera(50, 1, 0.01, 1e5);
   camera.up.set(0, -1, 0); // COLMAP worlds usually have y pointing down
-  const controls = new OrbitControls(camera, renderer.domElement);
-  const render = () => renderer.render(scene, camera);
-  controls.addEventListener("change", render);
+  const three = {
+    THREE, OrbitControls, renderer, scene, camera, controls: null, group: null, depth: 1,
+  };
+  three.render = () => {
+    renderer.render(scene, camera);
+    updateCompass();
+  };
+  three.controls = makeControls(three);
   const resize = () => {
     const { clientWidth: w, clientHeight: h } = container;
     renderer.setSize(w, h);
     camera.aspect = w / Math.max(h, 1);
     camera.updateProjectionMatrix();
-    render();
+    three.render();
   };
   new ResizeObserver(resize).observe(container);
-  return { THREE, scene, camera, controls, render, group: null, depth: 1 };
+  return three;
 }
 
-function frustumObject(three, camera, pose, color) {
+// OrbitControls read camera.up when made: made again whenever a map sets its up direction
+function makeControls(three) {
+  if (three.controls) three.controls.dispose();
+  const controls = new three.OrbitControls(three.camera, three.renderer.domElement);
+  controls.addEventListener("change", three.render);
+  return controls;
+}
+
+function disposeTree(object) {
+  object.traverse((node) => {
+    if (node.geometry) node.geometry.dispose();
+    if (node.material) {
+      if (node.material.map) {
+        node.material.map.image?.close?.(); // an ImageBitmap's memory goes at once
+        node.material.map.dispose();
+      }
+      node.material.dispose();
+    }
+  });
+}
+
+function frustumLines(three, camera, pose, color, { dashed = false, scale = 1 } = {}) {
   const { THREE } = three;
-  const { apex, rim } = frustumCorners(camera, pose, three.depth);
+  const depth = scale * three.depth;
+  const { apex, rim } = frustumCorners(camera, pose, depth);
   const points = [];
-  for (let i = 0; i < 4; i++) {
-    points.push(apex, rim[i], rim[i], rim[(i + 1) % 4]);
-  }
+  for (let i = 0; i < 4; i++) points.push(apex, rim[i], rim[i], rim[(i + 1) % 4]);
+  // a tick above the top edge marks the image's "up"
+  const topMid = rim[0].map((v, k) => (v + rim[1][k]) / 2);
+  const bottomMid = rim[3].map((v, k) => (v + rim[2][k]) / 2);
+  const upward = normalize(add(topMid, bottomMid, -1)) || [0, 0, 0];
+  points.push(topMid, add(topMid, upward, 0.2 * depth));
   const geometry = new THREE.BufferGeometry().setFromPoints(
     points.map((p) => new THREE.Vector3(...p)));
-  return new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ color }));
-}
-
-function centre(pose) {
-  return toWorld(rotation(pose.rotation), pose.translation, [0, 0, 0]);
+  const material = dashed
+    ? new THREE.LineDashedMaterial({ color, dashSize: 0.12 * depth, gapSize: 0.08 * depth })
+    : new THREE.LineBasicMaterial({ color });
+  const lines = new THREE.LineSegments(geometry, material);
+  if (dashed) lines.computeLineDistances();
+  return { lines, rim };
 }
 
 function drawReferences() {
@@ -134,10 +226,16 @@ function drawReferences() {
   const images = [...state.images.values()];
   $("scene").dataset.referenceFrusta = "0";
   $("scene").dataset.queryFrustum = "0";
+  $("scene").dataset.candidateFrustum = "0";
+  $("scene").dataset.thumbnails = "0";
   state.frusta.clear();
   state.query = null;
+  resetThumbnails();
   if (!three) return;
-  if (three.group) three.scene.remove(three.group);
+  if (three.group) {
+    three.scene.remove(three.group);
+    disposeTree(three.group);
+  }
   three.group = new three.THREE.Group();
   three.scene.add(three.group);
   const centres = images.map((image) => centre(image.cam_from_world));
@@ -145,20 +243,207 @@ function drawReferences() {
   const spread = centres.map((c) => Math.hypot(c[0] - mid[0], c[1] - mid[1], c[2] - mid[2]))
     .sort((a, b) => a - b);
   const radius = spread.length ? Math.max(spread[Math.floor(spread.length / 2)], 1e-3) : 1;
-  three.depth = 0.15 * radius;
+  three.depth = 0.22 * radius;
   for (const image of images) {
-    const object = frustumObject(three, image.camera, image.cam_from_world, COLORS.reference);
-    object.name = image.id;
-    three.group.add(object);
-    state.frusta.set(image.id, object);
+    const { lines, rim } = frustumLines(three, image.camera, image.cam_from_world, COLORS.reference);
+    const group = new three.THREE.Group();
+    group.name = image.id;
+    group.add(lines);
+    three.group.add(group);
+    state.frusta.set(image.id, { group, lines, rim, plane: null });
   }
   $("scene").dataset.referenceFrusta = String(state.frusta.size);
+
+  const { up, north } = mapFrame(images, state.geo);
+  const heights = centres.map((c) => dot(c, up));
+  const lowest = heights.length ? Math.min(...heights) : 0;
+  const midHeight = dot(mid, up);
+  // the ground: below the lowest camera by half the cameras' median distance from their centre
+  const ground = add(mid, up, lowest - 0.5 * radius - midHeight);
+  const extent = Math.max(...centres.map((c) => {
+    const d = add(c, mid, -1);
+    return Math.hypot(...add(d, up, -dot(d, up)));
+  }), radius);
+  state.frame = { mid, up, north, radius, ground };
+  drawGround(three, ground, up, north, extent);
+  if (north) drawCompass(three, ground, up, north, radius);
+  $("scene").dataset.up = JSON.stringify(up.map((v) => +v.toFixed(6)));
+  $("scene").dataset.compass = north ? "1" : "0";
+  $("compass").hidden = !north;
+
+  // look at the cameras from above and behind their mean viewing direction
+  let forward = [0, 0, 0];
+  for (const image of images) {
+    forward = add(forward, directionToWorld(rotation(image.cam_from_world.rotation), [0, 0, 1]));
+  }
+  forward = normalize(add(forward, up, -dot(forward, up))) || normalize(cross(up, [1, 0, 0])) ||
+    normalize(cross(up, [0, 1, 0]));
+  three.camera.up.set(...up);
+  three.controls = makeControls(three);
   three.controls.target.set(...mid);
-  three.camera.position.set(mid[0], mid[1] - 2 * radius, mid[2] - 3 * radius);
+  three.camera.position.set(...add(add(mid, up, 2 * radius), forward, -3 * radius));
   three.camera.near = radius / 100;
   three.camera.far = radius * 1000;
   three.camera.updateProjectionMatrix();
   three.controls.update();
+  three.render();
+  queueThumbnails(images);
+}
+
+// a grid on the ground, its lines along East and North on a geo-registered map, and the map
+// frame's axes at its origin (x red, y green, z blue)
+function drawGround(three, ground, up, north, extent) {
+  const { THREE } = three;
+  const step = niceStep(extent / 5);
+  const divisions = 2 * Math.max(4, Math.ceil((1.3 * extent) / step));
+  const grid = new THREE.GridHelper(divisions * step, divisions, COLORS.gridCentre, COLORS.grid);
+  const y = new THREE.Vector3(...up);
+  const x = new THREE.Vector3(...(north ? cross(north, up) : normalize(
+    Math.abs(up[0]) < 0.9 ? add([1, 0, 0], up, -up[0]) : add([0, 0, 1], up, -up[2]))));
+  x.sub(y.clone().multiplyScalar(x.dot(y))).normalize();
+  const z = new THREE.Vector3().crossVectors(x, y);
+  grid.quaternion.setFromRotationMatrix(new THREE.Matrix4().makeBasis(x, y, z));
+  grid.position.set(...ground);
+  grid.material.transparent = true;
+  grid.material.opacity = 0.6;
+  grid.name = "ground";
+  three.group.add(grid);
+  const axes = new THREE.AxesHelper(step);
+  axes.name = "map axes";
+  three.group.add(axes);
+  $("scene").dataset.gridStep = String(step);
+}
+
+function niceStep(x) {
+  const p = 10 ** Math.floor(Math.log10(Math.max(x, 1e-6)));
+  return [1, 2, 5, 10].map((m) => m * p).find((s) => s >= x);
+}
+
+function labelSprite(three, text, color, size) {
+  const { THREE } = three;
+  const canvas = document.createElement("canvas");
+  canvas.width = canvas.height = 64;
+  const ctx = canvas.getContext("2d");
+  ctx.fillStyle = `#${color.toString(16).padStart(6, "0")}`;
+  ctx.font = "bold 44px system-ui, sans-serif";
+  ctx.textAlign = "center";
+  ctx.textBaseline = "middle";
+  ctx.fillText(text, 32, 34);
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.colorSpace = THREE.SRGBColorSpace;
+  const sprite = new THREE.Sprite(new THREE.SpriteMaterial({ map: texture, depthTest: false }));
+  sprite.scale.set(size, size, 1);
+  return sprite;
+}
+
+// the local East-North plane on a geo-registered map: a North arrow and an East arrow on the
+// ground, labelled
+function drawCompass(three, ground, up, north, radius) {
+  const { THREE } = three;
+  const origin = new THREE.Vector3(...add(ground, up, 0.01 * radius));
+  const east = cross(north, up);
+  const compass = new THREE.Group();
+  compass.name = "compass";
+  const length = 0.8 * radius;
+  for (const [dir, color, text, scale] of [
+    [north, COLORS.north, "N", 1], [east, COLORS.east, "E", 0.6]]) {
+    const arrow = new THREE.ArrowHelper(
+      new THREE.Vector3(...dir), origin, length * scale, color, 0.2 * length, 0.1 * length);
+    compass.add(arrow);
+    const label = labelSprite(three, text, color, 0.25 * radius);
+    label.position.copy(origin).addScaledVector(new THREE.Vector3(...dir), length * scale * 1.15);
+    compass.add(label);
+  }
+  three.group.add(compass);
+}
+
+// the corner compass needle: the screen direction of North at the ground's centre
+function updateCompass() {
+  const three = state.three;
+  const needle = $("compass-needle");
+  if (!three || !state.frame || !state.frame.north || !needle) return;
+  const { THREE, camera } = three;
+  const { ground, north, radius } = state.frame;
+  const a = new THREE.Vector3(...ground).project(camera);
+  const b = new THREE.Vector3(...add(ground, north, radius)).project(camera);
+  const { clientWidth: w, clientHeight: h } = $("scene");
+  const angle = Math.atan2((b.x - a.x) * w, (b.y - a.y) * h); // clockwise from screen up
+  needle.style.transform = `rotate(${angle.toFixed(4)}rad)`;
+  $("compass").dataset.angleDeg = (angle * 180 / Math.PI).toFixed(1);
+}
+
+// --- reference thumbnails ---------------------------------------------------------------
+
+function resetThumbnails() {
+  const thumbs = state.thumbnails;
+  thumbs.generation += 1; // loads of an earlier map are dropped when they arrive
+  thumbs.queue = [];
+  thumbs.loaded = 0;
+  thumbs.requested = new Set();
+}
+
+// up to MAX_THUMBNAILS previews, spread evenly over the references, loaded a few at a time
+// after the frusta are drawn
+function queueThumbnails(images, first = false) {
+  const thumbs = state.thumbnails;
+  const room = MAX_THUMBNAILS - thumbs.requested.size;
+  if (!state.three || room <= 0) return;
+  const fresh = images.filter((image) => !thumbs.requested.has(image.id));
+  const picked = spread(fresh.length, room).map((i) => fresh[i]);
+  for (const image of picked) thumbs.requested.add(image.id);
+  thumbs.queue = first ? [...picked, ...thumbs.queue] : [...thumbs.queue, ...picked];
+  pumpThumbnails();
+}
+
+function pumpThumbnails() {
+  const thumbs = state.thumbnails;
+  while (thumbs.running < THUMBNAIL_LOADS && thumbs.queue.length) {
+    const image = thumbs.queue.shift();
+    const generation = thumbs.generation;
+    thumbs.running += 1;
+    loadThumbnail(image, generation).finally(() => {
+      thumbs.running -= 1;
+      pumpThumbnails();
+    });
+  }
+}
+
+async function loadThumbnail(image, generation) {
+  const mapId = state.mapId;
+  let bitmap;
+  try {
+    const blob = await (await api(`/v1/maps/${mapId}/images/${image.id}/preview`)).blob();
+    const scale = THUMBNAIL_SIDE / Math.max(image.camera.width, image.camera.height);
+    bitmap = await createImageBitmap(blob, {
+      resizeWidth: Math.max(1, Math.round(image.camera.width * scale)),
+      resizeHeight: Math.max(1, Math.round(image.camera.height * scale)),
+      resizeQuality: "medium",
+    });
+  } catch (error) {
+    return; // stored without a preview: the frustum stays a wireframe
+  }
+  const frustum = state.frusta.get(image.id);
+  const three = state.three;
+  if (generation !== state.thumbnails.generation || !frustum || frustum.plane || !three) {
+    bitmap.close();
+    return;
+  }
+  const { THREE } = three;
+  const texture = new THREE.Texture(bitmap);
+  texture.flipY = false; // ImageBitmaps are not flipped: uv (0, 0) is the top-left pixel
+  texture.colorSpace = THREE.SRGBColorSpace;
+  texture.needsUpdate = true;
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute("position", new THREE.Float32BufferAttribute(frustum.rim.flat(), 3));
+  geometry.setAttribute("uv", new THREE.Float32BufferAttribute([0, 0, 1, 0, 1, 1, 0, 1], 2));
+  geometry.setIndex([0, 1, 2, 0, 2, 3]);
+  const plane = new THREE.Mesh(geometry, new THREE.MeshBasicMaterial({
+    map: texture, side: THREE.DoubleSide, transparent: true, opacity: 0.92 }));
+  plane.name = `preview ${image.name}`;
+  frustum.group.add(plane);
+  frustum.plane = plane;
+  state.thumbnails.loaded += 1;
+  $("scene").dataset.thumbnails = String(state.thumbnails.loaded);
   three.render();
 }
 
@@ -186,13 +471,25 @@ async function loadMaps() {
   }
 }
 
+async function loadGeoRegistration(mapId) {
+  try {
+    return await (await api(`/v1/maps/${mapId}/geo-registration`)).json();
+  } catch (error) {
+    if (error.status !== 404) setStatus(`geo-registration: ${error.message}`, true);
+    return null; // 404: the map is not geo-registered
+  }
+}
+
 async function selectMap(map, button) {
   for (const other of $("maps").querySelectorAll("button")) {
     other.setAttribute("aria-pressed", String(other === button));
   }
   state.mapId = map.id;
   state.images.clear();
+  $("map-ready").dataset.ready = "false";
   setStatus(`loading ${map.name}…`);
+  clearResult();
+  const geo = loadGeoRegistration(map.id);
   try {
     let total = Infinity;
     while (state.images.size < Math.min(total, MAX_IMAGES)) {
@@ -208,13 +505,33 @@ async function selectMap(map, button) {
   } catch (error) {
     setStatus(`images: ${error.message}`, true);
   }
+  state.geo = await geo;
+  showGeoRegistration(state.geo);
   drawReferences();
   $("localize").disabled = false;
+  $("map-ready").dataset.ready = "true";
+}
+
+function showGeoRegistration(geo) {
+  const panel = $("geo");
+  panel.dataset.registered = String(Boolean(geo));
+  if (!geo) {
+    $("geo-registration").textContent = "This map is not geo-registered.";
+    return;
+  }
+  const o = geo.origin;
+  const sigma = geo.source === "estimated"
+    ? `, ±${geo.position_sigma_m.toFixed(2)} m / ${geo.rotation_sigma_deg.toFixed(2)}°` : "";
+  $("geo-registration").textContent =
+    `Geo-registered (${geo.source}${sigma}): origin ${o.latitude.toFixed(7)}°, ` +
+    `${o.longitude.toFixed(7)}°, ${o.height.toFixed(2)} m; the arrows on the ground point ` +
+    "North and East.";
 }
 
 // --- localize ---------------------------------------------------------------------------
 
-function queryCamera(params, width, height) {
+function queryCamera(result, params, width, height) {
+  if (result.camera) return result.camera; // the camera the engine used
   if (params.camera) return params.camera;
   // the engine's documented default when no intrinsics are sent: f = 1.2 × the longer side
   const f = 1.2 * Math.max(width, height);
@@ -242,8 +559,13 @@ async function localize(event) {
     const result = await (await api(`/v1/maps/${state.mapId}/localize`, {
       method: "POST", body: form })).json();
     const bitmap = await createImageBitmap(file);
-    showResult(result, bitmap, queryCamera(params, bitmap.width, bitmap.height));
-    setStatus(`localized in ${result.timings_ms.total.toFixed(0)} ms (engine)`);
+    showResult(result, bitmap, queryCamera(result, params, bitmap.width, bitmap.height));
+    if (result.localized) {
+      setStatus(`localized in ${result.timings_ms.total.toFixed(0)} ms (engine)`);
+    } else {
+      const hint = result.candidate ? " (the candidate pose is drawn dashed)" : "";
+      setStatus(`not localized: ${result.reason}${hint}`, true);
+    }
   } catch (error) {
     setStatus(`localize: ${error.message}`, true);
   } finally {
@@ -251,18 +573,41 @@ async function localize(event) {
   }
 }
 
+function clearResult() {
+  $("outcome").textContent = "Pick an image to localize.";
+  delete $("outcome").dataset.localized;
+  $("retrieved").replaceChildren();
+  $("matches").hidden = true;
+  state.matches = { pairs: [], index: 0, queryBitmap: null, token: state.matches.token + 1 };
+  showGeoPose(null);
+}
+
+function fixed(values, digits) {
+  return `[${values.map((v) => v.toFixed(digits)).join(", ")}]`;
+}
+
 function showResult(result, bitmap, camera) {
   const outcome = $("outcome");
   outcome.replaceChildren();
   outcome.dataset.localized = String(result.localized);
-  const verdict = result.localized
-    ? `Localized (${result.estimator}), confidence ${result.confidence.toFixed(2)}, centre ` +
-      `[${result.camera_center.map((v) => v.toFixed(3)).join(", ")}]`
-    : `Not localized: ${result.reason}`;
+  let verdict;
+  if (result.localized) {
+    verdict = `Localized (${result.estimator_used}), confidence ${result.confidence.toFixed(3)}, ` +
+      `centre ${fixed(result.camera_center, 3)}`;
+  } else if (result.candidate) {
+    verdict = `Not localized: ${result.reason}. Candidate pose (not an answer, dashed in ` +
+      `purple): confidence ${result.confidence.toFixed(3)}, centre ` +
+      `${fixed(centre(result.candidate), 3)}`;
+  } else {
+    verdict = `Not localized: ${result.reason}`;
+  }
+  const verdictSpan = document.createElement("strong");
+  verdictSpan.className = result.localized ? "" : "error";
+  verdictSpan.textContent = verdict;
   const inliers = document.createElement("span");
   inliers.id = "num-inliers";
   inliers.textContent = String(result.num_inliers);
-  outcome.append(`${verdict}; inliers: `, inliers);
+  outcome.append(verdictSpan, "; inliers: ", inliers);
 
   const retrieved = $("retrieved");
   retrieved.replaceChildren();
@@ -275,33 +620,119 @@ function showResult(result, bitmap, camera) {
     retrieved.append(item);
   }
   highlight(result);
-  drawMatches(result, bitmap);
+  showGeoPose(result);
   drawQuery(result, camera);
+  setUpMatches(result, bitmap);
+  // the retrieved references' previews come first among the thumbnails still to load
+  queueThumbnails(result.retrieved.map((ref) => state.images.get(ref.image_id)).filter(Boolean), true);
 }
 
 function highlight(result) {
-  for (const object of state.frusta.values()) object.material.color.setHex(COLORS.reference);
+  for (const { lines } of state.frusta.values()) lines.material.color.setHex(COLORS.reference);
   for (const ref of result.retrieved) {
-    const object = state.frusta.get(ref.image_id);
-    if (object) object.material.color.setHex(ref.num_inliers > 0 ? COLORS.inliers : COLORS.retrieved);
+    const frustum = state.frusta.get(ref.image_id);
+    if (frustum) {
+      frustum.lines.material.color.setHex(ref.num_inliers > 0 ? COLORS.inliers : COLORS.retrieved);
+    }
   }
   if (state.three) state.three.render();
 }
 
 function drawQuery(result, camera) {
   const three = state.three;
+  const scene = $("scene");
+  scene.dataset.queryFrustum = "0";
+  scene.dataset.candidateFrustum = "0";
+  delete scene.dataset.queryCentre;
+  delete scene.dataset.candidateCentre;
   if (!three) return;
-  if (state.query) three.group.remove(state.query);
+  if (state.query) {
+    three.group.remove(state.query);
+    disposeTree(state.query);
+  }
   state.query = null;
-  $("scene").dataset.queryFrustum = "0";
-  if (result.localized) {
-    state.query = frustumObject(three, camera, result.cam_from_world, COLORS.query);
-    state.query.name = "query";
-    three.group.add(state.query);
-    $("scene").dataset.queryFrustum = "1";
-    $("scene").dataset.queryCentre = JSON.stringify(centre(result.cam_from_world));
+  const pose = result.localized ? result.cam_from_world : result.candidate;
+  if (pose) {
+    const candidate = !result.localized;
+    // drawn larger than the references' so that it stands out among them
+    const { lines } = frustumLines(three, camera, pose,
+      candidate ? COLORS.candidate : COLORS.query, { dashed: candidate, scale: 1.5 });
+    lines.name = candidate ? "candidate" : "query";
+    three.group.add(lines);
+    state.query = lines;
+    const key = candidate ? "candidate" : "query";
+    scene.dataset[`${key}Frustum`] = "1";
+    scene.dataset[`${key}Centre`] = JSON.stringify(centre(pose));
   }
   three.render();
+}
+
+// --- GeoPose ----------------------------------------------------------------------------
+
+// the heading (degrees clockwise from North) a GeoPose camera looks along: its quaternion
+// turns OpenGL camera axes (looking along −z) into East-North-Up
+function heading({ x, y, z, w }) {
+  const east = -(2 * (x * z + w * y));
+  const north = -(2 * (y * z - w * x));
+  if (Math.hypot(east, north) < 1e-6) return null; // looking straight up or down
+  return ((Math.atan2(east, north) * 180) / Math.PI + 360) % 360;
+}
+
+function showGeoPose(result) {
+  const panel = $("geopose");
+  panel.replaceChildren();
+  delete panel.dataset.lat;
+  delete panel.dataset.lon;
+  if (!result) return;
+  if (!result.geopose) {
+    panel.textContent = state.geo
+      ? `No GeoPose: ${result.localized ? "left out (not finite)" : "not localized"}.`
+      : "";
+    return;
+  }
+  const { position: p, quaternion: q } = result.geopose;
+  panel.dataset.lat = String(p.lat);
+  panel.dataset.lon = String(p.lon);
+  const rows = [
+    ["lat", `${p.lat.toFixed(8)}°`],
+    ["lon", `${p.lon.toFixed(8)}°`],
+    ["h", `${p.h.toFixed(3)} m`],
+    ["quaternion", `x ${q.x.toFixed(4)}, y ${q.y.toFixed(4)}, z ${q.z.toFixed(4)}, w ${q.w.toFixed(4)}`],
+  ];
+  const yaw = heading(q);
+  if (yaw !== null) rows.push(["heading", `${yaw.toFixed(1)}° from North`]);
+  const a = result.geopose_accuracy;
+  if (a) {
+    rows.push(["1-σ", `${a.horizontal_m.toFixed(2)} m horizontal, ${a.vertical_m.toFixed(2)} m ` +
+      `vertical, ${a.yaw_deg.toFixed(2)}° yaw`]);
+  }
+  const title = document.createElement("p");
+  title.textContent = "GeoPose of the last answer (OGC Basic-Quaternion, camera axes OpenGL → ENU):";
+  const list = document.createElement("dl");
+  for (const [name, value] of rows) {
+    const dt = document.createElement("dt");
+    dt.textContent = name;
+    const dd = document.createElement("dd");
+    dd.dataset.field = name;
+    dd.textContent = value;
+    list.append(dt, dd);
+  }
+  panel.append(title, list);
+}
+
+// --- match figures ----------------------------------------------------------------------
+
+function setUpMatches(result, queryBitmap) {
+  const pairs = (result.inliers || []).filter((pair) => state.images.has(pair.image_id));
+  state.matches = { pairs, index: 0, queryBitmap, token: state.matches.token + 1 };
+  const container = $("matches");
+  container.hidden = pairs.length === 0;
+  delete container.dataset.ready;
+  if (!pairs.length) {
+    container.dataset.ready = "true";
+    return;
+  }
+  showFigure(0);
 }
 
 async function referenceBitmap(image) {
@@ -314,45 +745,72 @@ async function referenceBitmap(image) {
   }
 }
 
-async function drawMatches(result, queryBitmap) {
+// `count` indices spread evenly over [0, n)
+function spread(n, count) {
+  if (n <= count) return [...Array(n).keys()];
+  return [...Array(count).keys()].map((i) => Math.floor(((i + 0.5) * n) / count));
+}
+
+async function showFigure(index) {
+  const matches = state.matches;
+  const { pairs, queryBitmap } = matches;
+  if (!pairs.length) return;
+  index = ((index % pairs.length) + pairs.length) % pairs.length;
+  matches.index = index;
+  const token = ++matches.token;
   const container = $("matches");
-  container.replaceChildren();
   delete container.dataset.ready;
-  for (const pair of result.inliers || []) {
-    const image = state.images.get(pair.image_id);
-    if (!image) continue;
-    const reference = await referenceBitmap(image);
-    const qs = MATCH_HEIGHT / queryBitmap.height;
-    const rs = MATCH_HEIGHT / image.camera.height;
-    const qw = queryBitmap.width * qs;
-    const canvas = document.createElement("canvas");
-    canvas.className = "match-view";
-    canvas.dataset.imageId = image.id;
-    canvas.dataset.inliers = String(pair.query_xy.length);
-    canvas.width = Math.round(qw + image.camera.width * rs);
-    canvas.height = MATCH_HEIGHT;
-    const ctx = canvas.getContext("2d");
-    ctx.drawImage(queryBitmap, 0, 0, qw, MATCH_HEIGHT);
-    ctx.fillStyle = "#bbb";
-    ctx.fillRect(qw, 0, image.camera.width * rs, MATCH_HEIGHT);
-    if (reference) ctx.drawImage(reference, qw, 0, image.camera.width * rs, MATCH_HEIGHT);
-    ctx.strokeStyle = "rgba(39, 174, 96, 0.8)";
-    ctx.lineWidth = 1;
-    const step = Math.max(1, Math.ceil(pair.query_xy.length / MAX_LINES));
-    ctx.beginPath();
-    for (let i = 0; i < pair.query_xy.length; i += step) {
-      const [qx, qy] = pair.query_xy[i];
-      const [rx, ry] = pair.reference_xy[i];
-      ctx.moveTo(qx * qs, qy * qs);
-      ctx.lineTo(qw + rx * rs, ry * rs);
-    }
-    ctx.stroke();
-    const figure = document.createElement("figure");
-    const caption = document.createElement("figcaption");
-    caption.textContent = `query ↔ ${image.name}: ${pair.query_xy.length} inliers`;
-    figure.append(canvas, caption);
-    container.append(figure);
+  const pair = pairs[index];
+  const image = state.images.get(pair.image_id);
+  $("match-position").textContent = `${index + 1} / ${pairs.length}`;
+  $("match-prev").disabled = $("match-next").disabled = pairs.length < 2;
+  const reference = await referenceBitmap(image);
+  if (token !== state.matches.token) return; // another figure was asked for meanwhile
+
+  const qs = MATCH_HEIGHT / queryBitmap.height;
+  const rs = MATCH_HEIGHT / image.camera.height;
+  const qw = queryBitmap.width * qs;
+  const gap = 8;
+  const canvas = document.createElement("canvas");
+  canvas.className = "match-view";
+  canvas.dataset.imageId = image.id;
+  canvas.dataset.index = String(index);
+  canvas.dataset.inliers = String(pair.query_xy.length);
+  canvas.width = Math.round(qw + gap + image.camera.width * rs);
+  canvas.height = MATCH_HEIGHT;
+  const ctx = canvas.getContext("2d");
+  ctx.drawImage(queryBitmap, 0, 0, qw, MATCH_HEIGHT);
+  const left = qw + gap;
+  ctx.fillStyle = "#bbb";
+  ctx.fillRect(left, 0, image.camera.width * rs, MATCH_HEIGHT);
+  if (reference) {
+    ctx.drawImage(reference, left, 0, image.camera.width * rs, MATCH_HEIGHT);
+    reference.close();
   }
+  const drawn = spread(pair.query_xy.length, MAX_LINES);
+  ctx.lineWidth = 1.5;
+  drawn.forEach((i, k) => {
+    const [qx, qy] = pair.query_xy[i];
+    const [rx, ry] = pair.reference_xy[i];
+    const colour = `hsl(${Math.round((360 * k) / drawn.length)}, 85%, 50%)`;
+    ctx.strokeStyle = colour;
+    ctx.fillStyle = colour;
+    ctx.beginPath();
+    ctx.moveTo(qx * qs, qy * qs);
+    ctx.lineTo(left + rx * rs, ry * rs);
+    ctx.stroke();
+    for (const [x, y] of [[qx * qs, qy * qs], [left + rx * rs, ry * rs]]) {
+      ctx.beginPath();
+      ctx.arc(x, y, 2.5, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+  });
+  canvas.dataset.lines = String(drawn.length);
+  const caption = $("match-caption");
+  const shown = drawn.length < pair.query_xy.length ? `, ${drawn.length} drawn` : "";
+  caption.textContent = `query ↔ ${image.name}: ${pair.query_xy.length} inliers${shown}`;
+  $("match-canvas").replaceChildren(canvas);
+  container.dataset.index = String(index);
   container.dataset.ready = "true";
 }
 
@@ -368,6 +826,12 @@ async function main() {
   });
   $("reload-maps").addEventListener("click", loadMaps);
   $("localize-form").addEventListener("submit", localize);
+  $("match-prev").addEventListener("click", () => showFigure(state.matches.index - 1));
+  $("match-next").addEventListener("click", () => showFigure(state.matches.index + 1));
+  $("matches").addEventListener("keydown", (event) => {
+    if (event.key === "ArrowLeft") showFigure(state.matches.index - 1);
+    if (event.key === "ArrowRight") showFigure(state.matches.index + 1);
+  });
   const modules = await loadThree();
   if (modules) state.three = setUpScene(modules);
   document.body.dataset.ready = "true";

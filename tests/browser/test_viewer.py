@@ -1,8 +1,9 @@
 """The map viewer in a real headless Chromium (the system's ``chromium`` package, driven by
 playwright): a real uvicorn server on a free port with auth on and a map seeded from a
 synthetic scene; the page is used as a person would (key, map, query upload) and what it draws
-is checked in the DOM and in the pixels. Screenshots go to ``test-artifacts/`` (or
-``$SLLOC_TEST_ARTIFACTS``)."""
+is checked in the DOM, in the page's state (data attributes) and in the pixels, with no
+JavaScript error on the way. Screenshots go to pytest's ``tmp_path`` (their paths printed) and
+to ``test-artifacts/`` (or ``$SLLOC_TEST_ARTIFACTS``)."""
 
 from __future__ import annotations
 
@@ -36,6 +37,10 @@ ARTIFACTS = Path(os.environ.get("SLLOC_TEST_ARTIFACTS", ROOT / "test-artifacts")
 ADMIN_KEY, CLIENT_KEY = "viewer-admin-key", "viewer-client-key"
 NUM_REFERENCES = 12
 QUERY_RGB = (0xE7, 0x4C, 0x3C)  # the query frustum's colour in viewer.js
+MAX_LINES = 50  # inlier lines per match figure in viewer.js
+# map x → East, map z → North, map −y → Up: the synthetic room's y points down
+ENU_FROM_MAP = {"rotation": [0.5**0.5, -(0.5**0.5), 0.0, 0.0], "translation": [10.0, 20.0, 3.0]}
+ORIGIN = {"latitude": 48.137154, "longitude": 11.576124, "height": 520.0}
 
 
 def _chromium() -> str:
@@ -108,24 +113,62 @@ def browser() -> Iterator[playwright.Browser]:
         launched.close()
 
 
-def _localize_in_page(page: playwright.Page, served: Served) -> dict[str, object]:
-    """Type the client key, pick the map, upload the query and localize; returns the API's
-    answer as the page received it."""
+def _watch_errors(page: playwright.Page) -> list[str]:
+    """Uncaught exceptions and console errors of the page, as they happen. Chromium logs each
+    refused request as a console error ("Failed to load resource: … 401/404"): those are the
+    API's answers the page handles (no key yet, a map without a geo-registration), not
+    JavaScript errors."""
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(f"uncaught: {error}"))
+    page.on(
+        "console",
+        lambda message: (
+            errors.append(f"console: {message.text}")
+            if message.type == "error" and not message.text.startswith("Failed to load resource")
+            else None
+        ),
+    )
+    return errors
+
+
+def _open_map(page: playwright.Page, served: Served) -> None:
+    """Type the client key and pick the map; returns once it is drawn."""
     page.goto(served.url + "/")
     page.wait_for_selector("body[data-ready=true]")
     page.fill("#api-key", CLIENT_KEY)
     page.click("#save-key")
     page.click(f"#maps button[data-map-id='{served.map_id}']")
+    page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
     page.wait_for_selector("#localize:not([disabled])")
+
+
+def _localize(page: playwright.Page, served: Served, **params: object) -> dict[str, object]:
+    """Upload the query and localize on the open map; returns the API's answer as the page
+    received it."""
     page.set_input_files("#query-image", str(served.query_png))
-    params = {"camera": image_metadata(served.query)["camera"], "top_k": 5}
+    params = {"camera": image_metadata(served.query)["camera"], "top_k": 5, **params}
     page.fill("#params", json.dumps(params))
     with page.expect_response(lambda r: r.url.endswith("/localize")) as answer:
         page.click("#localize")
     assert answer.value.status == 200
     result: dict[str, object] = answer.value.json()
-    page.wait_for_selector("#matches[data-ready=true]")
+    page.wait_for_selector("#matches[data-ready=true]", state="attached")
     return result
+
+
+def _localize_in_page(page: playwright.Page, served: Served) -> dict[str, object]:
+    _open_map(page, served)
+    return _localize(page, served)
+
+
+def _screenshot(page: playwright.Page, tmp_path: Path, name: str) -> Path:
+    path = tmp_path / name
+    shot = page.screenshot(path=path, full_page=True)
+    assert shot[:8] == b"\x89PNG\r\n\x1a\n"
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(path, ARTIFACTS / name)
+    print(f"screenshot: {path}")
+    return path
 
 
 def _pixels(png: bytes) -> np.ndarray:
@@ -133,8 +176,11 @@ def _pixels(png: bytes) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(int)
 
 
-def test_viewer_localizes_and_draws(browser: playwright.Browser, served: Served) -> None:
+def test_viewer_localizes_and_draws(
+    browser: playwright.Browser, served: Served, tmp_path: Path
+) -> None:
     page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors = _watch_errors(page)
     page.goto(served.url + "/viewer/")
     page.wait_for_selector("body[data-ready=true]")
     # auth is on and the tab has no key yet: the map list is refused, and the page says so
@@ -143,50 +189,147 @@ def test_viewer_localizes_and_draws(browser: playwright.Browser, served: Served)
 
     result = _localize_in_page(page, served)
     assert result["localized"] is True
+    playwright.expect(page.locator("#status")).to_contain_text("localized in")
 
     scene = page.locator("#scene")
     assert scene.get_attribute("data-reference-frusta") == str(NUM_REFERENCES)
     assert scene.get_attribute("data-query-frustum") == "1"
+    assert scene.get_attribute("data-candidate-frustum") == "0"
     assert page.locator("#outcome").get_attribute("data-localized") == "true"
     # the page's own pose arithmetic (quaternion → R, centre −Rᵀt) agrees with the server's
     centre = json.loads(scene.get_attribute("data-query-centre") or "null")
     assert np.allclose(centre, result["camera_center"], atol=1e-9)
+    # the ground's up: the cameras' mean up, the room's −y (its cameras are near upright)
+    up = json.loads(scene.get_attribute("data-up") or "null")
+    assert np.dot(up, [0, -1, 0]) > 0.9, up
+    assert scene.get_attribute("data-compass") == "0"  # not geo-registered
+    assert page.locator("#compass").is_hidden()
+    # reference previews are textured on the image planes, a bounded number, loaded lazily
+    page.wait_for_function(
+        f"Number(document.querySelector('#scene').dataset.thumbnails) >= {NUM_REFERENCES}"
+    )
     assert page.locator("#num-inliers").inner_text() == str(result["num_inliers"])
     retrieved = result["retrieved"]
     inliers = result["inliers"]
-    assert isinstance(retrieved, list) and isinstance(inliers, list) and inliers
+    assert isinstance(retrieved, list) and isinstance(inliers, list) and len(inliers) >= 2
     assert page.locator("li.retrieved").count() == len(retrieved)
-    views = page.locator("canvas.match-view")
-    assert views.count() == len(inliers)
-    for i, pair in enumerate(inliers):
-        assert views.nth(i).get_attribute("data-image-id") == pair["image_id"]
-        assert views.nth(i).get_attribute("data-inliers") == str(len(pair["query_xy"]))
 
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    shot = page.screenshot(path=ARTIFACTS / "viewer.png", full_page=True)
-    assert shot[:8] == b"\x89PNG\r\n\x1a\n"
+    # one match figure at a time, at most MAX_LINES lines; next / previous page through them
+    view = page.locator("canvas.match-view")
+    assert view.count() == 1
+    assert page.locator("#match-position").inner_text() == f"1 / {len(inliers)}"
+    for index in (0, 1, 0):
+        if index != int(view.get_attribute("data-index") or "-1"):
+            page.click("#match-next" if index == 1 else "#match-prev")
+            page.wait_for_selector(
+                f"#matches[data-ready=true] canvas.match-view[data-index='{index}']"
+            )
+        pair = inliers[index]
+        assert view.get_attribute("data-image-id") == pair["image_id"]
+        assert view.get_attribute("data-inliers") == str(len(pair["query_xy"]))
+        lines = int(view.get_attribute("data-lines") or "-1")
+        assert lines == min(MAX_LINES, len(pair["query_xy"])), lines
+
+    shot = _screenshot(page, tmp_path, "viewer.png")
+    assert shot.stat().st_size > 0
     # the 3D view drew the query frustum in its colour ...
     drawn = _pixels(scene.screenshot())
     query_pixels = np.all(np.abs(drawn - QUERY_RGB) < 40, axis=-1).sum()
     # (1-px lines: 43 on the first run, 0 with nothing drawn)
     assert query_pixels > 20, f"{query_pixels} pixels of the query frustum's colour"
-    # ... and each match view holds the reference preview, not the grey stand-in
-    match_view = _pixels(views.nth(0).screenshot())
+    # ... and the match figure holds the reference preview, not the grey stand-in
+    match_view = _pixels(view.screenshot())
     right = match_view[:, match_view.shape[1] // 2 + 20 :]
     assert right.std() > 20, "the reference half of the match view is blank"
+    assert errors == []
     page.close()
 
 
+def test_viewer_shows_a_failed_query_as_failed(
+    browser: playwright.Browser, served: Served, tmp_path: Path
+) -> None:
+    """Above the answer's confidence the same query is not localized (low_confidence): the
+    header says so with the reason, and the candidate pose is drawn dashed, not as the query."""
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    errors = _watch_errors(page)
+    answered = _localize_in_page(page, served)
+    assert answered["localized"] is True
+    confidence = answered["confidence"]
+    assert isinstance(confidence, float) and confidence < 1.0
+    refused = _localize(page, served, min_confidence=(confidence + 1.0) / 2.0)
+    assert refused["localized"] is False and refused["reason"] == "low_confidence"
+
+    playwright.expect(page.locator("#status")).to_contain_text("not localized: low_confidence")
+    assert "localized in" not in page.locator("#status").inner_text()
+    assert page.locator("#outcome").get_attribute("data-localized") == "false"
+    playwright.expect(page.locator("#outcome")).to_contain_text("Not localized: low_confidence")
+    scene = page.locator("#scene")
+    assert scene.get_attribute("data-query-frustum") == "0"
+    assert scene.get_attribute("data-candidate-frustum") == "1"
+    candidate = json.loads(scene.get_attribute("data-candidate-centre") or "null")
+    assert np.allclose(candidate, answered["camera_center"], atol=1e-9)
+    _screenshot(page, tmp_path, "viewer-not-localized.png")
+    assert errors == []
+    page.close()
+
+
+def test_viewer_geo_registered_map(
+    browser: playwright.Browser, served: Served, tmp_path: Path
+) -> None:
+    """On a geo-registered map the ground carries a North arrow (the corner compass turns with
+    the view) and the side panel shows the answer's GeoPose."""
+    with httpx.Client(base_url=served.url, headers={"X-API-Key": ADMIN_KEY}) as api:
+        url = f"/v1/maps/{served.map_id}/geo-registration"
+        response = api.put(url, json={"origin": ORIGIN, "enu_from_map": ENU_FROM_MAP})
+        assert response.status_code == 200, response.text
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            errors = _watch_errors(page)
+            _open_map(page, served)
+            scene = page.locator("#scene")
+            assert scene.get_attribute("data-compass") == "1"
+            # up is ENU's up through the registration: map −y
+            up = json.loads(scene.get_attribute("data-up") or "null")
+            assert np.allclose(up, [0, -1, 0], atol=1e-6), up
+            assert page.locator("#compass").is_visible()
+            assert page.locator("#geo").get_attribute("data-registered") == "true"
+            playwright.expect(page.locator("#geo-registration")).to_contain_text("48.137")
+
+            result = _localize(page, served)
+            assert result["localized"] is True
+            geopose = result["geopose"]
+            assert isinstance(geopose, dict)
+            panel = page.locator("#geopose")
+            playwright.expect(panel).to_contain_text("lat")
+            assert float(panel.get_attribute("data-lat") or "nan") == geopose["position"]["lat"]
+            assert float(panel.get_attribute("data-lon") or "nan") == geopose["position"]["lon"]
+            assert (
+                page.locator("#geopose dd[data-field=lon]")
+                .inner_text()
+                .startswith(f"{geopose['position']['lon']:.6f}"[:-1])
+            )
+            assert "quaternion" in panel.inner_text()
+            _screenshot(page, tmp_path, "viewer-geo.png")
+            assert errors == []
+            page.close()
+        finally:
+            assert api.delete(url).status_code == 204
+
+
 def test_viewer_without_three_js_still_localizes(
-    browser: playwright.Browser, served: Served
+    browser: playwright.Browser, served: Served, tmp_path: Path
 ) -> None:
     page = browser.new_page(viewport={"width": 1200, "height": 900})
+    errors = _watch_errors(page)
     page.route("**/viewer/vendor/**", lambda route: route.abort())  # as if never installed
     result = _localize_in_page(page, served)
     playwright.expect(page.locator("#scene-note")).to_contain_text("three.js is not installed")
     assert page.locator("#scene").get_attribute("data-reference-frusta") == "0"
     assert page.locator("#num-inliers").inner_text() == str(result["num_inliers"])
-    assert page.locator("canvas.match-view").count() == len(result["inliers"] or [])  # type: ignore[arg-type]
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=ARTIFACTS / "viewer-without-three.png", full_page=True)
+    inliers = result["inliers"]
+    assert isinstance(inliers, list) and inliers
+    assert page.locator("canvas.match-view").count() == 1
+    assert page.locator("#match-position").inner_text() == f"1 / {len(inliers)}"
+    _screenshot(page, tmp_path, "viewer-without-three.png")
+    assert errors == [], errors
     page.close()
