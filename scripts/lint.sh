@@ -4,7 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 .venv/bin/ruff format --check .
 .venv/bin/ruff check .
-.venv/bin/mypy app services db tools
+.venv/bin/mypy app services db tools clients/python
 # offline (font: false, no social cards); --strict fails on a broken link or an unlisted page
 site=$(mktemp -d)
 trap 'rm -rf "$site"' EXIT

@@ -9,3 +9,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".${extras:+[$extras]}"
+# the dev tools' tests drive the Python SDK (clients/python) against a live server
+if [[ ",$extras," == *",dev,"* ]]; then
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ./clients/python
+fi

@@ -7,6 +7,8 @@ downscaled portrait JPEG with the sensor intrinsics and gravity in the sensor ca
 for ``world_from_cam`` in OpenGL axes for the sensor camera, and places the map in its session:
 ``session_from_map = session_from_cam · inverse(map_from_cam)``.
 
+It talks to the service through the Python SDK (``clients/python``, ``slloc_client``).
+
 Run (server up, demo map loaded as in the README example session)::
 
     .venv/bin/python -m tools.examples.ar_client --map <MAP_ID> --demo demo
@@ -21,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import httpx
 import numpy as np
+from slloc_client import Client
 
 from services.geometry.pose_conventions import world_from_cam
 from services.geometry.rigid import Rigid3d
@@ -79,26 +81,19 @@ def main() -> None:
         "gravity": {"down": down.tolist()},
         "output": {"frames": ["opengl"], "pose_of": "camera"},
     }
-    headers = {"X-API-Key": args.api_key} if args.api_key else {}
-    response = httpx.post(
-        f"{args.api}/v1/maps/{args.map}/localize",
-        files={"image": ("frame.jpg", jpeg.tobytes(), "image/jpeg")},
-        data={"params": json.dumps(params)},
-        headers=headers,
-        timeout=30.0,
-    )
-    response.raise_for_status()
-    answer = response.json()
-    print("localized:", answer["localized"], answer["reason"] or "")
+    with Client(args.api, api_key=args.api_key, timeout=30.0) as slloc:
+        answer = slloc.localize(args.map, jpeg.tobytes(), params=params)
+    print("localized:", answer.localized, answer.reason or "")
+    adaptation = answer.camera_adaptation
     print(
         "camera_adaptation:",
-        json.dumps({k: v for k, v in (answer["camera_adaptation"] or {}).items() if k != "camera"}),
+        adaptation.model_dump_json(exclude={"camera"}) if adaptation else None,
     )
-    print("upright_turn_deg:", answer["upright_turn_deg"])
-    if not answer["localized"]:
+    print("upright_turn_deg:", answer.upright_turn_deg)
+    if not answer.localized or answer.world_from_cam is None:
         return
     # 4. place the map in the session: content at x_map is drawn at session_from_map · x_map
-    map_from_cam = np.array(answer["world_from_cam"]["opengl"]["matrix"])
+    map_from_cam = np.array(answer.world_from_cam["opengl"].matrix)
     estimate = session_from_cam @ np.linalg.inv(map_from_cam)
     error_m = float(np.linalg.norm(estimate[:3, 3] - session_from_map[:3, 3]))
     cos = (np.trace(estimate[:3, :3].T @ session_from_map[:3, :3]) - 1.0) / 2.0
