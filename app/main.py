@@ -15,6 +15,7 @@ from fastapi_offline import FastAPIOffline
 from app.admission import Admission
 from app.api.openapi import install_openapi
 from app.api.routes import geo, gpp, health, images, localize, maps
+from app.ar_page import install_ar_page
 from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
 from app.engine_config import engine_config, service_memory_bound, thread_plan
@@ -136,5 +137,6 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.include_router(metrics_router)
     app.include_router(health.probes)
     install_viewer(app)
+    install_ar_page(app)
     install_openapi(app)
     return app
