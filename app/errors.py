@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -15,7 +16,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 from starlette.routing import BaseRoute, Match, Route
-from starlette.types import Scope
+from starlette.types import Scope, Send
 
 from app.request_context import REQUEST_ID_HEADER, current_request_id
 from app.usecases.errors import ConflictError, NotFoundError
@@ -356,3 +357,39 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
             "an unexpected error occurred",
             headers,
         )
+
+
+async def send_problem_and_close(
+    scope: Scope,
+    send: Send,
+    status: int,
+    kind: str,
+    title: str,
+    detail: str,
+    headers: Sequence[tuple[bytes, bytes]] = (),
+) -> None:
+    """Answers a problem+json from ASGI middleware, outside the exception handlers, and
+    closes the connection (the request's body is left unread)."""
+    body = json.dumps(
+        {
+            "type": PROBLEM_BASE + kind,
+            "title": title,
+            "status": status,
+            "detail": detail,
+            "instance": scope.get("path", ""),
+            "request_id": current_request_id(),
+        }
+    ).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", PROBLEM_JSON.encode()),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+                *headers,
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})

@@ -3,14 +3,12 @@ within the memory the server budgets for them (``SLLOC_BODY_MEMORY_MIB``)."""
 
 from __future__ import annotations
 
-import json
 import threading
 
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.errors import PROBLEM_BASE, PROBLEM_JSON
-from app.request_context import current_request_id
+from app.errors import send_problem_and_close
 from services.runtime.memory import JSON_BODY_FACTOR
 
 # seconds a client is asked to wait when the body memory is taken by other requests
@@ -99,14 +97,13 @@ class BodySizeLimit:
             await self._reject(scope, send)
 
     async def _reject(self, scope: Scope, send: Send) -> None:
-        await _send_problem(
+        await send_problem_and_close(
             scope,
             send,
             413,
             "payload-too-large",
             "Payload too large",
             _detail(self.max_bytes),
-            [(b"connection", b"close")],
         )
 
     async def _busy(self, scope: Scope, send: Send) -> None:
@@ -114,46 +111,10 @@ class BodySizeLimit:
             f"the server is receiving other request bodies up to its body memory "
             f"({self.memory.budget_bytes} bytes); retry after {BODY_MEMORY_RETRY_AFTER_S} s"
         )
-        retry = [
-            (b"retry-after", str(BODY_MEMORY_RETRY_AFTER_S).encode()),
-            (b"connection", b"close"),
-        ]
-        await _send_problem(scope, send, 503, "body-memory-full", "Service busy", detail, retry)
-
-
-async def _send_problem(
-    scope: Scope,
-    send: Send,
-    status: int,
-    kind: str,
-    title: str,
-    detail: str,
-    headers: list[tuple[bytes, bytes]],
-) -> None:
-    """Answers a problem+json before the request's body was read (the connection then
-    closes, since the body is left unread)."""
-    body = json.dumps(
-        {
-            "type": PROBLEM_BASE + kind,
-            "title": title,
-            "status": status,
-            "detail": detail,
-            "instance": scope.get("path", ""),
-            "request_id": current_request_id(),
-        }
-    ).encode()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": status,
-            "headers": [
-                (b"content-type", PROBLEM_JSON.encode()),
-                (b"content-length", str(len(body)).encode()),
-                *headers,
-            ],
-        }
-    )
-    await send({"type": "http.response.body", "body": body})
+        retry = [(b"retry-after", str(BODY_MEMORY_RETRY_AFTER_S).encode())]
+        await send_problem_and_close(
+            scope, send, 503, "body-memory-full", "Service busy", detail, retry
+        )
 
 
 class BodyTooLargeError(HTTPException):

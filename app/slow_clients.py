@@ -20,7 +20,6 @@ request, probes included, answer 503.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from typing import Any, cast
 
@@ -29,8 +28,7 @@ from uvicorn.config import Config
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.server import ServerState
 
-from app.errors import PROBLEM_BASE, PROBLEM_JSON
-from app.request_context import current_request_id
+from app.errors import send_problem_and_close
 
 logger = logging.getLogger(__name__)
 
@@ -163,7 +161,7 @@ class ClientAdmission:
         held = self.per_client.get(host, 0)
         if self.in_flight >= self.max_in_flight or held >= self.max_per_client:
             whose = "this client's" if held >= self.max_per_client else "the server's"
-            await _problem(
+            await send_problem_and_close(
                 scope,
                 send,
                 503,
@@ -221,7 +219,7 @@ class ClientAdmission:
             logger.debug("after the body timeout", exc_info=True)
         if timed_out and not started:
             logger.warning("request body not received within %.0f s", self.body_timeout_s)
-            await _problem(
+            await send_problem_and_close(
                 scope,
                 send,
                 408,
@@ -230,37 +228,3 @@ class ClientAdmission:
                 f"the request body did not arrive within {self.body_timeout_s:g} s",
                 [],
             )
-
-
-async def _problem(
-    scope: Scope,
-    send: Send,
-    status: int,
-    kind: str,
-    title: str,
-    detail: str,
-    headers: list[tuple[bytes, bytes]],
-) -> None:
-    body = json.dumps(
-        {
-            "type": PROBLEM_BASE + kind,
-            "title": title,
-            "status": status,
-            "detail": detail,
-            "instance": scope.get("path", ""),
-            "request_id": current_request_id(),
-        }
-    ).encode()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": status,
-            "headers": [
-                (b"content-type", PROBLEM_JSON.encode()),
-                (b"content-length", str(len(body)).encode()),
-                (b"connection", b"close"),
-                *headers,
-            ],
-        }
-    )
-    await send({"type": "http.response.body", "body": body})
