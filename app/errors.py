@@ -270,29 +270,24 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
         locked file) or refuses writes (a read-only file, folder or server, a full disk):
         503 to retry, not a 500."""
         if database_not_writable(exc):
-            logger.warning(
-                "database not writable on %s %r: %s",
-                request.method,
-                request.url.path,
-                str(getattr(exc, "orig", None) or exc).splitlines()[0][:200],
-            )
-            return problem_response(
-                request,
-                503,
+            kind, title, detail = (
                 "database-not-writable",
                 "Database not writable",
                 "the database refuses writes (read-only file or folder, read-only server or "
-                f"full disk); reads are still served; retry after {DATABASE_RETRY_AFTER_S} s",
-                {"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+                "full disk); reads are still served",
             )
-        if (
+        elif (
             isinstance(exc, DBAPIError)
             and not isinstance(exc, OperationalError)
             and not exc.connection_invalidated
         ):
             return await _unexpected(request, exc)
+        else:
+            kind, title = "database-unavailable", "Database unavailable"
+            detail = "the database cannot be reached"
         logger.warning(
-            "database unavailable on %s %r: %s",
+            "%s on %s %r: %s",
+            title.lower(),
             request.method,
             request.url.path,
             str(getattr(exc, "orig", None) or exc).splitlines()[0][:200],
@@ -300,9 +295,9 @@ def install_error_handlers(app: FastAPI, routes: Sequence[BaseRoute]) -> None:
         return problem_response(
             request,
             503,
-            "database-unavailable",
-            "Database unavailable",
-            f"the database cannot be reached; retry after {DATABASE_RETRY_AFTER_S} s",
+            kind,
+            title,
+            f"{detail}; retry after {DATABASE_RETRY_AFTER_S} s",
             {"Retry-After": str(DATABASE_RETRY_AFTER_S)},
         )
 
