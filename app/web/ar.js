@@ -14,6 +14,8 @@
 // Query string: ?map=ID&key=KEY&interval=SECONDS&focal=PX&depth=FRUSTUM_DEPTH&auto=0 (the key
 // is moved into the tab's sessionStorage and taken out of the address bar).
 
+import { rotation, toWorld } from "./geometry.js";
+
 const KEY_STORAGE = "slloc.apiKey"; // shared with the viewer
 const MAX_IMAGES = 5000; // reference frusta drawn per map
 const MAX_LOG = 1000; // answers kept in window.arLog
@@ -145,21 +147,6 @@ function projectionMatrix(THREE, camera, near, far) {
     0, 0, -(far + near) / (far - near), (-2 * far * near) / (far - near),
     0, 0, -1, 0,
   );
-}
-
-function rotation([w, x, y, z]) {
-  // row-major 3×3 rotation of a unit quaternion
-  return [
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-  ];
-}
-
-// world point of camera point p (COLMAP axes): Rᵀ (p − t)
-function toWorld(R, t, p) {
-  const d = [p[0] - t[0], p[1] - t[1], p[2] - t[2]];
-  return [0, 1, 2].map((j) => R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2]);
 }
 
 function setUpOverlay(THREE) {

@@ -6,6 +6,8 @@
 // coordinates follow COLMAP (the centre of the top-left pixel is (0.5, 0.5)), which is also the
 // canvas convention, so they are drawn without an offset.
 
+import { directionToWorld, rotation, toWorld } from "./geometry.js";
+
 const KEY_STORAGE = "slloc.apiKey";
 const MAX_IMAGES = 5000; // frusta drawn per map
 const MAX_THUMBNAILS = 64; // previews textured on image planes per map (GPU memory bound)
@@ -57,26 +59,6 @@ function setStatus(text, isError = false) {
 }
 
 // --- geometry ---------------------------------------------------------------------------
-
-function rotation([w, x, y, z]) {
-  // row-major 3×3 rotation of a unit quaternion
-  return [
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-  ];
-}
-
-// world point of camera point p: Rᵀ (p − t)
-function toWorld(R, t, p) {
-  const d = [p[0] - t[0], p[1] - t[1], p[2] - t[2]];
-  return [0, 1, 2].map((j) => R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2]);
-}
-
-// world direction of camera direction d: Rᵀ d
-function directionToWorld(R, d) {
-  return [0, 1, 2].map((j) => R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2]);
-}
 
 const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 const add = (a, b, s = 1) => [a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2]];
