@@ -11,6 +11,7 @@ from services.confidence.model import ConfidenceModel
 from services.estimators.base import EstimateResult, ReferenceObservation
 from services.estimators.correspondences import pose_sampson_errors_px, stack_matches
 from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
@@ -35,14 +36,16 @@ def inlier_residuals_px(
     references: list[ReferenceObservation],
     inliers: list[BoolArray],
     cam_from_world: Rigid3d,
+    deadline: Deadline | None = None,
 ) -> FloatArray:
-    """(K,) Sampson errors (≈ pixels) of the K inliers under the pose, in stacked order."""
+    """(K,) Sampson errors (≈ pixels) of the K inliers under the pose, in stacked order
+    (``deadline`` polled between chunks: ``pose_sampson_errors_px``)."""
     stacked = stack_matches(camera, references)
     subset = np.flatnonzero(np.concatenate(inliers)) if inliers else np.zeros(0, np.int64)
     if subset.size == 0:
         return np.zeros(0)
     errors: FloatArray = pose_sampson_errors_px(
-        stacked, cam_from_world.rotation[None], cam_from_world.center[None], subset
+        stacked, cam_from_world.rotation[None], cam_from_world.center[None], subset, deadline
     )[0]
     return errors
 
@@ -67,6 +70,7 @@ def inlier_geometry(
     inliers: list[BoolArray],
     cam_from_world: Rigid3d,
     max_error_px: float,
+    deadline: Deadline | None = None,
 ) -> dict[str, float]:
     """Stats of a pose and its inlier masks: ``inlier_area_fraction``,
     ``inlier_residual_ratio`` (median inlier error over the inlier threshold),
@@ -74,7 +78,7 @@ def inlier_geometry(
     ``radial_residual_ratio``."""
     used = [ref.query_xy[mask] for ref, mask in zip(references, inliers, strict=True)]
     query_xy = np.concatenate(used) if used else np.zeros((0, 2))
-    errors = inlier_residuals_px(camera, references, inliers, cam_from_world)
+    errors = inlier_residuals_px(camera, references, inliers, cam_from_world, deadline)
     return {
         "inlier_area_fraction": inlier_area_fraction(query_xy, camera.width, camera.height),
         "inlier_residual_ratio": float(np.median(errors)) / max_error_px if errors.size else 0.0,
@@ -92,14 +96,19 @@ def rescore(
     options: EstimatorOptions,
     estimator: str,
     model: ConfidenceModel,
+    deadline: Deadline | None = None,
 ) -> EstimateResult:
     """``result`` with the geometry of its inliers in its stats and the model's confidence;
-    a result without a pose unchanged."""
+    a result without a pose unchanged.
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed while the inliers' errors were measured.
+    """
     pose = result.cam_from_world
     if pose is None:
         return result
     geometry = inlier_geometry(
-        camera, references, result.inliers, pose, options.ransac.max_error_px
+        camera, references, result.inliers, pose, options.ransac.max_error_px, deadline
     )
     stats = {**result.stats, **geometry}
     return replace(result, stats=stats, confidence=model.confidence(stats, estimator))

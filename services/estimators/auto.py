@@ -226,7 +226,7 @@ class AutoEstimator:
                     FailureReason.TIME_BUDGET_EXCEEDED, references, found.stats
                 )
                 break
-            results[name] = verify_pose(found, query_camera, references, budget)
+            results[name] = verify_pose(found, query_camera, references, budget, deadline)
         attempts = {"auto_attempts": float(len(results))}
         verified = self._verified(results)
         if verified:

@@ -10,6 +10,7 @@ import numpy as np
 from services.estimators.base import (
     ReferenceObservation,
 )
+from services.estimators.ransac import Deadline
 from services.geometry.camera import Camera
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.types import BoolArray, FloatArray, IntArray
@@ -107,8 +108,16 @@ def stack_matches(query_camera: Camera, references: list[ReferenceObservation]) 
     )  # fmt: skip
 
 
+# matches per chunk of a pass that polls a deadline (100k matches take ~0.05-0.2 s a pass)
+SAMPSON_CHUNK = 8192
+
+
 def pose_sampson_errors_px(
-    stacked: StackedMatches, R_q: FloatArray, C_q: FloatArray, subset: IntArray | None = None
+    stacked: StackedMatches,
+    R_q: FloatArray,
+    C_q: FloatArray,
+    subset: IntArray | None = None,
+    deadline: Deadline | None = None,
 ) -> FloatArray:
     """Sampson error (≈ pixels) of every match under query-pose hypotheses.
 
@@ -118,10 +127,28 @@ def pose_sampson_errors_px(
     Args:
         R_q: (B, 3, 3) query rotations; C_q: (B, 3) query centres.
         subset: optional (S,) match indices to evaluate (errors come in sorted index order).
+        deadline: when given, the matches are evaluated in chunks of ``SAMPSON_CHUNK`` and the
+            deadline is checked before each (the errors are the same, element for element).
     Returns:
         (B, N) or (B, S) errors.
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed before the last chunk.
     """
     idx = np.arange(stacked.size) if subset is None else np.sort(subset)
+    if deadline is None:
+        return _sampson_errors_px(stacked, R_q, C_q, idx)
+    parts = []
+    for start in range(0, max(idx.shape[0], 1), SAMPSON_CHUNK):
+        deadline.check()
+        parts.append(_sampson_errors_px(stacked, R_q, C_q, idx[start : start + SAMPSON_CHUNK]))
+    return np.concatenate(parts, axis=1)
+
+
+def _sampson_errors_px(
+    stacked: StackedMatches, R_q: FloatArray, C_q: FloatArray, idx: IntArray
+) -> FloatArray:
+    """``pose_sampson_errors_px`` of the matches ``idx`` (sorted)."""
     ref = stacked.ref_index[idx]
     b_r = stacked.ref_bearing_world[idx]
     h_q = np.concatenate([stacked.query_norm[idx], np.ones((idx.shape[0], 1))], axis=1)

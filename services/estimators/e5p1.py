@@ -85,7 +85,7 @@ class E5p1Estimator(Estimator):
         hypothesis = from_poselib(pose)
         if not np.all(np.isfinite(hypothesis.matrix)):
             request.fail(FailureReason.NO_CONSENSUS)
-        cam_from_world, inliers = local_optimisation(
+        cam_from_world, errors = local_optimisation(
             hypothesis,
             request.stacked,
             references,
@@ -95,4 +95,4 @@ class E5p1Estimator(Estimator):
             rounds=2,
             refine_iterations=10,
         )
-        return Solution(cam_from_world, inliers)
+        return Solution(cam_from_world, errors < options.ransac.max_error_px)

@@ -25,7 +25,7 @@ from services.estimators.correspondences import (
 )
 from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import reference_layout, reference_spread_deg
-from services.estimators.ransac import Deadline
+from services.estimators.ransac import Deadline, DeadlinePassedError
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray
@@ -138,7 +138,8 @@ def finish(
 
 class Estimator(ABC):
     """A pose estimator (``base.PoseEstimator``): ``check``, then ``solve``, then ``result``;
-    a linear system found singular on the way is a ``degenerate_geometry`` failure.
+    a linear system found singular on the way is a ``degenerate_geometry`` failure, the
+    deadline passing inside a long pass (``Deadline.check``) a ``time_budget_exceeded`` one.
 
     Attributes:
         name: the API name.
@@ -177,6 +178,10 @@ class Estimator(ABC):
             return self.result(request, self.solve(request))
         except EstimationError as failed:
             return EstimateResult.failure(failed.reason, references, request.stats)
+        except DeadlinePassedError:  # inside a long pass: its pose would come too late
+            return EstimateResult.failure(
+                FailureReason.TIME_BUDGET_EXCEEDED, references, request.stats
+            )
         except np.linalg.LinAlgError:  # a singular system the method's own checks let through
             logger.warning("%s: singular linear system", self.name, exc_info=True)
             return EstimateResult.failure(
@@ -191,7 +196,7 @@ class Estimator(ABC):
         inliers = solution.inliers
         if inliers is None:
             errors = pose_sampson_errors_px(
-                request.stacked, pose.rotation[None], pose.center[None]
+                request.stacked, pose.rotation[None], pose.center[None], deadline=request.deadline
             )[0]
             inliers = errors < options.ransac.max_error_px
         request.stats.setdefault("score", float(inliers.sum()))

@@ -100,21 +100,21 @@ class _QueryPoseDepthProblem:
 
     def errors(self, model: Rigid3d) -> FloatArray:
         errors: FloatArray = pose_sampson_errors_px(
-            self.stacked, model.rotation[None], model.center[None]
+            self.stacked, model.rotation[None], model.center[None], deadline=self.request.deadline
         )[0]
         return errors
 
     def local_optimisation(self, model: Rigid3d, errors: FloatArray) -> tuple[Rigid3d, FloatArray]:
         request = self.request
-        refined, _ = local_optimisation(
+        return local_optimisation(
             model,
             self.stacked,
             request.references,
             request.query_camera,
             request.options,
             request.deadline,
+            errors=errors,
         )
-        return refined, self.errors(refined)
 
 
 def ransac_query_pose_depth(request: Request) -> RansacResult[Rigid3d]:

@@ -14,6 +14,7 @@ Localization"), shared by ``essential_5pt``, ``essential_3pt_depth``
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -32,7 +33,6 @@ from services.estimators.depth_relative_pose import (
 from services.estimators.estimator import Estimator, Request, Solution
 from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
-    affordable_refinement,
     estimate_relative_pose,
     ransac_options,
     refine_query_pose,
@@ -48,12 +48,14 @@ from services.geometry.camera import Camera
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.projection import mean_focal, normalized_from_pixels
 from services.geometry.rigid import Rigid3d
-from services.types import BoolArray
+from services.types import BoolArray, FloatArray
 
 ROTATION_INLIER_DEG = 5.0  # implied query rotations farther than this from the median
 DIRECTION_INLIER_DEG = 10.0  # rays farther than this from the query centre
 MIN_PAIR_INLIERS = 15  # a relative pose with fewer inliers is not used
 MIN_CONDITIONING = 1e-6  # ray-intersection conditioning below this is degenerate
+# Sampson errors a pass evaluates per second before one was timed (measured ~2e6 unloaded)
+_PASS_MATCHES_PER_SECOND = 1.0e6
 
 
 @dataclass(frozen=True)
@@ -260,18 +262,37 @@ def local_optimisation(
     deadline: Deadline,
     rounds: int = 3,
     refine_iterations: int = 100,
-) -> tuple[Rigid3d, BoolArray]:
+    errors: FloatArray | None = None,
+) -> tuple[Rigid3d, FloatArray]:
     """Step 4: generalized Sampson refinement (PoseLib, Cauchy loss) of the query pose on all
     pairs at once, ``rounds`` times; each round re-selects the matches within an adaptive
     threshold (``adaptive_threshold_px``), with at most ``refine_iterations`` Levenberg–Marquardt
-    steps. A round that loses more than 5 % of the inliers at
-    ``max_error_px`` is rejected. Returns the pose and its (N,) inlier mask at ``max_error_px``
-    over the stacked matches."""
+    steps. A round that loses more than 5 % of the inliers at ``max_error_px`` is rejected.
+
+    The time budget: every pass over the stacked matches polls ``deadline``; a round is
+    skipped once less time is left than twice the last pass took (its refinement and the
+    pass after it would not end in time), and the refinement ends in time for that pass
+    (``refine_query_pose``).
+
+    Args:
+        errors: (N,) the Sampson errors of ``pose`` (px) when the caller has them.
+    Returns:
+        The pose and its (N,) Sampson errors (px) over the stacked matches.
+
+    Raises:
+        DeadlinePassedError: the deadline passed during a pass.
+    """
     thr = options.ransac.max_error_px
-    errors = pose_sampson_errors_px(stacked, pose.rotation[None], pose.center[None])[0]
+    pass_s = stacked.size / _PASS_MATCHES_PER_SECOND
+    if errors is None:
+        start = time.perf_counter()
+        errors = pose_sampson_errors_px(
+            stacked, pose.rotation[None], pose.center[None], deadline=deadline
+        )[0]
+        pass_s = time.perf_counter() - start
     count = int((errors < thr).sum())
     for _ in range(rounds):
-        if deadline.expired():
+        if deadline.remaining_s() < 2.0 * pass_s:
             break
         refine_thr = adaptive_threshold_px(errors, thr)
         selected = errors < refine_thr
@@ -281,16 +302,20 @@ def local_optimisation(
             query_camera,
             pose,
             refine_thr / 4.0,
-            affordable_refinement(refine_iterations, deadline, int(selected.sum())),
+            refine_iterations,
+            deadline,
+            reserve_s=pass_s,
         )
-        new_errors = pose_sampson_errors_px(stacked, refined.rotation[None], refined.center[None])[
-            0
-        ]
+        start = time.perf_counter()
+        new_errors = pose_sampson_errors_px(
+            stacked, refined.rotation[None], refined.center[None], deadline=deadline
+        )[0]
+        pass_s = time.perf_counter() - start
         new_count = int((new_errors < thr).sum())
         if new_count < 0.95 * count:
             break
         pose, errors, count = refined, new_errors, new_count
-    return pose, errors < thr
+    return pose, errors
 
 
 def triangulated_pose(
@@ -330,7 +355,7 @@ class PoseTriangulationEstimator(Estimator):
         self.solver = solver
 
     def solve(self, request: Request) -> Solution:
-        pose, inliers = local_optimisation(
+        pose, errors = local_optimisation(
             triangulated_pose(request, self.solver),
             request.stacked,
             request.references,
@@ -338,4 +363,4 @@ class PoseTriangulationEstimator(Estimator):
             request.options,
             request.deadline,
         )
-        return Solution(pose, inliers)
+        return Solution(pose, errors < request.options.ransac.max_error_px)

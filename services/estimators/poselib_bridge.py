@@ -8,6 +8,7 @@ thresholds are in pixels (PoseLib scales them by the focal lengths internally).
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -21,9 +22,14 @@ from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
 
 # Rough PoseLib LO-RANSAC throughput on one core, in (iterations × correspondences) per second
-# (measured ≈ 1–3e7 here for the relative and generalized relative pose estimators), used to
-# turn a time budget into an iteration cap.
+# (measured ≈ 1–3e7 here for the relative and generalized relative pose estimators; 100
+# refinement steps on 70k matches took 0.5 s), used to turn a time budget into an iteration
+# cap, and into the first slice of a refinement short of time.
 _MATCH_EVALUATIONS_PER_SECOND = 1.0e7
+# a refinement short of time runs in slices of about this long (the first at the model's
+# throughput, the others at the one measured), checking the time left between them
+_FIRST_SLICE_S = 0.05
+_SLICE_S = 0.1
 
 
 def to_poselib(pose: Rigid3d) -> poselib.CameraPose:
@@ -71,17 +77,6 @@ def ransac_options(
     if reprojection_px is not None:
         out["max_reproj_error"] = reprojection_px
     return out
-
-
-def affordable_refinement(max_iterations: int, deadline: Deadline, num_matches: int) -> int:
-    """``max_iterations`` Levenberg–Marquardt steps, fewer (at least 5) when the remaining
-    budget affords fewer on ``num_matches`` residuals (the same throughput model as
-    ``ransac_options``: 100 steps on 70k matches took 0.76 s)."""
-    remaining = deadline.remaining_s()
-    if not np.isfinite(remaining):
-        return max_iterations
-    affordable = max(remaining, 0.0) * _MATCH_EVALUATIONS_PER_SECOND / max(num_matches, 1)
-    return min(max_iterations, max(5, int(affordable)))
 
 
 def bundle_options(loss_scale_px: float, max_iterations: int = 100) -> dict[str, Any]:
@@ -146,11 +141,18 @@ def refine_query_pose(
     initial: Rigid3d,
     loss_scale_px: float,
     max_iterations: int = 100,
+    deadline: Deadline | None = None,
+    reserve_s: float = 0.0,
 ) -> Rigid3d:
     """Refine the query ``cam_from_world`` on the masked matches of all references at once
     (PoseLib generalized relative pose refinement: the references form a rig whose frame is
     the world; Sampson error; at most ``max_iterations`` Levenberg–Marquardt steps). Returns
-    ``initial`` when the guard refuses the call."""
+    ``initial`` when the guard refuses the call.
+
+    With a ``deadline`` the refinement ends ``reserve_s`` before it: when the throughput model
+    says the steps need more than half of that time, they run in slices of at most
+    ``_SLICE_S`` (each continuing from the last, its throughput measured), and no slice starts
+    that would not end in time; otherwise (ample time) in one call, as without a deadline."""
     used = [i for i, m in enumerate(masks) if int(m.sum()) > 0]
     if not generalized_refinement_possible([int(masks[i].sum()) for i in used]):
         return initial
@@ -162,17 +164,42 @@ def refine_query_pose(
         m.x1 = _points(references[i].reference_xy[masks[i]])
         m.x2 = _points(references[i].query_xy[masks[i]])
         matches.append(m)
-    pose, _ = poselib.refine_generalized_relative_pose(
-        matches,
-        to_poselib(initial),
-        [to_poselib(references[i].cam_from_world) for i in used],
-        [references[i].camera.to_poselib() for i in used],
-        [to_poselib(Rigid3d.identity())],
-        [query_camera.to_poselib()],
-        bundle_options(loss_scale_px, max_iterations),
-    )
-    out = from_poselib(pose)
-    return out if np.all(np.isfinite(out.matrix)) else initial
+    rig = [to_poselib(references[i].cam_from_world) for i in used]
+    cameras = [references[i].camera.to_poselib() for i in used]
+
+    def refine(pose: Rigid3d, iterations: int) -> tuple[Rigid3d, int]:
+        refined, info = poselib.refine_generalized_relative_pose(
+            matches,
+            to_poselib(pose),
+            rig,
+            cameras,
+            [to_poselib(Rigid3d.identity())],
+            [query_camera.to_poselib()],
+            bundle_options(loss_scale_px, iterations),
+        )
+        out = from_poselib(refined)
+        if not np.all(np.isfinite(out.matrix)):
+            return pose, 0
+        return out, int(info.get("iterations", iterations))
+
+    residuals = max(sum(int(masks[i].sum()) for i in used), 1)
+    left = float("inf") if deadline is None else deadline.remaining_s() - reserve_s
+    rate = _MATCH_EVALUATIONS_PER_SECOND
+    if max_iterations * residuals / rate <= 0.5 * left:
+        return refine(initial, max_iterations)[0]
+    pose, done, slice_s = initial, 0, _FIRST_SLICE_S
+    while done < max_iterations and deadline is not None:
+        left = deadline.remaining_s() - reserve_s
+        steps = min(max_iterations - done, int(min(left, slice_s) * rate / residuals))
+        if steps < 1:
+            break
+        start = time.perf_counter()
+        pose, ran = refine(pose, steps)
+        rate = max(ran, 1) * residuals / max(time.perf_counter() - start, 1e-6)
+        done, slice_s = done + steps, _SLICE_S
+        if ran < steps:  # converged (or not finite)
+            break
+    return pose
 
 
 def estimate_absolute_pose(

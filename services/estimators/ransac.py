@@ -22,6 +22,11 @@ Model = TypeVar("Model")
 Batch = TypeVar("Batch")
 
 
+class DeadlinePassedError(Exception):
+    """The deadline passed inside a long computation (``Deadline.check``), whose result would
+    come too late: the request's answer is ``time_budget_exceeded``."""
+
+
 class Deadline:
     """Wall-clock budget of one request (``EstimatorOptions.time_budget_s``; None = none)."""
 
@@ -33,6 +38,15 @@ class Deadline:
 
     def remaining_s(self) -> float:
         return float("inf") if self._end is None else self._end - time.perf_counter()
+
+    def check(self) -> None:
+        """Polled between the chunks of a long pass.
+
+        Raises:
+            DeadlinePassedError: the deadline has passed.
+        """
+        if self.expired():
+            raise DeadlinePassedError
 
 
 def required_iterations(inlier_ratio: float, sample_size: int, success_prob: float = 0.9999) -> int:
@@ -105,7 +119,12 @@ def lo_ransac(
 ) -> RansacResult[Model]:
     """Run LO-RANSAC until the adaptive iteration count (within the options' bounds) is
     reached or the deadline, checked before every batch, has passed; past the deadline a
-    better model is kept without its local optimisation (on 100k matches it takes ~0.5 s)."""
+    better model is kept without its local optimisation (on 100k matches it takes ~0.5 s).
+
+    Raises:
+        DeadlinePassedError: from the problem, whose passes over all data may poll the
+            deadline (``Deadline.check``): a model found then would come too late.
+    """
     n = problem.num_data
     subset = (
         np.arange(n)

@@ -18,6 +18,7 @@ import numpy as np
 
 from services.estimators.base import EstimateResult, ReferenceObservation
 from services.estimators.options import EstimatorOptions, UncertaintyOptions
+from services.estimators.ransac import Deadline
 from services.estimators.verification import check_structure
 from services.geometry.camera import Camera
 from services.geometry.pose_covariance import pose_covariance
@@ -45,14 +46,19 @@ def pose_uncertainty(
     references: list[ReferenceObservation],
     options: EstimatorOptions,
     focal_estimated: bool,
+    deadline: Deadline | None = None,
 ) -> PoseUncertainty | None:
     """The uncertainty of ``result``'s pose; None without a pose or with fewer than
-    ``options.uncertainty.min_points`` verified points."""
+    ``options.uncertainty.min_points`` verified points.
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed during the structure check.
+    """
     pose = result.cam_from_world
     if pose is None or result.num_inliers == 0:
         return None
     checked = check_structure(
-        query_camera, pose, references, result.inliers, options.ransac.max_error_px
+        query_camera, pose, references, result.inliers, options.ransac.max_error_px, deadline
     )
     if checked is None:
         return None
@@ -125,14 +131,21 @@ def with_uncertainty(
     options: EstimatorOptions,
     focal_estimated: bool,
     score: Callable[[EstimateResult], EstimateResult] | None = None,
+    deadline: Deadline | None = None,
 ) -> tuple[EstimateResult, PoseUncertainty | None]:
     """``result`` with the uncertainty in its stats, scored by ``score`` (which may read
     them: the calibrated confidence, ``services.confidence``) and its confidence then capped
     by the uncertainty; and the uncertainty (None without a pose or without enough verified
-    points)."""
+    points).
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed during the structure check.
+    """
     if result.cam_from_world is None:
         return result, None
-    uncertainty = pose_uncertainty(result, query_camera, references, options, focal_estimated)
+    uncertainty = pose_uncertainty(
+        result, query_camera, references, options, focal_estimated, deadline
+    )
     result = replace(result, stats={**result.stats, **uncertainty_stats(uncertainty)})
     if score is not None:
         result = score(result)

@@ -36,6 +36,7 @@ import numpy as np
 
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline, DeadlinePassedError
 from services.geometry.camera import Camera
 from services.geometry.projection import normalized_from_pixels
 from services.geometry.rigid import Rigid3d
@@ -135,6 +136,11 @@ def _well_conditioned(normal: FloatArray) -> BoolArray:
     return out
 
 
+def _poll(deadline: Deadline | None) -> None:
+    if deadline is not None:
+        deadline.check()
+
+
 def _robust_agreement(
     tid: IntArray,
     center: FloatArray,
@@ -142,6 +148,7 @@ def _robust_agreement(
     cos_limit: FloatArray,
     min_views: int,
     max_pair_views: int,
+    deadline: Deadline | None = None,
 ) -> BoolArray:
     """Per observation: agrees with its track's best two-view hypothesis.
 
@@ -159,6 +166,7 @@ def _robust_agreement(
     agrees = np.zeros(k, bool)
     # one vectorised pass per distinct track length (at most the number of references)
     for length in np.unique(counts[counts >= min_views]):
+        _poll(deadline)
         tracks = np.flatnonzero(counts == length)
         obs = order[starts[tracks][:, None] + np.arange(length)]  # (T_L, L)
         first, second = np.triu_indices(min(int(length), max_pair_views), 1)  # (P,)
@@ -189,6 +197,7 @@ def verify_by_reference_triangulation(
     reference_max_angles: FloatArray,
     min_views: int = 2,
     max_pair_views: int = 6,
+    deadline: Deadline | None = None,
 ) -> StructureCheck:
     """Verify a query pose by triangulating tracks from the references alone.
 
@@ -208,8 +217,12 @@ def verify_by_reference_triangulation(
         min_views: agreeing reference observations a point needs (>= 2).
         max_pair_views: two-view hypotheses come from pairs of a track's first this many
             observations (bounds the work on long tracks).
+        deadline: checked between the steps (each well under 0.1 s on 100k correspondences).
     Returns:
         A ``StructureCheck``.
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed.
     """
     if min_views < 2:
         raise ValueError("a point needs at least two reference views to be triangulated")
@@ -227,7 +240,11 @@ def verify_by_reference_triangulation(
     cos_limit = np.cos(reference_max_angles[reference_index])  # (K,)
     num_candidates = int((np.bincount(tid) >= min_views).sum())
 
-    use = _robust_agreement(tid, center, ray, cos_limit, min_views, max(max_pair_views, 2))
+    _poll(deadline)
+    use = _robust_agreement(
+        tid, center, ray, cos_limit, min_views, max(max_pair_views, 2), deadline
+    )
+    _poll(deadline)
     # refine: midpoint of every agreeing ray, X = argmin Σ |(I − d dᵀ)(X − C)|²
     weight = use.astype(np.float64)
     projector = (np.eye(3) - ray[:, :, None] * ray[:, None, :]) * weight[:, None, None]
@@ -238,6 +255,7 @@ def verify_by_reference_triangulation(
     solvable = np.flatnonzero(enough & _well_conditioned(normal))
     if solvable.size:
         points[solvable] = np.linalg.solve(normal[solvable], rhs[solvable][..., None])[..., 0]
+    _poll(deadline)
     # NaN compares False; cos > cos(threshold) > 0 also means the point is in front
     use &= _cosine_to(points[tid], center, ray) > cos_limit
     enough = np.bincount(tid, weights=use.astype(np.float64), minlength=num_tracks) >= min_views
@@ -267,18 +285,24 @@ def check_structure(
     references: list[ReferenceObservation],
     inliers: list[BoolArray],
     max_error_px: float,
+    deadline: Deadline | None = None,
 ) -> tuple[StructureCheck, FloatArray] | None:
     """``verify_by_reference_triangulation`` of a pose's inlier tracks, and the (T, 2) query
     pixel of each track (its ``points`` row); None with inliers in fewer than two references.
 
     Query keypoints are identified across references by their exact pixel coordinates (every
     reference is matched against the same query keypoint array).
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed (checked between the steps).
     """
     used = [i for i, mask in enumerate(inliers) if mask.any()]
     if len(used) < 2:
         return None
+    _poll(deadline)
     query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
     track_xy, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
+    _poll(deadline)
     check = verify_by_reference_triangulation(
         cam_from_world.rotation,
         cam_from_world.translation,
@@ -295,6 +319,7 @@ def check_structure(
         track_ids.reshape(-1).astype(np.int64),
         max_error_px / float(np.mean(query_camera.focal_lengths)),
         np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
+        deadline=deadline,
     )
     return check, np.asarray(track_xy, dtype=np.float64)
 
@@ -305,9 +330,12 @@ def count_verified_points(
     references: list[ReferenceObservation],
     inliers: list[BoolArray],
     max_error_px: float,
+    deadline: Deadline | None = None,
 ) -> tuple[int, int]:
     """(verified points, candidate tracks) of a pose; see ``check_structure``."""
-    checked = check_structure(query_camera, cam_from_world, references, inliers, max_error_px)
+    checked = check_structure(
+        query_camera, cam_from_world, references, inliers, max_error_px, deadline
+    )
     if checked is None:
         return 0, 0
     return checked[0].num_verified_points, checked[0].num_tracks
@@ -318,9 +346,12 @@ def verify_pose(
     query_camera: Camera,
     references: list[ReferenceObservation],
     options: EstimatorOptions,
+    deadline: Deadline | None = None,
 ) -> EstimateResult:
     """Turn an estimator's pose into a ``no_consensus`` failure unless at least
-    ``options.verification.min_verified_points`` of its inlier tracks verify in 3D.
+    ``options.verification.min_verified_points`` of its inlier tracks verify in 3D, into a
+    ``time_budget_exceeded`` one when ``deadline`` passes during the check (on 100k inliers
+    it takes ~0.2 s, more on a loaded machine; checked between its steps).
 
     Applied by the pipeline to every estimator's answer. Results without a pose, without
     inliers (``pose_approx`` uses no correspondences) or with the check disabled
@@ -340,6 +371,14 @@ def verify_pose(
             references,
             result.inliers,
             options.ransac.max_error_px,
+            deadline,
+        )
+    except DeadlinePassedError:
+        return replace(
+            result,
+            cam_from_world=None,
+            confidence=0.0,
+            failure_reason=FailureReason.TIME_BUDGET_EXCEEDED,
         )
     except np.linalg.LinAlgError:  # a system the conditioning checks let through
         logger.warning("pose verification met a singular system", exc_info=True)

@@ -17,7 +17,7 @@ from services.estimators.base import (
 from services.estimators.estimator import missing_depth
 from services.estimators.focal import estimate_focal
 from services.estimators.options import EstimatorOptions
-from services.estimators.ransac import Deadline
+from services.estimators.ransac import Deadline, DeadlinePassedError
 from services.estimators.uncertainty import PoseUncertainty, with_uncertainty
 from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
@@ -54,9 +54,10 @@ def answer_pose(
     cameras are undistorted first (``undistort_matches``); the answer's masks are over the
     matches as given and its camera is the one given (or estimated).
 
-    ``deadline`` is checked between the steps: a pose found or verified after it has passed
-    is a ``time_budget_exceeded`` answer, not verified or scored further (with 100 references
-    of 1000 matches each, verification, uncertainty and rescoring take about a second)."""
+    ``deadline`` is checked between the steps and inside their passes over the inliers: a pose
+    found or verified after it has passed is a ``time_budget_exceeded`` answer, not verified
+    or scored further (with 100 references of 1000 matches each, verification, uncertainty
+    and rescoring take about half a second)."""
     given_camera, given_references = camera, references
     # distorted cameras (any COLMAP model) become pinholes with undistorted keypoints
     undistorted = undistort_matches(camera, references)
@@ -87,18 +88,28 @@ def answer_pose(
 
     estimated = estimator.estimate(camera, references, options)
     late = spent(estimated)
-    verified = verify_pose(estimated, camera, references, options) if late is None else estimated
+    verified = (
+        verify_pose(estimated, camera, references, options, deadline) if late is None else estimated
+    )
     late = late or spent(verified)
     if late is not None:
         return PoseAnswer(undistorted.result_as_given(late), answer_camera, None)
     name = verified.estimator_used or estimator.name
 
     def score(result: EstimateResult) -> EstimateResult:
-        return spent(result) or rescore(result, camera, references, options, name, confidence_model)
+        return spent(result) or rescore(
+            result, camera, references, options, name, confidence_model, deadline
+        )
 
-    result, uncertainty = with_uncertainty(
-        verified, camera, references, options, focal_estimated, score
-    )
+    try:
+        result, uncertainty = with_uncertainty(
+            verified, camera, references, options, focal_estimated, score, deadline
+        )
+    except DeadlinePassedError:
+        late = EstimateResult.failure(
+            FailureReason.TIME_BUDGET_EXCEEDED, references, {**verified.stats, **focal_stats}
+        )
+        return PoseAnswer(undistorted.result_as_given(late), answer_camera, None)
     if result.cam_from_world is None:
         uncertainty = None
     result = undistorted.result_as_given(replace(result, stats={**result.stats, **focal_stats}))
