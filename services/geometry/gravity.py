@@ -19,16 +19,19 @@ MIN_IN_PLANE_TILT_DEG = 20.0
 
 
 def unit(vector: FloatArray) -> FloatArray:
-    """``vector`` / its norm.
+    """``vector`` / its norm, for any finite non-zero length: the vector is first scaled by
+    its largest component, so that neither 1e300 (whose square overflows) nor 1e-300 (whose
+    square underflows to 0) is refused.
 
     Raises:
         ValueError: a zero or non-finite vector.
     """
     v = np.asarray(vector, np.float64).reshape(3)
-    norm = float(np.linalg.norm(v))
-    if not np.isfinite(norm) or norm == 0.0:
+    largest = float(np.max(np.abs(v)))
+    if not np.isfinite(largest) or largest == 0.0:
         raise ValueError("a direction must be a finite, non-zero vector")
-    out: FloatArray = v / norm
+    scaled = v / largest
+    out: FloatArray = scaled / np.linalg.norm(scaled)
     return out
 
 
