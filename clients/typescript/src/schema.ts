@@ -159,7 +159,9 @@ export interface paths {
         /**
          * Add Image
          * @description The image's bytes as sent (and the depth's) are kept in the blob store
-         *     (``SLLOC_BLOB_URL``) beside its features: ``GET …/images/{image_id}/original``.
+         *     (``SLLOC_BLOB_URL``) beside its features: ``GET …/images/{image_id}/original``. 503
+         *     ``blob-store-unavailable`` (nothing stored) while the blob store cannot be reached or
+         *     refuses writes.
          */
         post: operations["add_image"];
         delete?: never;
@@ -200,7 +202,8 @@ export interface paths {
          * Get Image Original
          * @description The reference image's bytes exactly as they were uploaded; the ``ETag`` is their
          *     SHA-256 (``original_sha256`` of the image). 404 for an image added before originals
-         *     were kept (``has_original`` false).
+         *     were kept (``has_original`` false) or whose original is missing from the blob store;
+         *     503 ``blob-store-unavailable`` while the blob store cannot be reached.
          */
         get: operations["get_image_original"];
         put?: never;
@@ -2145,7 +2148,7 @@ export interface operations {
                     "application/problem+json": components["schemas"]["Problem"];
                 };
             };
-            /** @description Busy (too many requests in progress or waiting) or the database unreachable: retry after Retry-After seconds */
+            /** @description Busy (too many requests in progress or waiting), the database unreachable, or the blob store unreachable or refusing writes: retry after Retry-After seconds */
             503: {
                 headers: {
                     [name: string]: unknown;
@@ -2297,7 +2300,7 @@ export interface operations {
                     "application/problem+json": components["schemas"]["Problem"];
                 };
             };
-            /** @description Busy (too many requests in progress or waiting) or the database unreachable: retry after Retry-After seconds */
+            /** @description Busy (too many requests in progress or waiting), the database unreachable, or the blob store unreachable or refusing writes: retry after Retry-After seconds */
             503: {
                 headers: {
                     [name: string]: unknown;
@@ -2464,6 +2467,15 @@ export interface operations {
                     "application/problem+json": components["schemas"]["Problem"];
                 };
             };
+            /** @description Busy (too many requests in progress or waiting), the database unreachable, or the blob store unreachable or refusing writes: retry after Retry-After seconds */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
         };
     };
     get_image_preview: {
@@ -2594,7 +2606,7 @@ export interface operations {
                     "application/problem+json": components["schemas"]["Problem"];
                 };
             };
-            /** @description Busy (too many requests in progress or waiting) or the database unreachable: retry after Retry-After seconds */
+            /** @description Busy (too many requests in progress or waiting), the database unreachable, or the blob store unreachable or refusing writes: retry after Retry-After seconds */
             503: {
                 headers: {
                     [name: string]: unknown;
