@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import faiss
 import numpy as np
 
 from services.types import Float32Array, IntArray
@@ -53,27 +52,41 @@ def _nearest(points: Float32Array, centers: Float32Array) -> IntArray:
 def kmeans(
     points: Float32Array, k: int, rng: np.random.Generator, iterations: int = 20
 ) -> Float32Array:
-    """(k, D) float32 centres of (N, D) points: faiss's Lloyd k-means, k-means++ seeding,
-    every point used (no per-centre subsample).
+    """(k, D) float32 centres of (N, D) points by Lloyd's algorithm (k-means++ seeding).
 
-    Deterministic for a given generator state (faiss's seed is drawn from it). faiss splits
-    an emptied cluster off the largest one.
+    Deterministic for a given generator state. Empty clusters are re-seeded with the point
+    farthest from its centre.
+
+    Kept over ``faiss.Kmeans``, which trains a vocabulary 4–6× faster (100k descriptors:
+    4.7 s → 0.8 s) but, with its vocabularies, localized fewer of redkitchen's queries
+    (xfeat-lg, ``auto``, suggested split: 47 / 50 against 49 / 50; two queries answered
+    low_confidence from other retrieved references) and kitti05's within (5 cm, 5°) (80 %
+    against 82 %; 2026-11-26). Training runs off the request path, so the time matters less.
     """
     n = points.shape[0]
     if n < k:
         raise ValueError(f"k-means needs at least k={k} points, got {n}")
-    clustering = faiss.Kmeans(
-        points.shape[1],
-        k,
-        niter=iterations,
-        seed=int(rng.integers(2**31)),
-        init_method=faiss.ClusteringInitMethod_KMEANS_PLUS_PLUS,
-        max_points_per_centroid=-(-n // k),  # ceil(n / k): faiss samples above k × this
-        min_points_per_centroid=1,  # no "too few points" warning on stderr for small maps
-    )
-    clustering.train(np.ascontiguousarray(points, dtype=np.float32))
-    centers: Float32Array = np.asarray(clustering.centroids, np.float32)
-    return centers
+    points = points.astype(np.float32)
+    centers = np.empty((k, points.shape[1]), np.float32)
+    centers[0] = points[rng.integers(n)]
+    closest = ((points - centers[0]) ** 2).sum(axis=1)
+    for i in range(1, k):
+        total = float(closest.sum())
+        index = int(rng.choice(n, p=closest / total)) if total > 0 else int(rng.integers(n))
+        centers[i] = points[index]
+        closest = np.minimum(closest, ((points - centers[i]) ** 2).sum(axis=1))
+    for _ in range(iterations):
+        labels = _nearest(points, centers)
+        counts = np.bincount(labels, minlength=k).astype(np.float32)
+        sums = np.zeros_like(centers)
+        np.add.at(sums, labels, points)
+        empty = counts == 0
+        centers = np.where(empty[:, None], centers, sums / np.maximum(counts, 1.0)[:, None])
+        if empty.any():
+            spread = ((points - centers[labels]) ** 2).sum(axis=1)
+            far = np.argsort(-spread)[: int(empty.sum())]
+            centers[empty] = points[far]
+    return centers.astype(np.float32)
 
 
 def raw_vlad(descriptors: Float32Array, centers: Float32Array) -> Float32Array:
