@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 from importlib.metadata import version
 
 from anyio import CapacityLimiter
@@ -26,6 +27,8 @@ from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
+from app.usecases.images import train_vocabulary_if_due
+from app.usecases.reextraction import Reextractor
 from app.viewer import install_viewer
 from db.blobs import open_blob_store
 from db.migrate import upgrade
@@ -87,6 +90,17 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             if settings.blob_sweep_on_start
             else None
         )
+        # maps whose feature options changed: their references described anew, resumed
+        train = partial(train_vocabulary_if_due, app.state.sessions, app.state.vocabulary_trainer)
+        app.state.reextractor = Reextractor(
+            app.state.sessions,
+            app.state.localizer,
+            blobs,
+            app.state.reference_cache,
+            on_switch=train if served.vlad else None,
+        )
+        if resumed := app.state.reextractor.resume():
+            logger.info("re-describing the references of %d maps: %s", len(resumed), resumed)
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
@@ -94,6 +108,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))
         yield
         app.state.draining = True  # /readyz answers 503 from now on
+        app.state.reextractor.shutdown()
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()

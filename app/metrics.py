@@ -19,7 +19,7 @@ from prometheus_client import (
     Histogram,
     generate_latest,
 )
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.metrics_core import Metric
 from prometheus_client.registry import Collector
 from sqlalchemy.exc import SQLAlchemyError
@@ -151,8 +151,17 @@ class _StateCollector(Collector):
             "Training jobs queued or running off the request path, by what they train",
             labels=("kind",),
         )
-        for attribute in ("vocabulary_trainer", "ann_builder"):
-            trainer = getattr(self.state, attribute, None)
+        reextractor = getattr(self.state, "reextractor", None)
+        trainers = [getattr(self.state, a, None) for a in ("vocabulary_trainer", "ann_builder")]
+        if reextractor is not None:
+            trainers.append(reextractor.worker)
+            yield CounterMetricFamily(
+                "slloc_references_described_again",
+                "References described anew from their originals after their map's feature "
+                "options changed, since start-up",
+                value=reextractor.described,
+            )
+        for trainer in trainers:
             if trainer is not None:
                 jobs.add_metric((trainer.name,), trainer.pending())
         yield jobs

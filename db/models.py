@@ -16,6 +16,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    false,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Mapped, mapped_column, relationship
@@ -65,6 +66,12 @@ class Map(Base):
     # per-map feature options (None = the service's default)
     max_keypoints: Mapped[int | None] = mapped_column(Integer)
     max_side: Mapped[int | None] = mapped_column(Integer)
+    # the options its references are being re-described with from their originals (the
+    # pending_* columns, None = the default); the map serves max_keypoints / max_side until
+    # every reference is described anew, then switches (app/usecases/reextraction.py)
+    reextracting: Mapped[bool] = mapped_column(default=False, server_default=false())
+    pending_max_keypoints: Mapped[int | None] = mapped_column(Integer)
+    pending_max_side: Mapped[int | None] = mapped_column(Integer)
     # the similarity to the Earth (db/geo.py holds its stored form; None: not registered)
     geo_registration: Mapped[dict[str, object] | None] = mapped_column(JSON)
     # bumped by every image add and delete (cached retrieval indexes compare it)
@@ -107,6 +114,9 @@ class ReferenceImage(Base):
     gps_accuracy_m: Mapped[float | None] = mapped_column(Float)
     # version of the map vocabulary its stored "vlad" array was encoded with (None: none yet)
     vlad_version: Mapped[int | None] = mapped_column(Integer)
+    # the extractor of its staged description (arrays of kinds "next:…") while its map is
+    # re-described; None: none staged
+    next_feature_model: Mapped[str | None] = mapped_column(String(128))
     # the original upload in the blob store (db/blobs.py): the image's bytes as sent and their
     # SHA-256, and the depth map's; None: added before originals were kept (or without depth)
     original_key: Mapped[str | None] = mapped_column(String(255))

@@ -14,6 +14,7 @@ from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
 from app.usecases.localize import LocalizeContext
+from app.usecases.reextraction import Reextractor
 from db.blobs import BlobStore
 from services.components import EngineConfig
 from services.localization.localizer import Localizer
@@ -82,6 +83,12 @@ async def get_localize_context(request: Request) -> LocalizeContext:
     )
 
 
+async def get_reextractor(request: Request) -> Reextractor:
+    """Describes the references of maps whose feature options changed anew."""
+    reextractor: Reextractor = request.app.state.reextractor
+    return reextractor
+
+
 async def get_blobs(request: Request) -> BlobStore:
     """Where the originals of reference images are kept (``SLLOC_BLOB_URL``)."""
     blobs: BlobStore = request.app.state.blobs
@@ -102,6 +109,7 @@ AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
 BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
+ReextractorDep = Annotated[Reextractor, Depends(get_reextractor)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

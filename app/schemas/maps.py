@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Literal
 
 from pydantic import BaseModel, Field
 
@@ -9,6 +10,7 @@ from app.schemas.text import Description, Name
 from app.usecases.maps import MapRecord
 from app.usecases.reindex import Reindexed
 from app.usecases.served_features import MapServing
+from db.repositories.reextraction import Progress
 from services.estimators.registry import DEFAULT_ESTIMATOR
 
 
@@ -23,6 +25,30 @@ class FeatureOptions(BaseModel):
     )
 
 
+class FeatureProgressOut(BaseModel):
+    described: int = Field(description="References described for the pending options")
+    total: int = Field(description="References that have their original to be described from")
+
+
+class MapFeaturesOut(FeatureOptions):
+    """The options the map serves with, the server's feature configuration and, while the
+    references are described anew, the options they are described for and how far."""
+
+    preset: str = Field(
+        description="The server's feature configuration (SLLOC_FEATURES), whose extractor "
+        "describes the map's queries and references"
+    )
+    state: Literal["ready", "re-extracting"] = Field(
+        description="re-extracting: the references are being described anew from their "
+        "originals for `pending`; the map answers with its current descriptions until every "
+        "one is, then switches at once"
+    )
+    pending: FeatureOptions | None = Field(
+        None, description="The options the references are being described for"
+    )
+    progress: FeatureProgressOut | None = None
+
+
 class MapCreate(BaseModel):
     name: Name
     description: Description | None = None
@@ -33,6 +59,31 @@ class MapCreate(BaseModel):
     features: FeatureOptions = Field(
         default_factory=FeatureOptions,
         description="Keypoint budget and image size for this map's references and queries",
+    )
+
+
+class FeaturePatch(FeatureOptions):
+    preset: str | None = Field(
+        None,
+        description="The feature configuration; a server describes every map with its own "
+        "(SLLOC_FEATURES, shown as features.preset): another one is refused (422)",
+    )
+
+
+class MapPatch(BaseModel):
+    """The fields to change; those left out keep their value."""
+
+    description: Description | None = None
+    default_estimator: EstimatorName | None = Field(
+        None, description="Estimator used when a localize request names none"
+    )
+    features: FeaturePatch | None = Field(
+        None,
+        description="New keypoint budget and image size: the map's references are described "
+        "anew from their originals in the background (`features.state` re-extracting) while "
+        "the map answers with the current ones, then it switches at once; the options it "
+        "serves cancel a re-description in progress. 409 when references were added before "
+        "originals were kept",
     )
 
 
@@ -96,7 +147,7 @@ class MapOut(BaseModel):
     name: str
     description: str | None
     default_estimator: EstimatorName
-    features: FeatureOptions
+    features: MapFeaturesOut
     image_count: int
     references_without_original: int = Field(
         description="Images added before originals were kept (has_original false): they "
@@ -106,13 +157,32 @@ class MapOut(BaseModel):
     created_at: datetime
 
     @classmethod
-    def from_record(cls, record: MapRecord, serving: MapServing) -> MapOut:
+    def from_record(
+        cls, record: MapRecord, serving: MapServing, preset: str, progress: Progress | None
+    ) -> MapOut:
+        pending = (
+            FeatureOptions(
+                max_keypoints=record.pending_max_keypoints, max_side=record.pending_max_side
+            )
+            if record.reextracting
+            else None
+        )
+        features = MapFeaturesOut(
+            max_keypoints=record.max_keypoints,
+            max_side=record.max_side,
+            preset=preset,
+            state="re-extracting" if record.reextracting else "ready",
+            pending=pending,
+            progress=None
+            if progress is None
+            else FeatureProgressOut(described=progress.described, total=progress.total),
+        )
         return cls(
             id=record.id,
             name=record.name,
             description=record.description,
             default_estimator=record.default_estimator,
-            features=FeatureOptions(max_keypoints=record.max_keypoints, max_side=record.max_side),
+            features=features,
             image_count=record.image_count,
             references_without_original=record.without_original,
             feature_models=MapFeatureModelsOut.from_serving(serving),

@@ -158,10 +158,18 @@ def add_reference_image(
         stored.num_keypoints,
     )
     if trainer is not None:
-        indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
-        if indexer.due():
-            trainer.schedule((map_id, localizer.extractor.name), indexer.train_if_due)
+        train_vocabulary_if_due(sessions, trainer, map_id, localizer)
     return stored
+
+
+def train_vocabulary_if_due(
+    sessions: sessionmaker[Session], trainer: BackgroundTrainer, map_id: str, localizer: Localizer
+) -> None:
+    """Schedules the training of the map's VLAD vocabulary for ``localizer``'s extractor
+    when its references have made one due."""
+    indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
+    if indexer.due():
+        trainer.schedule((map_id, localizer.extractor.name), indexer.train_if_due)
 
 
 def list_images(

@@ -36,6 +36,10 @@ class MapRecord:
     without_original: int = 0
     # (feature model, descriptor model, image count) its references were described by
     described_by: tuple[tuple[str, str, int], ...] = ()
+    # its references are being described anew for these options (app/usecases/reextraction)
+    reextracting: bool = False
+    pending_max_keypoints: int | None = None
+    pending_max_side: int | None = None
 
 
 def require_map(session: Session, map_id: str) -> Map:
@@ -175,6 +179,26 @@ def delete_map(
         remove_blobs(blobs, keys)
 
 
+def update_map(
+    sessions: sessionmaker[Session],
+    map_id: str,
+    description: str | None,
+    default_estimator: str | None,
+    fields: set[str],
+) -> None:
+    """Sets the map's ``description`` and ``default_estimator`` where named in ``fields``.
+
+    Raises:
+        NotFoundError: no such map.
+    """
+    with sessions.begin() as session:
+        row = require_map(session, map_id)
+        if "description" in fields:
+            row.description = description
+        if "default_estimator" in fields and default_estimator is not None:
+            row.default_estimator = default_estimator
+
+
 def _records(repo: MapRepository, rows: list[Map]) -> list[MapRecord]:
     ids = [row.id for row in rows]
     counts = repo.image_counts(ids)
@@ -200,4 +224,7 @@ def _record(row: Map, image_count: int) -> MapRecord:
         max_side=row.max_side,
         image_count=image_count,
         created_at=row.created_at,
+        reextracting=row.reextracting,
+        pending_max_keypoints=row.pending_max_keypoints,
+        pending_max_side=row.pending_max_side,
     )

@@ -41,6 +41,8 @@ def test_upload_references_and_localize_the_demo_query(
                 demo_map.id, meta.with_suffix(".png"), json.loads(meta.read_text())
             )
         assert slloc.get_map(demo_map.id).image_count == len(metas)
+        changed = slloc.update_map(demo_map.id, description="kitchen", default_estimator="auto")
+        assert (changed.description, changed.features.state) == ("kitchen", "ready")
         assert [m.id for m in slloc.iter_maps(page_size=1)] == [demo_map.id]
         images = list(slloc.iter_images(demo_map.id, page_size=10))
         assert sorted(i.name for i in images) == sorted(m.with_suffix(".png").name for m in metas)

@@ -1,8 +1,9 @@
-"""Maps: create, list, get, delete, reindex."""
+"""Maps: create, list, get, change, delete, reindex."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Response
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.api.deps import (
     AdminKey,
@@ -12,22 +13,31 @@ from app.api.deps import (
     Limit,
     LocalizerDep,
     Offset,
+    ReextractorDep,
     ReferenceCacheDep,
     SessionsDep,
     SettingsDep,
 )
 from app.errors import problem_responses
-from app.schemas.maps import MapCreate, MapOut, MapPage, ReindexOut
+from app.schemas.maps import MapCreate, MapOut, MapPage, MapPatch, ReindexOut
 from app.usecases import maps
+from app.usecases.reextraction import change_feature_options, reextraction_progress
 from app.usecases.reindex import reindex_map
-from app.usecases.served_features import MapLocalizer, MapServing, map_serving
+from app.usecases.served_features import map_serving
 from services.components import EngineConfig
+from services.errors import InvalidInputError
+from services.localization.localizer import Localizer
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
 
-def _serving(record: maps.MapRecord, localizer: MapLocalizer, engine: EngineConfig) -> MapServing:
-    return map_serving(
+def _out(
+    record: maps.MapRecord,
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    engine: EngineConfig,
+) -> MapOut:
+    serving = map_serving(
         record.id,
         record.max_keypoints,
         record.max_side,
@@ -36,6 +46,8 @@ def _serving(record: maps.MapRecord, localizer: MapLocalizer, engine: EngineConf
         engine.models_dir,
         engine.features,
     )
+    progress = reextraction_progress(sessions, localizer, record)
+    return MapOut.from_record(record, serving, engine.features, progress)
 
 
 @router.post(
@@ -64,7 +76,7 @@ def create_map(
         body.features.max_side,
         maps.FeatureLimits(settings.max_keypoints, settings.max_side),
     )
-    return MapOut.from_record(record, _serving(record, localizer, engine))
+    return _out(record, sessions, localizer, engine)
 
 
 @router.get(
@@ -81,7 +93,7 @@ def list_maps(
     limit: Limit = 100,
 ) -> MapPage:
     records, total = maps.list_maps(sessions, offset, limit)
-    items = [MapOut.from_record(r, _serving(r, localizer, engine)) for r in records]
+    items = [_out(r, sessions, localizer, engine) for r in records]
     return MapPage(items=items, total=total, offset=offset, limit=limit)
 
 
@@ -98,7 +110,49 @@ def get_map(
     server can serve them (``servable``; else the models it lacks);
     ``references_without_original`` counts the images added before originals were kept."""
     record = maps.get_map(sessions, map_id)
-    return MapOut.from_record(record, _serving(record, localizer, engine))
+    return _out(record, sessions, localizer, engine)
+
+
+@router.patch(
+    "/{map_id}",
+    operation_id="update_map",
+    dependencies=[AdminKey],
+    responses=problem_responses(400, 401, 403, 404, 409, 413, 422),
+)
+def update_map(
+    map_id: str,
+    body: MapPatch,
+    sessions: SessionsDep,
+    localizer: LocalizerDep,
+    settings: SettingsDep,
+    engine: EngineConfigDep,
+    reextractor: ReextractorDep,
+) -> MapOut:
+    """Changes the map's description, default estimator or feature options. New feature
+    options (within ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing
+    the map's references anew from their originals in the background: the answer shows
+    ``features.state`` re-extracting with its progress, localize keeps answering with the
+    current descriptions, and the map switches to the new ones at once when every reference
+    is described (references whose original cannot be read keep their old description and
+    are no longer searched). 409 when the map holds references added before originals were
+    kept."""
+    fields = body.model_fields_set
+    maps.get_map(sessions, map_id)  # 404 before anything changes
+    if "features" in fields and body.features is not None:
+        options = body.features
+        if options.preset not in (None, engine.features):
+            raise InvalidInputError(
+                f"features.preset: this server describes every map with {engine.features} "
+                f"(SLLOC_FEATURES), not {options.preset}"
+            )
+        maps.FeatureLimits(settings.max_keypoints, settings.max_side).check(
+            options.max_keypoints, options.max_side
+        )
+        change_feature_options(
+            sessions, localizer, map_id, options.max_keypoints, options.max_side, reextractor
+        )
+    maps.update_map(sessions, map_id, body.description, body.default_estimator, fields)
+    return _out(maps.get_map(sessions, map_id), sessions, localizer, engine)
 
 
 @router.delete(

@@ -11,6 +11,7 @@ type Schemas = components["schemas"];
 export type HealthOut = Schemas["HealthOut"];
 export type MapCreate = Schemas["MapCreate"];
 export type MapOut = Schemas["MapOut"];
+export type MapPatch = Schemas["MapPatch"];
 export type MapPage = Schemas["MapPage"];
 export type ImageMetadata = Schemas["ImageMetadata"];
 export type ImageOut = Schemas["ImageOut"];
@@ -231,6 +232,12 @@ export class Client {
 
   getMap(mapId: string): Promise<MapOut> {
     return this.json("GET", `/v1/maps/${enc(mapId)}`);
+  }
+
+  /** Change the map's description, default estimator or feature options (admin); new
+   * feature options describe its references again in the background (features.state). */
+  updateMap(mapId: string, patch: MapPatch): Promise<MapOut> {
+    return this.json("PATCH", `/v1/maps/${enc(mapId)}`, { json: patch });
   }
 
   /** Delete the map with its images (admin). */

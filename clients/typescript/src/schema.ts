@@ -70,7 +70,18 @@ export interface paths {
         delete: operations["delete_map"];
         options?: never;
         head?: never;
-        patch?: never;
+        /**
+         * Update Map
+         * @description Changes the map's description, default estimator or feature options. New feature
+         *     options (within ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing
+         *     the map's references anew from their originals in the background: the answer shows
+         *     ``features.state`` re-extracting with its progress, localize keeps answering with the
+         *     current descriptions, and the map switches to the new ones at once when every reference
+         *     is described (references whose original cannot be read keep their old description and
+         *     are no longer searched). 409 when the map holds references added before originals were
+         *     kept.
+         */
+        patch: operations["update_map"];
         trace?: never;
     };
     "/v1/maps/{map_id}/geo-registration": {
@@ -487,6 +498,37 @@ export interface components {
              * @description Longer image side features are extracted at (px)
              */
             max_side?: number | null;
+        };
+        /** FeaturePatch */
+        FeaturePatch: {
+            /**
+             * Max Keypoints
+             * @description Keypoint budget per image (ALIKED: at most 2048)
+             */
+            max_keypoints?: number | null;
+            /**
+             * Max Side
+             * @description Longer image side features are extracted at (px)
+             */
+            max_side?: number | null;
+            /**
+             * Preset
+             * @description The feature configuration; a server describes every map with its own (SLLOC_FEATURES, shown as features.preset): another one is refused (422)
+             */
+            preset?: string | null;
+        };
+        /** FeatureProgressOut */
+        FeatureProgressOut: {
+            /**
+             * Described
+             * @description References described for the pending options
+             */
+            described: number;
+            /**
+             * Total
+             * @description References that have their original to be described from
+             */
+            total: number;
         };
         /**
          * FrameIn
@@ -1093,6 +1135,37 @@ export interface components {
              */
             unserved_image_count: number;
         };
+        /**
+         * MapFeaturesOut
+         * @description The options the map serves with, the server's feature configuration and, while the
+         *     references are described anew, the options they are described for and how far.
+         */
+        MapFeaturesOut: {
+            /**
+             * Max Keypoints
+             * @description Keypoint budget per image (ALIKED: at most 2048)
+             */
+            max_keypoints?: number | null;
+            /**
+             * Max Side
+             * @description Longer image side features are extracted at (px)
+             */
+            max_side?: number | null;
+            /** @description The options the references are being described for */
+            pending?: components["schemas"]["FeatureOptions"] | null;
+            /**
+             * Preset
+             * @description The server's feature configuration (SLLOC_FEATURES), whose extractor describes the map's queries and references
+             */
+            preset: string;
+            progress?: components["schemas"]["FeatureProgressOut"] | null;
+            /**
+             * State
+             * @description re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once
+             * @enum {string}
+             */
+            state: "ready" | "re-extracting";
+        };
         /** MapOut */
         MapOut: {
             /**
@@ -1104,7 +1177,7 @@ export interface components {
             /** Description */
             description: string | null;
             feature_models: components["schemas"]["MapFeatureModelsOut"];
-            features: components["schemas"]["FeatureOptions"];
+            features: components["schemas"]["MapFeaturesOut"];
             /** Id */
             id: string;
             /** Image Count */
@@ -1127,6 +1200,18 @@ export interface components {
             offset: number;
             /** Total */
             total: number;
+        };
+        /**
+         * MapPatch
+         * @description The fields to change; those left out keep their value.
+         */
+        MapPatch: {
+            /** @description Estimator used when a localize request names none */
+            default_estimator?: components["schemas"]["EstimatorName"] | null;
+            /** Description */
+            description?: string | null;
+            /** @description New keypoint budget and image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; the options it serves cancel a re-description in progress. 409 when references were added before originals were kept */
+            features?: components["schemas"]["FeaturePatch"] | null;
         };
         /** ModelsOut */
         ModelsOut: {
@@ -1771,6 +1856,95 @@ export interface operations {
             };
             /** @description Map or image not found */
             404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    update_map: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody: {
+            content: {
+                "application/json": components["schemas"]["MapPatch"];
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["MapOut"];
+                };
+            };
+            /** @description Malformed body: JSON that is not UTF-8, or multipart without a boundary */
+            400: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Upload or image too large */
+            413: {
                 headers: {
                     [name: string]: unknown;
                 };

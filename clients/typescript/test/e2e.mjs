@@ -26,6 +26,9 @@ for (const meta of metas) {
   assert.equal(added.name, metadata.name);
 }
 assert.equal((await slloc.getMap(map.id)).image_count, metas.length);
+const changed = await slloc.updateMap(map.id, { description: "kitchen" });
+assert.equal(changed.description, "kitchen");
+assert.equal(changed.features.state, "ready");
 assert.equal((await slloc.listImages(map.id, { limit: 1000 })).total, metas.length);
 
 const params = JSON.parse(await readFile(join(demo, "queries", "query0000.params.json"), "utf8"));

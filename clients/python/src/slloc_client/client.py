@@ -167,6 +167,26 @@ class Client:
             body["features"] = _json(features)
         return self._send(MapOut, "POST", "/v1/maps", json=body)
 
+    def update_map(
+        self,
+        map_id: str,
+        *,
+        description: str | None = None,
+        default_estimator: str | None = None,
+        features: FeatureOptions | Json | None = None,
+    ) -> MapOut:
+        """Changes the fields given (admin). New ``features`` describe the map's references
+        again from their originals in the background: ``features.state`` is
+        ``re-extracting`` until the map switches."""
+        body: dict[str, Any] = {}
+        if description is not None:
+            body["description"] = description
+        if default_estimator is not None:
+            body["default_estimator"] = default_estimator
+        if features is not None:
+            body["features"] = _json(features)
+        return self._send(MapOut, "PATCH", f"/v1/maps/{_q(map_id)}", json=body)
+
     def list_maps(self, *, offset: int = 0, limit: int = 100) -> MapPage:
         return self._get(MapPage, "/v1/maps", params={"offset": offset, "limit": limit})
 

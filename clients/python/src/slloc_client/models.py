@@ -156,6 +156,26 @@ class FeatureOptions(BaseModel):
     )
 
 
+class FeaturePatch(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    max_keypoints: int | None = Field(
+        default=None, description="Keypoint budget per image (ALIKED: at most 2048)"
+    )
+    max_side: int | None = Field(
+        default=None, description="Longer image side features are extracted at (px)"
+    )
+    preset: str | None = Field(
+        default=None,
+        description="The feature configuration; a server describes every map with its own (SLLOC_FEATURES, shown as features.preset): another one is refused (422)",
+    )
+
+
+class FeatureProgressOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    described: int = Field(description="References described for the pending options")
+    total: int = Field(description="References that have their original to be described from")
+
+
 class FrameIn(BaseModel):
     """One uploaded image's camera and session pose (``params.frames[i]`` goes with the
     i-th ``image`` part).
@@ -551,13 +571,37 @@ class MapFeatureModelsOut(BaseModel):
     unserved_image_count: int = Field(description="References this server does not search")
 
 
+class MapFeaturesOut(BaseModel):
+    """The options the map serves with, the server's feature configuration and, while the
+    references are described anew, the options they are described for and how far.
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    max_keypoints: int | None = Field(
+        default=None, description="Keypoint budget per image (ALIKED: at most 2048)"
+    )
+    max_side: int | None = Field(
+        default=None, description="Longer image side features are extracted at (px)"
+    )
+    pending: FeatureOptions | None = Field(
+        default=None, description="The options the references are being described for"
+    )
+    preset: str = Field(
+        description="The server's feature configuration (SLLOC_FEATURES), whose extractor describes the map's queries and references"
+    )
+    progress: FeatureProgressOut | None = Field(default=None)
+    state: Literal["ready", "re-extracting"] = Field(
+        description="re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once"
+    )
+
+
 class MapOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     created_at: datetime
     default_estimator: EstimatorName
     description: str | None
     feature_models: MapFeatureModelsOut
-    features: FeatureOptions
+    features: MapFeaturesOut
     id: str
     image_count: int
     name: str
@@ -572,6 +616,20 @@ class MapPage(BaseModel):
     limit: int
     offset: int
     total: int
+
+
+class MapPatch(BaseModel):
+    """The fields to change; those left out keep their value."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    default_estimator: EstimatorName | None = Field(
+        default=None, description="Estimator used when a localize request names none"
+    )
+    description: str | None = Field(default=None)
+    features: FeaturePatch | None = Field(
+        default=None,
+        description="New keypoint budget and image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; the options it serves cancel a re-description in progress. 409 when references were added before originals were kept",
+    )
 
 
 class ModelsOut(BaseModel):

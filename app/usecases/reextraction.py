@@ -1,0 +1,215 @@
+"""A map's feature options changed: its references are described anew from their originals
+in the background while the map keeps answering with its current descriptions, and the map
+switches to the new ones at once when every reference that has its original is described.
+
+The work runs on one background thread at the lowest CPU priority (``BackgroundTrainer``),
+in batches that each commit, so that a restart loses at most the batch in progress: at
+start-up the maps still re-describing are scheduled again and the staged descriptions are
+kept.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError
+from app.usecases.maps import MapRecord, require_map
+from db.blobs import BlobStore, BlobStoreError
+from db.originals import read_original
+from db.repositories.maps import MapRepository
+from db.repositories.reextraction import Progress, ReextractionRepository
+from db.store import camera_of
+from services.errors import InvalidInputError
+from services.geometry.camera import Camera
+from services.localization.localizer import Localizer
+from services.references.cache import ReferenceFeatureCache
+from services.retrieval.training import BackgroundTrainer
+
+logger = logging.getLogger(__name__)
+
+# references described per transaction: a restart repeats at most this many
+BATCH = 8
+
+
+def reextraction_progress(
+    sessions: sessionmaker[Session], localizer: Localizer, record: MapRecord
+) -> Progress | None:
+    """How far the map's re-description has come (None: none in progress)."""
+    if not record.reextracting:
+        return None
+    target = _target_model(localizer, record.pending_max_keypoints, record.pending_max_side)
+    with sessions() as session:
+        return ReextractionRepository(session).progress(record.id, target)
+
+
+def change_feature_options(
+    sessions: sessionmaker[Session],
+    localizer: Localizer,
+    map_id: str,
+    max_keypoints: int | None,
+    max_side: int | None,
+    reextractor: Reextractor | None,
+) -> None:
+    """Gives the map these feature options: at once when its references are described for
+    them already (none, or the server's extractor at these options); else they are
+    described anew from their originals in the background (``reextractor``) and the map
+    switches when they are. Asking for the options the map serves cancels a re-description
+    in progress; on a map whose references another extractor described (the server's
+    ``SLLOC_FEATURES`` changed), it describes them with the server's.
+
+    Raises:
+        NotFoundError: unknown map.
+        InvalidInputError: the extractor cannot honour the options.
+        ConflictError: some references have no original to be described again from.
+    """
+    target = _target_model(localizer, max_keypoints, max_side)
+    with sessions.begin() as session:
+        row = require_map(session, map_id)
+        repository = ReextractionRepository(session)
+        progress = repository.progress(map_id, target)
+        without_original = repository.without_original(map_id, target)
+        if (row.max_keypoints, row.max_side) == (max_keypoints, max_side) and not (
+            progress.total or without_original
+        ):
+            if row.reextracting:
+                repository.cancel(map_id)
+                logger.info("map %s: re-description cancelled", map_id)
+            return
+        if without_original:
+            raise ConflictError(
+                f"{without_original} of the map's references were added before originals "
+                "were kept and cannot be described again: add them again, or delete them, "
+                "before changing the map's feature options"
+            )
+        if not progress.total:  # every reference is described for these options already
+            row.max_keypoints, row.max_side = max_keypoints, max_side
+            repository.cancel(map_id)
+            return
+        repository.start(map_id, max_keypoints, max_side)
+    logger.info(
+        "map %s: re-describing its references with max_keypoints %s, max_side %s (%s)",
+        map_id,
+        max_keypoints,
+        max_side,
+        target,
+    )
+    if reextractor is not None:
+        reextractor.schedule(map_id)
+
+
+class Reextractor:
+    """Describes the references of re-describing maps anew, one map at a time."""
+
+    def __init__(
+        self,
+        sessions: sessionmaker[Session],
+        localizer: Localizer,
+        blobs: BlobStore,
+        features_cache: ReferenceFeatureCache | None = None,
+        on_switch: Callable[[str, Localizer], None] | None = None,
+    ) -> None:
+        """``on_switch(map_id, localizer)``: called after a map switched, with the
+        localizer of its new options (e.g. to train its retrieval vocabulary)."""
+        self.sessions = sessions
+        self.localizer = localizer
+        self.blobs = blobs
+        self.features_cache = features_cache
+        self.on_switch = on_switch
+        self.worker = BackgroundTrainer("re-extraction")
+        self.described = 0  # references described since start-up
+        self._lock = threading.Lock()
+
+    def resume(self) -> list[str]:
+        """Schedules every map still re-describing (after a restart); returns their ids."""
+        with self.sessions() as session:
+            pending = ReextractionRepository(session).maps_pending()
+        for map_id in pending:
+            self.schedule(map_id)
+        return pending
+
+    def schedule(self, map_id: str) -> None:
+        self.worker.schedule(map_id, lambda: self.run(map_id))
+
+    def run(self, map_id: str) -> None:
+        """Describes the map's references batch by batch, then switches it; returns early
+        when the map is deleted or its re-description cancelled."""
+        failed: set[str] = set()
+        while True:
+            with self.sessions() as session:
+                row = MapRepository(session).get(map_id)
+                if row is None or not row.reextracting:
+                    return
+                options = (row.pending_max_keypoints, row.pending_max_side)
+                localizer = self.localizer.for_map(*options)
+                target = localizer.extractor.name
+                batch = [
+                    (image.id, image.original_key, camera_of(image))
+                    for image in ReextractionRepository(session).to_describe(
+                        map_id, target, BATCH + len(failed)
+                    )
+                    if image.id not in failed
+                ][:BATCH]
+            if not batch and self._switch(map_id, localizer, options, failed):
+                return
+            for image_id, key, camera in batch:
+                if not self._describe(map_id, image_id, key, camera, localizer):
+                    failed.add(image_id)
+
+    def _describe(
+        self, map_id: str, image_id: str, key: str | None, camera: Camera, localizer: Localizer
+    ) -> bool:
+        try:
+            original = read_original(self.blobs, key) if key is not None else None
+            if original is None:
+                raise InvalidInputError(f"its original {key} is missing from the blob store")
+            data = localizer.describe_reference(original, camera)
+        except (InvalidInputError, BlobStoreError) as exc:
+            logger.warning("map %s: reference %s not described again: %s", map_id, image_id, exc)
+            return False
+        with self.sessions.begin() as session:
+            ReextractionRepository(session).stage(map_id, image_id, data)
+        with self._lock:
+            self.described += 1
+        return True
+
+    def _switch(
+        self,
+        map_id: str,
+        localizer: Localizer,
+        options: tuple[int | None, int | None],
+        failed: set[str],
+    ) -> bool:
+        """Switches the map to its staged descriptions; False when its options changed
+        since they were read (the run goes on with the new ones)."""
+        with self.sessions.begin() as session:
+            row = MapRepository(session).get(map_id)
+            if row is None or not row.reextracting:
+                return True  # deleted or cancelled meanwhile
+            if (row.pending_max_keypoints, row.pending_max_side) != options:
+                return False
+            switched = ReextractionRepository(session).switch(
+                map_id, localizer.extractor.name, localizer.global_descriptor.name
+            )
+        if self.features_cache is not None:
+            self.features_cache.discard(map_id)
+        logger.info(
+            "map %s: switched to %s (%d references described again, %d could not be)",
+            map_id,
+            localizer.extractor.name,
+            switched,
+            len(failed),
+        )
+        if self.on_switch is not None:
+            self.on_switch(map_id, localizer)
+        return True
+
+    def shutdown(self) -> None:
+        self.worker.shutdown()
+
+
+def _target_model(localizer: Localizer, max_keypoints: int | None, max_side: int | None) -> str:
+    return localizer.for_map(max_keypoints, max_side).extractor.name
