@@ -19,6 +19,9 @@ MIN_GPS_REFERENCES = 3
 # the smallest singular value (relative to the largest) of the centred map centres below
 # which their layout is a line and the rotation about it is unobservable
 COLLINEAR_RATIO = 1e-3
+# an estimated registration whose orientation the GPS positions fix worse than this (1-σ) is
+# refused: the references span too little against the GPS scatter for a usable heading
+MAX_ROTATION_SIGMA_DEG = 20.0
 # physical ranges of a registration besides its origin's height (HEIGHT_RANGE_M): the scale in
 # metres per map unit, and |translation| of enu_from_map in metres (about the Earth's
 # diameter: beyond it ENU at the origin means nothing)
@@ -168,8 +171,9 @@ def estimate_registration(
         max_error_m: RANSAC inlier threshold in metres (about 3× the GPS accuracy).
 
     Raises:
-        InvalidInputError: fewer than three positions, the centres on a line, or no
-            similarity found.
+        InvalidInputError: fewer than three positions, the centres on a line, no similarity
+            found, or one whose orientation the positions fix worse than
+            ``MAX_ROTATION_SIGMA_DEG``.
     """
     centers = np.asarray(centers, np.float64)
     gps = np.asarray(gps, np.float64)
@@ -204,13 +208,22 @@ def estimate_registration(
     # a least-squares fit over n points: σ of the centroid ≈ rms/√n; of the rotation ≈ rms over
     # the layout's radius of gyration about its weakest axis, /√n
     radius = float(np.sqrt(spread[1] ** 2 / len(centers))) * float(refined.scale)
+    rotation_sigma_deg = float(np.degrees(rms / max(radius, 1e-9) / np.sqrt(count)))
+    if rotation_sigma_deg > MAX_ROTATION_SIGMA_DEG:
+        raise InvalidInputError(
+            f"the references with a GPS position span about {2 * radius:.1f} m across their "
+            f"narrowest direction against a GPS scatter of {rms:.1f} m (rms, {count} "
+            f"positions): the registration's orientation would be uncertain by about "
+            f"{min(rotation_sigma_deg, 180.0):.0f}° (more than {MAX_ROTATION_SIGMA_DEG:g}°); "
+            "add GPS positions of references farther apart, or set the registration by hand"
+        )
     registration = GeoRegistration(
         origin,
         np.asarray(refined.rotation.matrix(), np.float64),
         np.asarray(refined.translation, np.float64),
         float(refined.scale),
         position_sigma_m=rms / np.sqrt(count),
-        rotation_sigma_deg=float(np.degrees(rms / max(radius, 1e-9) / np.sqrt(count))),
+        rotation_sigma_deg=rotation_sigma_deg,
     )
     return RegistrationFit(registration, residuals, inliers)
 

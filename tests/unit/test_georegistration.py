@@ -186,6 +186,20 @@ class TestRegistration:
         with pytest.raises(InvalidInputError, match="line"):
             estimate_registration(line, self.truth.geodetic_from_map(line))
 
+    def test_a_narrow_layout_against_the_gps_scatter_is_refused(self) -> None:
+        """Twenty references along 30 m of a 1 m wide corridor with 3 m GPS: no usable
+        heading (the rotation about the corridor is fixed to tens of degrees at best)."""
+        rng = np.random.default_rng(3)
+        centers = (
+            np.stack(
+                [rng.uniform(-15, 15, 20), rng.normal(-1.5, 0.01, 20), rng.uniform(-0.5, 0.5, 20)],
+                axis=1,
+            )
+            / 20.0
+        )
+        with pytest.raises(InvalidInputError, match=r"uncertain by about \d+° \(more than 20°\)"):
+            estimate_registration(centers, self._noisy_gps(rng, centers, 3.0), max_error_m=9.0)
+
     def test_map_and_geodetic_round_trip(self) -> None:
         points = np.array([[0.3, -0.1, 2.0], [-4.0, 0.0, 1.0]])
         np.testing.assert_allclose(
