@@ -99,8 +99,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             app.state.reference_cache,
             on_switch=train if served.vlad else None,
         )
-        if resumed := app.state.reextractor.resume():
-            logger.info("re-describing the references of %d maps: %s", len(resumed), resumed)
+        app.state.reextractor.resume()
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:

@@ -14,6 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import ConflictError
@@ -123,13 +124,23 @@ class Reextractor:
         self.described = 0  # references described since start-up
         self._lock = threading.Lock()
 
-    def resume(self) -> list[str]:
-        """Schedules every map still re-describing (after a restart); returns their ids."""
-        with self.sessions() as session:
-            pending = ReextractionRepository(session).maps_pending()
+    def resume(self) -> None:
+        """Schedules every map still re-describing (after a restart), read in the background
+        so that a start-up does not wait on the database; an unreachable database leaves
+        them to the next start or ``PATCH``."""
+        self.worker.schedule("resume", self._resume)
+
+    def _resume(self) -> None:
+        try:
+            with self.sessions() as session:
+                pending = ReextractionRepository(session).maps_pending()
+        except SQLAlchemyError as exc:
+            logger.warning("re-descriptions not resumed, the database is unreachable: %s", exc)
+            return
+        if pending:
+            logger.info("re-describing the references of %d maps: %s", len(pending), pending)
         for map_id in pending:
             self.schedule(map_id)
-        return pending
 
     def schedule(self, map_id: str) -> None:
         self.worker.schedule(map_id, lambda: self.run(map_id))
