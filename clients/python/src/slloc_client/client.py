@@ -49,6 +49,16 @@ def _q(segment: str) -> str:
     return quote(segment, safe="")
 
 
+def _map_fields(
+    description: str | None, default_estimator: str | None, features: FeatureOptions | Json | None
+) -> dict[str, Any]:
+    """A map's optional fields that were given, as JSON."""
+    fields: dict[str, Any] = {"description": description, "default_estimator": default_estimator}
+    if features is not None:
+        fields["features"] = _json(features)
+    return {key: value for key, value in fields.items() if value is not None}
+
+
 def _json(value: BaseModel | Json) -> Any:
     """A request object as JSON: a model's fields that were set, or a mapping as given (the
     server validates it and answers 422 naming what is wrong)."""
@@ -158,13 +168,7 @@ class Client:
         features: FeatureOptions | Json | None = None,
     ) -> MapOut:
         """A new map (admin); 409 ``map-name-taken`` when the name is in use."""
-        body: dict[str, Any] = {"name": name}
-        if description is not None:
-            body["description"] = description
-        if default_estimator is not None:
-            body["default_estimator"] = default_estimator
-        if features is not None:
-            body["features"] = _json(features)
+        body = {"name": name, **_map_fields(description, default_estimator, features)}
         return self._send(MapOut, "POST", "/v1/maps", json=body)
 
     def update_map(
@@ -178,13 +182,7 @@ class Client:
         """Changes the fields given (admin). New ``features`` describe the map's references
         again from their originals in the background: ``features.state`` is
         ``re-extracting`` until the map switches."""
-        body: dict[str, Any] = {}
-        if description is not None:
-            body["description"] = description
-        if default_estimator is not None:
-            body["default_estimator"] = default_estimator
-        if features is not None:
-            body["features"] = _json(features)
+        body = _map_fields(description, default_estimator, features)
         return self._send(MapOut, "PATCH", f"/v1/maps/{_q(map_id)}", json=body)
 
     def list_maps(self, *, offset: int = 0, limit: int = 100) -> MapPage:
