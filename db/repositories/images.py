@@ -8,6 +8,7 @@ from sqlalchemy.orm import Session
 from db.arrays import to_row
 from db.models import FeatureArray, Map, ReferenceImage, ReferencePreview, is_stored_id
 from db.originals import StoredOriginals
+from db.repositories.maps import lock_map_row
 from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -32,7 +33,7 @@ class ImageRepository:
     ) -> ReferenceImage:
         """Insert the image row and all its arrays (flushed, not committed). ``image_id``:
         the row's id (None: a new one); ``originals``: where its originals were written."""
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         qw, qx, qy, qz = (float(v) for v in cam_from_world.quaternion)
         tx, ty, tz = (float(v) for v in cam_from_world.translation)
         row = ReferenceImage(
@@ -168,7 +169,7 @@ class ImageRepository:
         """Delete an image and its feature arrays. True when it existed."""
         if not (is_stored_id(map_id) and is_stored_id(image_id)):
             return False
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         result = self.session.execute(
             delete(ReferenceImage).where(
                 ReferenceImage.id == image_id, ReferenceImage.map_id == map_id
@@ -178,12 +179,6 @@ class ImageRepository:
         if deleted:
             self._bump_revision(map_id)
         return deleted
-
-    def _lock_map(self, map_id: str) -> None:
-        """Lock the map row first: every writer of a map's images takes the map row, then
-        the images, then their arrays (as a vocabulary publish does), so two writers wait
-        for each other instead of deadlocking."""
-        self.session.execute(select(Map.id).where(Map.id == map_id).with_for_update(key_share=True))
 
     def _bump_revision(self, map_id: str) -> None:
         self.session.execute(update(Map).where(Map.id == map_id).values(revision=Map.revision + 1))

@@ -8,6 +8,13 @@ from sqlalchemy.orm import Session
 from db.models import Map, ReferenceImage, is_stored_id
 
 
+def lock_map_row(session: Session, map_id: str) -> None:
+    """Lock the map row first: every writer of a map's images takes the map row, then the
+    images, then their arrays (as a vocabulary publish does), so two writers wait for each
+    other instead of deadlocking."""
+    session.execute(select(Map.id).where(Map.id == map_id).with_for_update(key_share=True))
+
+
 class MapRepository:
     def __init__(self, session: Session) -> None:
         self.session = session

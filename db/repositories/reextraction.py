@@ -6,11 +6,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import ColumnElement, and_, delete, func, or_, select, update
+from sqlalchemy import ColumnElement, delete, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from db.arrays import to_row
 from db.models import FeatureArray, Map, ReferenceImage
+from db.repositories.maps import lock_map_row
 from db.vocabulary import VLAD_KIND
 from services.references.store import ReferenceData
 
@@ -43,7 +44,7 @@ class ReextractionRepository:
     def start(self, map_id: str, max_keypoints: int | None, max_side: int | None) -> None:
         """Sets the map's pending options (flushed, not committed); descriptions staged for
         other options are described again, those staged for these are kept."""
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         self.session.execute(
             update(Map)
             .where(Map.id == map_id)
@@ -54,7 +55,7 @@ class ReextractionRepository:
 
     def cancel(self, map_id: str) -> None:
         """No options pending: the staged descriptions are dropped."""
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         self.session.execute(
             update(Map)
             .where(Map.id == map_id)
@@ -84,7 +85,7 @@ class ReextractionRepository:
     def stage(self, map_id: str, image_id: str, data: ReferenceData) -> bool:
         """Stores ``data`` as the reference's staged description (flushed, not committed);
         False when the reference is gone."""
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         row = self.session.get(ReferenceImage, image_id)
         if row is None or row.map_id != map_id:
             return False
@@ -139,7 +140,7 @@ class ReextractionRepository:
         new vocabulary encodes it), the pending options become the map's and its revision
         moves. References that could not be described (no original) keep their old
         description, which the map no longer serves. Returns the references switched."""
-        self._lock_map(map_id)
+        lock_map_row(self.session, map_id)
         staged = select(ReferenceImage.id).where(
             ReferenceImage.map_id == map_id, ReferenceImage.next_feature_model == target_model
         )
@@ -190,15 +191,6 @@ class ReextractionRepository:
         )
         self.session.execute(
             update(ReferenceImage)
-            .where(
-                and_(
-                    ReferenceImage.map_id == map_id, ReferenceImage.next_feature_model.is_not(None)
-                )
-            )
+            .where(ReferenceImage.map_id == map_id, ReferenceImage.next_feature_model.is_not(None))
             .values(next_feature_model=None)
         )
-
-    def _lock_map(self, map_id: str) -> None:
-        """The map row first, as every writer of a map's images takes it
-        (``ImageRepository``)."""
-        self.session.execute(select(Map.id).where(Map.id == map_id).with_for_update(key_share=True))
