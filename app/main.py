@@ -15,7 +15,7 @@ from fastapi_offline import FastAPIOffline
 
 from app.admission import Admission
 from app.api.openapi import install_openapi
-from app.api.routes import geo, gpp, health, images, localize, maps
+from app.api.routes import evaluations, geo, gpp, health, images, localize, maps
 from app.ar_page import install_ar_page
 from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
@@ -27,6 +27,7 @@ from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
+from app.usecases.evaluations import Evaluator
 from app.usecases.images import train_vocabulary_if_due
 from app.usecases.reextraction import Reextractor
 from app.viewer import install_viewer
@@ -100,6 +101,9 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             on_switch=train if served.vlad else None,
         )
         app.state.reextractor.resume()
+        # maps' self-evaluations; those a restart interrupted run again
+        app.state.evaluator = Evaluator(app.state.sessions, app.state.localizer, served, blobs)
+        app.state.evaluator.resume()
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
@@ -108,6 +112,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         yield
         app.state.draining = True  # /readyz answers 503 from now on
         app.state.reextractor.shutdown()
+        app.state.evaluator.shutdown()
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()
@@ -127,7 +132,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes, memory=memory)
     # outside the body limit: a missing or unknown key is answered before anything reads the
     # body
-    routers = [m.router for m in (maps, images, geo, localize, gpp, health)]
+    routers = [m.router for m in (maps, images, evaluations, geo, localize, gpp, health)]
     routes = [route for router in routers for route in router.routes]
     app.add_middleware(ApiKeyGate, routes=routes)
     # outside the key gate: a browser's preflight carries no key (SLLOC_CORS_ORIGINS)

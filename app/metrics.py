@@ -28,6 +28,7 @@ from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.auth import API_KEY_HEADER, RoleCheck
+from app.usecases.evaluations import Evaluator
 from db.repositories.maps import MapRepository
 
 logger = logging.getLogger(__name__)
@@ -161,6 +162,10 @@ class _StateCollector(Collector):
                 "options changed, since start-up",
                 value=reextractor.described,
             )
+        evaluator = getattr(self.state, "evaluator", None)
+        if evaluator is not None:
+            trainers.append(evaluator.worker)
+            yield from _evaluation_metrics(evaluator)
         for trainer in trainers:
             if trainer is not None:
                 jobs.add_metric((trainer.name,), trainer.pending())
@@ -181,6 +186,46 @@ class _StateCollector(Collector):
                 for map_id, name, count in largest:
                     maps.add_metric((map_id, name), count)
                 yield maps
+
+
+def _evaluation_metrics(evaluator: Evaluator) -> Iterable[Metric]:
+    """Self-evaluations ended since start-up, and the latest figures of the maps evaluated
+    since then (the ``MAX_MAP_SERIES`` most recent)."""
+    ended = CounterMetricFamily(
+        "slloc_self_evaluations",
+        "Self-evaluations of maps ended since start-up, by how they ended",
+        labels=("state",),
+    )
+    for state in ("done", "failed", "cancelled"):
+        ended.add_metric((state,), evaluator.finished.get(state, 0))
+    yield ended
+    yield CounterMetricFamily(
+        "slloc_self_evaluation_queries",
+        "Held-out references localized by self-evaluations since start-up",
+        value=evaluator.held_out,
+    )
+    recall = GaugeMetricFamily(
+        "slloc_map_self_evaluation_recall",
+        "Share of a map's held-out references localized within the threshold, by feature "
+        "configuration, in its latest self-evaluation",
+        labels=("map_id", "map", "configuration", "threshold"),
+    )
+    median = GaugeMetricFamily(
+        "slloc_map_self_evaluation_median_error_meters",
+        "Median position error of a map's held-out references (failures infinite), by "
+        "feature configuration, in its latest self-evaluation",
+        labels=("map_id", "map", "configuration"),
+    )
+    for map_id, (name, results) in list(evaluator.latest.items())[-MAX_MAP_SERIES:]:
+        for configuration, summary in results.items():
+            for threshold, value in summary["recall"].items():
+                recall.add_metric((map_id, name, configuration, threshold), value)
+            error = summary["position_error_m"]["median"]
+            median.add_metric(
+                (map_id, name, configuration), error if error is not None else float("inf")
+            )
+    yield recall
+    yield median
 
 
 def _gauge(name: str, documentation: str, value: float) -> GaugeMetricFamily:

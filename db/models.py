@@ -175,3 +175,24 @@ class MapVocabulary(Base):
     shape: Mapped[list[int]] = mapped_column(JSON)
     centers: Mapped[bytes] = mapped_column(LargeBinary)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
+
+
+class MapEvaluation(Base):
+    """A self-evaluation of a map (``app/usecases/evaluations.py``): what was asked, how far it
+    has come, and what it measured per configuration (``result``; None until done)."""
+
+    __tablename__ = "map_evaluations"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
+    map_id: Mapped[str] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    # queued, running, done, failed, cancelled
+    state: Mapped[str] = mapped_column(String(16))
+    request: Mapped[dict[str, object]] = mapped_column(JSON)
+    # held-out queries localized so far, of every configuration's
+    done: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int] = mapped_column(Integer, default=0)
+    result: Mapped[dict[str, object] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -130,7 +130,7 @@ def resolve_features(
         if choice == FALLBACK_FEATURES:
             return True
         if choice not in missing:
-            missing[choice] = _missing_models(models_dir, choice)
+            missing[choice] = missing_models(models_dir, choice)
         return missing[choice] is None
 
     def held(choice: str) -> bool:
@@ -156,7 +156,7 @@ def resolve_features(
     return FALLBACK_FEATURES
 
 
-def _missing_models(models_dir: Path, name: str) -> str | None:
+def missing_models(models_dir: Path, name: str) -> str | None:
     """Why configuration ``name``'s models cannot be loaded from ``models_dir`` (not built, a
     file missing or altered), or None when they can."""
     entries = read_manifest(models_dir)

@@ -1,5 +1,6 @@
 """The ``slloc`` command: serve, import, db upgrade, blobs check|sweep, synth, models build,
-features, openapi, eval, bench (``serve`` and ``db upgrade`` are the app's: ``app/cli.py``)."""
+features, openapi, eval, bench, self-evaluate (``serve`` and ``db upgrade`` are the app's:
+``app/cli.py``)."""
 
 from __future__ import annotations
 
@@ -121,6 +122,15 @@ def main(argv: list[str] | None = None) -> int:
     add_calibrate_arguments(
         sub.add_parser("calibrate", help="fit the confidence model on slloc eval results")
     )
+    from tools.evaluation.self_evaluate import add_self_evaluate_arguments
+
+    add_self_evaluate_arguments(
+        sub.add_parser(
+            "self-evaluate",
+            help="measure a map on its own references (on a running server) and print the "
+            "figures of each feature configuration",
+        )
+    )
 
     args = parser.parse_args(argv)
     if args.command in SERVER_COMMANDS:
@@ -150,6 +160,10 @@ def main(argv: list[str] | None = None) -> int:
         from tools.evaluation.bench import bench_main
 
         return bench_main(args)
+    if args.command == "self-evaluate":
+        from tools.evaluation.self_evaluate import self_evaluate_main
+
+        return self_evaluate_main(args)
     if args.command == "calibrate":
         from tools.evaluation.calibrate import calibrate_main
 

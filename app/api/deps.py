@@ -13,6 +13,7 @@ from app.auth import RoleCheck
 from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
+from app.usecases.evaluations import Evaluator
 from app.usecases.localize import LocalizeContext
 from app.usecases.reextraction import Reextractor
 from db.blobs import BlobStore
@@ -83,6 +84,12 @@ async def get_localize_context(request: Request) -> LocalizeContext:
     )
 
 
+async def get_evaluator(request: Request) -> Evaluator:
+    """Runs maps' self-evaluations in the background."""
+    evaluator: Evaluator = request.app.state.evaluator
+    return evaluator
+
+
 async def get_reextractor(request: Request) -> Reextractor:
     """Describes the references of maps whose feature options changed anew."""
     reextractor: Reextractor = request.app.state.reextractor
@@ -110,6 +117,7 @@ TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]
 MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
 BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
 ReextractorDep = Annotated[Reextractor, Depends(get_reextractor)]
+EvaluatorDep = Annotated[Evaluator, Depends(get_evaluator)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

@@ -14,7 +14,7 @@ from services.geometry.rigid import Rigid3d, pose_error, quaternion_to_matrix
 from services.localization.answer import LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import GravityHint, QueryFrameHints
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_jpeg, encode_png
 
 WORLD_DOWN = np.array([0.0, 1.0, 0.0])  # the synthetic room's world is y-down

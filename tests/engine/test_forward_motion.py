@@ -13,7 +13,7 @@ from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names, get_estimator
 from services.localization.localizer import LocalizeParams, Localizer
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
 
 REFERENCE_DISTANCES = [-5.0 + 0.75 * i for i in range(9)]  # along +z, the way they look

@@ -11,7 +11,7 @@ from services.geometry.gravity import references_down
 from services.geometry.rigid import pose_error
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import GravityHint, QueryFrameHints
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticView, encode_png
 
 

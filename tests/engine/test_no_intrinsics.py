@@ -9,7 +9,7 @@ import pytest
 from services.estimators.registry import get_estimator
 from services.geometry.rigid import pose_error
 from services.localization.localizer import LocalizeParams, Localizer
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 

@@ -13,9 +13,9 @@ from services.geometry.camera import Camera
 from services.geometry.rigid import pose_error
 from services.imaging.decode import decode_image_reduced
 from services.localization.localizer import LocalizeParams, Localizer
+from services.references.memory import MemoryReferenceStore
 from services.runtime.spare_workers import SpareWorkers
 from services.types import UInt8Array
-from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 UPSCALE = 4

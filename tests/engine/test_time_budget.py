@@ -24,7 +24,7 @@ from services.estimators.rig_pose import RigFrame, estimate_rig_pose
 from services.localization.estimate import answer_pose
 from services.localization.frames import QueryFrame, localize_frames
 from services.localization.localizer import LocalizeParams, Localizer
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.budget import TOP_K, copied_store, large_correspondences
 from tools.synthetic.correspondences import SyntheticCorrespondences
 from tools.synthetic.scene import SyntheticView, encode_png

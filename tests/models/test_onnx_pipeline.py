@@ -25,10 +25,10 @@ from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import pose_error
 from services.localization.localizer import LocalizeParams
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
+from services.references.memory import MemoryReferenceStore
 from services.runtime.manifest import read_manifest
 from services.runtime.spare_workers import SpareWorkers
 from tests.models.conftest import MODELS_DIR
-from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png, unrelated_image
 
 # extractor model → the fixture whose store has it and its LightGlue

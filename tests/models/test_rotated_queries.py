@@ -12,8 +12,8 @@ from services.geometry.intrinsics_adaptation import rotate_camera, rotated_from_
 from services.geometry.rigid import Rigid3d, pose_error
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import GravityHint, QueryFrameHints
+from services.references.memory import MemoryReferenceStore
 from tests.models.conftest import MODELS_DIR
-from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticView, encode_png
 
 WORLD_DOWN = np.array([0.0, 1.0, 0.0])

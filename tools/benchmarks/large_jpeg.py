@@ -31,8 +31,8 @@ from services.geometry.rigid import Rigid3d
 from services.imaging.decode import DecodedImage, decode_image_reduced
 from services.localization import localizer as single_frame
 from services.localization.localizer import LocalizeParams
+from services.references.memory import MemoryReferenceStore
 from tools.evaluation.server import memory_mb
-from tools.fixtures.memory_store import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene
 
 REDKITCHEN_FRAME = Path("/work/shared/datasets/redkitchen/images/frame-000000.color.jpg")

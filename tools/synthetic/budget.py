@@ -5,7 +5,7 @@ map of the rendered reference views under several names each for the localizer's
 from __future__ import annotations
 
 from services.localization.localizer import Localizer
-from tools.fixtures.memory_store import MemoryReferenceStore
+from services.references.memory import MemoryReferenceStore
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 from tools.synthetic.scene import SyntheticView, encode_png
 

@@ -84,6 +84,56 @@ export interface paths {
         patch: operations["update_map"];
         trace?: never;
     };
+    "/v1/maps/{map_id}/evaluations": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /** List Evaluations */
+        get: operations["list_evaluations"];
+        put?: never;
+        /**
+         * Start Evaluation
+         * @description Starts measuring the map on its own references in the background: a spread of them is
+         *     localized, each as a query with its own camera against the rest of the map, for each
+         *     configuration asked for; poll the evaluation (``Location``) for its progress and result.
+         *     409 while another evaluation of the map runs, or when fewer than two references have
+         *     their originals; 422 for a configuration whose models this server lacks.
+         */
+        post: operations["start_evaluation"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/v1/maps/{map_id}/evaluations/{evaluation_id}": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Evaluation
+         * @description The evaluation with what it measured of each held-out reference.
+         */
+        get: operations["get_evaluation"];
+        put?: never;
+        post?: never;
+        /**
+         * Delete Evaluation
+         * @description Cancels an evaluation that has not finished (it stays, ``cancelled``); deletes a
+         *     finished one.
+         */
+        delete: operations["delete_evaluation"];
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/v1/maps/{map_id}/geo-registration": {
         parameters: {
             query?: never;
@@ -428,6 +478,68 @@ export interface components {
             /** Width */
             width: number;
         } & (unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown);
+        /** ConfidenceCheck */
+        ConfidenceCheck: {
+            /**
+             * Confident
+             * @description Answers above the threshold
+             */
+            confident: number;
+            /**
+             * Precision
+             * @description Of the answers above the threshold, the share within (0.25 m, 5°)
+             */
+            precision: number | null;
+            /**
+             * Recall
+             * @description Of the answers within (0.25 m, 5°), the share above the threshold
+             */
+            recall: number | null;
+            /**
+             * Threshold
+             * @description The confidence an answer is taken as sure above
+             */
+            threshold: number;
+        };
+        /** ConfigurationResult */
+        ConfigurationResult: {
+            confidence: components["schemas"]["ConfidenceCheck"];
+            /**
+             * Duration S
+             * @description Time this configuration's measurement took
+             */
+            duration_s: number;
+            /**
+             * Failures
+             * @description Held-out references not localized, by reason
+             */
+            failures: {
+                [key: string]: number;
+            };
+            /**
+             * Held Out
+             * @description References localized against the map without them
+             */
+            held_out: number;
+            latency_ms: components["schemas"]["Latency"];
+            /** Localized */
+            localized: number;
+            /** @description Failures count as infinite */
+            position_error_m: components["schemas"]["Percentiles"];
+            /**
+             * Recall
+             * @description Share of the held-out references localized within each threshold (keys like 5cm_5deg)
+             */
+            recall: {
+                [key: string]: number;
+            };
+            /**
+             * References
+             * @description Per held-out reference (left out of listings)
+             */
+            references?: components["schemas"]["HeldOutOut"][] | null;
+            rotation_error_deg: components["schemas"]["Percentiles"];
+        };
         /** DescribedByOut */
         DescribedByOut: {
             /**
@@ -477,6 +589,110 @@ export interface components {
          * @enum {string}
          */
         EstimatorName: "auto" | "e3p1" | "e5p1" | "essential_3pt_depth" | "essential_5pt" | "local_tri_all" | "local_tri_pairs" | "motion_averaging" | "pose_approx";
+        /**
+         * EvaluationCreate
+         * @description What to measure; every field has a default (an empty body measures every configuration
+         *     the server can run).
+         */
+        EvaluationCreate: {
+            /**
+             * Configurations
+             * @description Feature configurations to measure (names as SLLOC_FEATURES takes); null: the server's, the automatic choices (xfeat-lg, aliked) and sift, of those whose models are built
+             */
+            configurations?: string[] | null;
+            /** @description The estimator of the held-out queries; null: the map's default */
+            estimator?: components["schemas"]["EstimatorName"] | null;
+            /**
+             * Holdout Radius M
+             * @description References whose centre lies within this distance of a held-out one are held out with it, so that it is as far from the map as a real query (map units)
+             * @default 0
+             */
+            holdout_radius_m?: number;
+            /**
+             * Sample Size
+             * @description References held out, spread over the map (farthest-point sampling of their camera centres)
+             * @default 30
+             */
+            sample_size?: number;
+            /**
+             * Top K
+             * @description References retrieved per held-out query
+             * @default 10
+             */
+            top_k?: number;
+        };
+        /** EvaluationOut */
+        EvaluationOut: {
+            /**
+             * Created At
+             * Format: date-time
+             */
+            created_at: string;
+            /** Error */
+            error: string | null;
+            /** Finished At */
+            finished_at: string | null;
+            /** Id */
+            id: string;
+            /** Map Id */
+            map_id: string;
+            progress: components["schemas"]["EvaluationProgress"];
+            request: components["schemas"]["EvaluationCreate"];
+            result: components["schemas"]["EvaluationResult"] | null;
+            /** Started At */
+            started_at: string | null;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "queued" | "running" | "done" | "failed" | "cancelled";
+        };
+        /** EvaluationPage */
+        EvaluationPage: {
+            /**
+             * Items
+             * @description Newest first, without per-reference rows
+             */
+            items: components["schemas"]["EvaluationOut"][];
+            /** Limit */
+            limit: number;
+            /** Offset */
+            offset: number;
+            /** Total */
+            total: number;
+        };
+        /** EvaluationProgress */
+        EvaluationProgress: {
+            /**
+             * Done
+             * @description Held-out queries localized, over every configuration
+             */
+            done: number;
+            /** Total */
+            total: number;
+        };
+        /** EvaluationResult */
+        EvaluationResult: {
+            /** Configurations */
+            configurations: {
+                [key: string]: components["schemas"]["ConfigurationResult"];
+            };
+            /**
+             * Recommended
+             * @description The fastest configuration within 5 points of the best recall at every threshold and within 1.25x (or 5 mm) of the best median position error; null when none localized anything
+             */
+            recommended: string | null;
+            /**
+             * References
+             * @description The map's references with their originals
+             */
+            references: number;
+            /**
+             * Served
+             * @description The server's feature configuration at the time
+             */
+            served: string;
+        };
         /**
          * FailureReason
          * @description Why a query was not localized. Values are API strings.
@@ -850,6 +1066,31 @@ export interface components {
             version: string;
         };
         /**
+         * HeldOutOut
+         * @description One reference localized against the map without it (errors against its stored pose;
+         *     null when not localized).
+         */
+        HeldOutOut: {
+            /** Confidence */
+            confidence: number;
+            /** Image Id */
+            image_id: string;
+            /** Latency Ms */
+            latency_ms: number;
+            /** Localized */
+            localized: boolean;
+            /** Name */
+            name: string;
+            /** Num Inliers */
+            num_inliers: number;
+            /** Position Error M */
+            position_error_m: number | null;
+            /** Reason */
+            reason: string | null;
+            /** Rotation Error Deg */
+            rotation_error_deg: number | null;
+        };
+        /**
          * ImageMetadata
          * @description The ``metadata`` form field of an image upload (a JSON string).
          */
@@ -933,6 +1174,14 @@ export interface components {
             query_xy: number[][];
             /** Reference Xy */
             reference_xy: number[][];
+        };
+        /** Latency */
+        Latency: {
+            /**
+             * Median
+             * @description Median time of a held-out query (ms)
+             */
+            median: number | null;
         };
         /**
          * LocalizeParamsIn
@@ -1238,6 +1487,19 @@ export interface components {
              * @enum {string}
              */
             pose_of?: "upload" | "camera";
+        };
+        /** Percentiles */
+        Percentiles: {
+            /**
+             * Median
+             * @description null: more than half of the answers failed
+             */
+            median: number | null;
+            /**
+             * P90
+             * @description null: more than a tenth of the answers failed
+             */
+            p90: number | null;
         };
         /**
          * PoseSchema
@@ -1945,6 +2207,256 @@ export interface operations {
             };
             /** @description Upload or image too large */
             413: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    list_evaluations: {
+        parameters: {
+            query?: {
+                /** @description Items to skip */
+                offset?: number;
+                /** @description Items per page */
+                limit?: number;
+            };
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["EvaluationPage"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    start_evaluation: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: {
+            content: {
+                "application/json": components["schemas"]["EvaluationCreate"] | null;
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            202: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["EvaluationOut"];
+                };
+            };
+            /** @description Malformed body: JSON that is not UTF-8, or multipart without a boundary */
+            400: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Upload or image too large */
+            413: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    get_evaluation: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                evaluation_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["EvaluationOut"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    delete_evaluation: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                evaluation_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            204: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
                 headers: {
                     [name: string]: unknown;
                 };

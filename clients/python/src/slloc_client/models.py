@@ -126,6 +126,36 @@ class CameraSchema(BaseModel):
     width: int
 
 
+class ConfidenceCheck(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    confident: int = Field(description="Answers above the threshold")
+    precision: float | None = Field(
+        description="Of the answers above the threshold, the share within (0.25 m, 5°)"
+    )
+    recall: float | None = Field(
+        description="Of the answers within (0.25 m, 5°), the share above the threshold"
+    )
+    threshold: float = Field(description="The confidence an answer is taken as sure above")
+
+
+class ConfigurationResult(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    confidence: ConfidenceCheck
+    duration_s: float = Field(description="Time this configuration's measurement took")
+    failures: dict[str, int] = Field(description="Held-out references not localized, by reason")
+    held_out: int = Field(description="References localized against the map without them")
+    latency_ms: Latency
+    localized: int
+    position_error_m: Percentiles = Field(description="Failures count as infinite")
+    recall: dict[str, float] = Field(
+        description="Share of the held-out references localized within each threshold (keys like 5cm_5deg)"
+    )
+    references: list[HeldOutOut] | None = Field(
+        default=None, description="Per held-out reference (left out of listings)"
+    )
+    rotation_error_deg: Percentiles
+
+
 class DescribedByOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     descriptor_model: str = Field(description="The global descriptor that described them")
@@ -142,6 +172,68 @@ class EnuFromMapSchema(BaseModel):
     translation: list[float] = Field(
         default=[0.0, 0.0, 0.0], description="metres in ENU; |translation| at most 1e+07"
     )
+
+
+class EvaluationCreate(BaseModel):
+    """What to measure; every field has a default (an empty body measures every configuration
+    the server can run).
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    configurations: list[str] | None = Field(
+        default=None,
+        description="Feature configurations to measure (names as SLLOC_FEATURES takes); null: the server's, the automatic choices (xfeat-lg, aliked) and sift, of those whose models are built",
+    )
+    estimator: EstimatorName | None = Field(
+        default=None, description="The estimator of the held-out queries; null: the map's default"
+    )
+    holdout_radius_m: float = Field(
+        default=0.0,
+        description="References whose centre lies within this distance of a held-out one are held out with it, so that it is as far from the map as a real query (map units)",
+    )
+    sample_size: int = Field(
+        default=30,
+        description="References held out, spread over the map (farthest-point sampling of their camera centres)",
+    )
+    top_k: int = Field(default=10, description="References retrieved per held-out query")
+
+
+class EvaluationOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    created_at: datetime
+    error: str | None
+    finished_at: datetime | None
+    id: str
+    map_id: str
+    progress: EvaluationProgress
+    request: EvaluationCreate
+    result: EvaluationResult | None
+    started_at: datetime | None
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+
+
+class EvaluationPage(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    items: list[EvaluationOut] = Field(description="Newest first, without per-reference rows")
+    limit: int
+    offset: int
+    total: int
+
+
+class EvaluationProgress(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    done: int = Field(description="Held-out queries localized, over every configuration")
+    total: int
+
+
+class EvaluationResult(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    configurations: dict[str, ConfigurationResult]
+    recommended: str | None = Field(
+        description="The fastest configuration within 5 points of the best recall at every threshold and within 1.25x (or 5 mm) of the best median position error; null when none localized anything"
+    )
+    references: int = Field(description="The map's references with their originals")
+    served: str = Field(description="The server's feature configuration at the time")
 
 
 class FeatureOptions(BaseModel):
@@ -375,6 +467,23 @@ class HealthOut(BaseModel):
     version: str
 
 
+class HeldOutOut(BaseModel):
+    """One reference localized against the map without it (errors against its stored pose;
+    null when not localized).
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    confidence: float
+    image_id: str
+    latency_ms: float
+    localized: bool
+    name: str
+    num_inliers: int
+    position_error_m: float | None
+    reason: str | None
+    rotation_error_deg: float | None
+
+
 class ImageMetadata(BaseModel):
     """The ``metadata`` form field of an image upload (a JSON string)."""
 
@@ -428,6 +537,11 @@ class InliersOut(BaseModel):
     image_id: str
     query_xy: list[list[float]] = Field(description="(K, 2) COLMAP pixel coordinates")
     reference_xy: list[list[float]]
+
+
+class Latency(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    median: float | None = Field(description="Median time of a held-out query (ms)")
 
 
 class LocalizeParamsIn(BaseModel):
@@ -650,6 +764,12 @@ class OutputIn(BaseModel):
         default="upload",
         description="Whose world_from_cam: the uploaded image's camera, or the camera of `camera` before camera_adaptation's turn (the frame of ARKit's camera.transform and ARCore's Camera.getPose, which give landscape sensor intrinsics)",
     )
+
+
+class Percentiles(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    median: float | None = Field(description="null: more than half of the answers failed")
+    p90: float | None = Field(description="null: more than a tenth of the answers failed")
 
 
 class PoseSchema(BaseModel):

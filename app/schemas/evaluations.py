@@ -1,0 +1,166 @@
+"""Self-evaluations of a map: the request, its progress and what it measured."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from app.schemas.estimators import EstimatorName
+from app.usecases.evaluations import DEFAULT_SAMPLE, MAX_SAMPLE, EvaluationRequest
+from db.models import MapEvaluation
+
+
+class EvaluationCreate(BaseModel):
+    """What to measure; every field has a default (an empty body measures every configuration
+    the server can run)."""
+
+    configurations: list[str] | None = Field(
+        None,
+        min_length=1,
+        max_length=12,
+        description="Feature configurations to measure (names as SLLOC_FEATURES takes); null: "
+        "the server's, the automatic choices (xfeat-lg, aliked) and sift, of those whose "
+        "models are built",
+    )
+    sample_size: int = Field(
+        DEFAULT_SAMPLE,
+        ge=1,
+        le=MAX_SAMPLE,
+        description="References held out, spread over the map (farthest-point sampling of "
+        "their camera centres)",
+    )
+    holdout_radius_m: float = Field(
+        0.0,
+        ge=0.0,
+        le=10_000.0,
+        description="References whose centre lies within this distance of a held-out one "
+        "are held out with it, so that it is as far from the map as a real query (map units)",
+    )
+    top_k: int = Field(10, ge=1, le=50, description="References retrieved per held-out query")
+    estimator: EstimatorName | None = Field(
+        None, description="The estimator of the held-out queries; null: the map's default"
+    )
+
+    def to_request(self) -> EvaluationRequest:
+        return EvaluationRequest(
+            configurations=tuple(self.configurations) if self.configurations else None,
+            sample_size=self.sample_size,
+            holdout_radius_m=self.holdout_radius_m,
+            top_k=self.top_k,
+            estimator=self.estimator,
+        )
+
+
+class Percentiles(BaseModel):
+    median: float | None = Field(description="null: more than half of the answers failed")
+    p90: float | None = Field(description="null: more than a tenth of the answers failed")
+
+
+class ConfidenceCheck(BaseModel):
+    threshold: float = Field(description="The confidence an answer is taken as sure above")
+    confident: int = Field(description="Answers above the threshold")
+    precision: float | None = Field(
+        description="Of the answers above the threshold, the share within (0.25 m, 5°)"
+    )
+    recall: float | None = Field(
+        description="Of the answers within (0.25 m, 5°), the share above the threshold"
+    )
+
+
+class Latency(BaseModel):
+    median: float | None = Field(description="Median time of a held-out query (ms)")
+
+
+class HeldOutOut(BaseModel):
+    """One reference localized against the map without it (errors against its stored pose;
+    null when not localized)."""
+
+    image_id: str
+    name: str
+    localized: bool
+    reason: str | None
+    position_error_m: float | None
+    rotation_error_deg: float | None
+    confidence: float
+    num_inliers: int
+    latency_ms: float
+
+
+class ConfigurationResult(BaseModel):
+    held_out: int = Field(description="References localized against the map without them")
+    localized: int
+    recall: dict[str, float] = Field(
+        description="Share of the held-out references localized within each threshold "
+        "(keys like 5cm_5deg)"
+    )
+    position_error_m: Percentiles = Field(description="Failures count as infinite")
+    rotation_error_deg: Percentiles
+    confidence: ConfidenceCheck
+    latency_ms: Latency
+    failures: dict[str, int] = Field(description="Held-out references not localized, by reason")
+    duration_s: float = Field(description="Time this configuration's measurement took")
+    references: list[HeldOutOut] | None = Field(
+        None, description="Per held-out reference (left out of listings)"
+    )
+
+
+class EvaluationResult(BaseModel):
+    configurations: dict[str, ConfigurationResult]
+    recommended: str | None = Field(
+        description="The fastest configuration within 5 points of the best recall at every "
+        "threshold and within 1.25x (or 5 mm) of the best median position error; null when "
+        "none localized anything"
+    )
+    served: str = Field(description="The server's feature configuration at the time")
+    references: int = Field(description="The map's references with their originals")
+
+
+class EvaluationProgress(BaseModel):
+    done: int = Field(description="Held-out queries localized, over every configuration")
+    total: int
+
+
+class EvaluationOut(BaseModel):
+    id: str
+    map_id: str
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    request: EvaluationCreate
+    progress: EvaluationProgress
+    result: EvaluationResult | None
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+    @classmethod
+    def from_row(cls, row: MapEvaluation, with_references: bool = True) -> EvaluationOut:
+        result: dict[str, Any] | None = row.result
+        if result is not None and not with_references:
+            result = {
+                **result,
+                "configurations": {
+                    name: {**summary, "references": None}
+                    for name, summary in dict(result["configurations"]).items()
+                },
+            }
+        return cls(
+            id=row.id,
+            map_id=row.map_id,
+            state=row.state,
+            request=EvaluationCreate.model_validate(row.request),
+            progress=EvaluationProgress(done=row.done, total=row.total),
+            result=EvaluationResult.model_validate(result) if result is not None else None,
+            error=row.error,
+            created_at=row.created_at,
+            started_at=row.started_at,
+            finished_at=row.finished_at,
+        )
+
+
+class EvaluationPage(BaseModel):
+    items: list[EvaluationOut] = Field(description="Newest first, without per-reference rows")
+    total: int
+    offset: int
+    limit: int

@@ -1,0 +1,352 @@
+"""Self-evaluation of a map: a spread of its own references is localized, each against the
+rest of the map, for each feature configuration asked for; what it measures is stored with
+the configuration it recommends (``services/self_evaluation``).
+
+Evaluations run one at a time on a background thread at the lowest CPU priority; an evaluation
+a restart interrupted runs again from its start. A configuration other than the server's loads
+its models for the evaluation's duration.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict, dataclass, replace
+from functools import partial
+from typing import Any
+
+import numpy as np
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.maps import require_map
+from db.blobs import BlobStore
+from db.models import MapEvaluation
+from db.repositories.evaluations import EvaluationRepository
+from db.store import camera_of, pose_of, unusable
+from services.components import EngineConfig, ModelsMissingError, build_localizer, missing_models
+from services.errors import InvalidInputError
+from services.estimators.registry import get_estimator
+from services.features.configs import AUTO_CHOICES, FALLBACK_FEATURES, get_feature_config
+from services.localization.localizer import Localizer
+from services.retrieval.training import BackgroundTrainer
+from services.self_evaluation.run import EvaluationCancelled, HeldOutPlan, MapReference, evaluate
+from services.self_evaluation.sample import spread_sample
+from services.self_evaluation.summary import recommend, summarize
+from services.types import FloatArray
+
+logger = logging.getLogger(__name__)
+
+# references held out by default, and at most
+DEFAULT_SAMPLE = 30
+MAX_SAMPLE = 200
+# references a held-out one is localized against: its nearest (a local map)
+LOCAL_MAP = 40
+# references kept described between held-out queries
+DESCRIBED_CAPACITY = 120
+# maps whose latest results are kept for /metrics (the most recently evaluated)
+LATEST_KEPT = 1000
+# each held-out query's time budget (seconds), as a localize request's
+QUERY_BUDGET_S = 10.0
+
+
+@dataclass(frozen=True)
+class EvaluationRequest:
+    """What an evaluation measures: ``configurations`` (feature presets; None: every one
+    ``evaluable`` lists), the references held out, those held out with each, the references
+    retrieved per query and the estimator (None: the map's default)."""
+
+    configurations: tuple[str, ...] | None = None
+    sample_size: int = DEFAULT_SAMPLE
+    holdout_radius_m: float = 0.0
+    top_k: int = 10
+    estimator: str | None = None
+
+    @classmethod
+    def stored(cls, values: dict[str, Any]) -> EvaluationRequest:
+        """The request as ``start_evaluation`` stored it (configurations resolved)."""
+        return cls(
+            configurations=tuple(values["configurations"]),
+            sample_size=int(values["sample_size"]),
+            holdout_radius_m=float(values["holdout_radius_m"]),
+            top_k=int(values["top_k"]),
+            estimator=values.get("estimator"),
+        )
+
+
+def evaluable(engine: EngineConfig) -> list[str]:
+    """The configurations an evaluation measures by default: the server's, then the automatic
+    choices and the weight-free fallback whose models are built."""
+    names = [engine.features, *AUTO_CHOICES, FALLBACK_FEATURES]
+    unique = list(dict.fromkeys(names))
+    return [n for n in unique if n == engine.features or not missing_models(engine.models_dir, n)]
+
+
+def start_evaluation(
+    sessions: sessionmaker[Session],
+    engine: EngineConfig,
+    map_id: str,
+    request: EvaluationRequest,
+    evaluator: Evaluator | None,
+) -> MapEvaluation:
+    """Stores a queued evaluation of the map and schedules it.
+
+    Raises:
+        NotFoundError: unknown map.
+        InvalidInputError: an unknown configuration or estimator, or one whose models are not
+            built.
+        ConflictError: the map is being evaluated, or has fewer than two references with
+            their originals.
+    """
+    configurations = list(request.configurations or evaluable(engine))
+    for name in configurations:
+        get_feature_config(name)  # unknown: 422
+        problem = name != engine.features and missing_models(engine.models_dir, name)
+        if problem:
+            raise InvalidInputError(f"configurations: {name} cannot run on this server: {problem}")
+    if request.estimator is not None:
+        get_estimator(request.estimator)
+    with sessions.begin() as session:
+        require_map(session, map_id)
+        repository = EvaluationRepository(session)
+        running = repository.active(map_id)
+        if running is not None:
+            raise ConflictError(f"the map is being evaluated already: evaluation {running.id}")
+        if len(repository.references(map_id)) < 2:
+            raise ConflictError(
+                "a self-evaluation needs at least two references with their originals"
+            )
+        stored = asdict(replace(request, configurations=tuple(configurations)))
+        row = repository.create(map_id, {**stored, "configurations": configurations})
+        session.expunge(row)
+    if evaluator is not None:
+        evaluator.schedule(row.id)
+    return row
+
+
+def get_evaluation(
+    sessions: sessionmaker[Session], map_id: str, evaluation_id: str
+) -> MapEvaluation:
+    """Raises: NotFoundError: no such map, or no such evaluation of it."""
+    with sessions() as session:
+        require_map(session, map_id)
+        row = EvaluationRepository(session).get(map_id, evaluation_id)
+        if row is None:
+            raise NotFoundError("evaluation", evaluation_id)
+        session.expunge(row)
+        return row
+
+
+def list_evaluations(
+    sessions: sessionmaker[Session], map_id: str, offset: int, limit: int
+) -> tuple[list[MapEvaluation], int]:
+    """The map's evaluations, newest first. Raises: NotFoundError: no such map."""
+    with sessions() as session:
+        require_map(session, map_id)
+        rows, total = EvaluationRepository(session).page(map_id, offset, limit)
+        session.expunge_all()
+        return rows, total
+
+
+def cancel_evaluation(sessions: sessionmaker[Session], map_id: str, evaluation_id: str) -> None:
+    """Stops an unfinished evaluation (it ends ``cancelled``); a finished one is deleted.
+
+    Raises:
+        NotFoundError: no such map, or no such evaluation of it.
+    """
+    with sessions.begin() as session:
+        require_map(session, map_id)
+        repository = EvaluationRepository(session)
+        row = repository.get(map_id, evaluation_id)
+        if row is None:
+            raise NotFoundError("evaluation", evaluation_id)
+        if not repository.set_state(evaluation_id, "cancelled"):
+            session.delete(row)
+
+
+class _BlobOriginals:
+    """The originals of one map's references, read from the blob store by image id."""
+
+    def __init__(self, blobs: BlobStore, keys: dict[str, tuple[str, str | None]]) -> None:
+        self.blobs = blobs
+        self.keys = keys
+
+    def image(self, image_id: str) -> bytes:
+        return self.blobs.get(self.keys[image_id][0])
+
+    def depth(self, image_id: str) -> bytes | None:
+        key = self.keys[image_id][1]
+        return self.blobs.get(key) if key is not None else None
+
+
+class Evaluator:
+    """Runs the stored evaluations, one at a time, and keeps the latest results of the maps
+    evaluated since start-up (for ``/metrics``)."""
+
+    def __init__(
+        self,
+        sessions: sessionmaker[Session],
+        localizer: Localizer,
+        engine: EngineConfig,
+        blobs: BlobStore,
+    ) -> None:
+        self.sessions = sessions
+        self.localizer = localizer
+        self.engine = engine
+        self.blobs = blobs
+        self.worker = BackgroundTrainer("self-evaluation")
+        self.finished: dict[str, int] = {}  # evaluations ended since start-up, by state
+        self.held_out = 0  # held-out queries localized since start-up
+        # map id -> (map name, configuration -> summary) of its latest evaluation
+        self.latest: dict[str, tuple[str, dict[str, dict[str, Any]]]] = {}
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+
+    def resume(self) -> None:
+        """Schedules the evaluations a restart interrupted (read in the background)."""
+        self.worker.schedule("resume", self._resume)
+
+    def _resume(self) -> None:
+        try:
+            with self.sessions() as session:
+                unfinished = EvaluationRepository(session).unfinished()
+        except SQLAlchemyError as exc:
+            logger.warning("self-evaluations not resumed, the database is unreachable: %s", exc)
+            return
+        for evaluation_id in unfinished:
+            self.schedule(evaluation_id)
+
+    def schedule(self, evaluation_id: str) -> None:
+        self.worker.schedule(evaluation_id, lambda: self.run(evaluation_id))
+
+    def run(self, evaluation_id: str) -> None:
+        """Runs the evaluation to its end: ``done`` with its result, ``failed`` with the
+        error, or ``cancelled`` (asked, or its map deleted)."""
+        try:
+            self._run(evaluation_id)
+        except (EvaluationCancelled, NotFoundError):  # cancelled, or its map deleted
+            logger.info("self-evaluation %s stopped", evaluation_id)
+        except (SQLAlchemyError, ModelsMissingError, InvalidInputError, RuntimeError) as exc:
+            logger.exception("self-evaluation %s failed", evaluation_id)
+            self._end(evaluation_id, "failed", error=str(exc) or type(exc).__name__)
+
+    def _run(self, evaluation_id: str) -> None:
+        with self.sessions.begin() as session:
+            repository = EvaluationRepository(session)
+            row = session.get(MapEvaluation, evaluation_id)
+            if row is None or row.state not in ("queued", "running"):
+                return
+            map_row = require_map(session, row.map_id)
+            map_id, map_name = map_row.id, map_row.name
+            options = (map_row.max_keypoints, map_row.max_side)
+            request = EvaluationRequest.stored(dict(row.request))
+            estimator = get_estimator(request.estimator or map_row.default_estimator)
+            references: list[MapReference] = []
+            keys: dict[str, tuple[str, str | None]] = {}
+            for image in repository.references(map_id):
+                if unusable(image) is None:
+                    references.append(
+                        MapReference(image.id, image.name, camera_of(image), pose_of(image))
+                    )
+                    keys[image.id] = (str(image.original_key), image.depth_key)
+            configurations = list(request.configurations or ())
+            sample = [
+                int(i)
+                for i in spread_sample(
+                    _centers(references), min(request.sample_size, len(references))
+                )
+            ]
+            total = len(sample) * len(configurations)
+            repository.set_state(evaluation_id, "running", done=0, total=total)
+        logger.info(
+            "self-evaluation %s of map %s: %d of %d references held out, configurations %s",
+            evaluation_id,
+            map_id,
+            len(sample),
+            len(references),
+            ", ".join(configurations),
+        )
+        plan = HeldOutPlan(
+            local_map=LOCAL_MAP,
+            radius_m=request.holdout_radius_m,
+            top_k=request.top_k,
+            estimator=estimator,
+            time_budget_s=QUERY_BUDGET_S,
+        )
+        originals = _BlobOriginals(self.blobs, keys)
+        results: dict[str, dict[str, Any]] = {}
+        for position, name in enumerate(configurations):
+            localizer = self._localizer(name, options)
+            start = time.perf_counter()
+            offset = position * len(sample)
+            answers = evaluate(
+                localizer,
+                references,
+                sample,
+                originals,
+                plan,
+                DESCRIBED_CAPACITY,
+                stopped=lambda: self._stopped(evaluation_id),
+                progress=partial(self._progress, evaluation_id, offset),
+            )
+            results[name] = {
+                **summarize(answers),
+                "duration_s": round(time.perf_counter() - start, 3),
+                "references": [a.as_dict() for a in answers],
+            }
+        result = {
+            "configurations": results,
+            "recommended": recommend(results),
+            "served": self.engine.features,
+            "references": len(references),
+        }
+        if self._end(evaluation_id, "done", result=result):
+            with self._lock:
+                self.latest.pop(map_id, None)  # newest last
+                self.latest[map_id] = (map_name, results)
+                while len(self.latest) > LATEST_KEPT:
+                    del self.latest[next(iter(self.latest))]
+
+    def _localizer(self, name: str, options: tuple[int | None, int | None]) -> Localizer:
+        """The server's localizer at the map's options for its own configuration; another
+        configuration's, loaded for this evaluation, at its defaults."""
+        if name == self.engine.features:
+            return self.localizer.for_map(*options)
+        return build_localizer(replace(self.engine, features=name, wide_threads=None))
+
+    def _stopped(self, evaluation_id: str) -> bool:
+        if self._stopping.is_set():
+            return True
+        with self.sessions() as session:
+            row = session.get(MapEvaluation, evaluation_id)
+            return row is None or row.state != "running"
+
+    def _progress(self, evaluation_id: str, offset: int, done: int) -> None:
+        with self._lock:
+            self.held_out += 1
+        with self.sessions.begin() as session:
+            row = session.get(MapEvaluation, evaluation_id)
+            if row is not None and row.state == "running":
+                row.done = offset + done
+
+    def _end(self, evaluation_id: str, state: str, **values: object) -> bool:
+        try:
+            with self.sessions.begin() as session:
+                ended = EvaluationRepository(session).set_state(evaluation_id, state, **values)
+        except SQLAlchemyError as exc:
+            logger.warning("self-evaluation %s: its end was not stored: %s", evaluation_id, exc)
+            return False
+        if ended:
+            with self._lock:
+                self.finished[state] = self.finished.get(state, 0) + 1
+        return ended
+
+    def shutdown(self) -> None:
+        self._stopping.set()
+        self.worker.shutdown()
+
+
+def _centers(references: list[MapReference]) -> FloatArray:
+    return np.stack([r.cam_from_world.center for r in references])

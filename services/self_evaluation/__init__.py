@@ -1,0 +1,1 @@
+"""A map measures itself: its own references localized against the rest of it."""

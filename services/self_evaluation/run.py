@@ -1,0 +1,183 @@
+"""One configuration's self-evaluation: each sampled reference localized, as a query with its
+own camera, against a local map of the others described from their originals."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from services.errors import InvalidInputError
+from services.estimators.base import PoseEstimator
+from services.geometry.camera import Camera
+from services.geometry.rigid import Rigid3d, pose_error
+from services.localization.localizer import LocalizeParams, Localizer
+from services.references.memory import MemoryReferenceStore
+from services.references.store import ReferenceData
+from services.self_evaluation.sample import held_out_map
+from services.self_evaluation.summary import HeldOutAnswer
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MapReference:
+    """A reference of the map as the self-evaluation sees it: its stored camera and pose are
+    its ground truth as a query."""
+
+    image_id: str
+    name: str
+    camera: Camera
+    cam_from_world: Rigid3d
+
+
+class Originals(Protocol):
+    """The uploaded bytes of the map's references (the blob store in the service)."""
+
+    def image(self, image_id: str) -> bytes: ...
+
+    def depth(self, image_id: str) -> bytes | None: ...
+
+
+class EvaluationCancelled(Exception):  # noqa: N818 (a signal, not an error)
+    """The evaluation was stopped (its map deleted, the service shutting down)."""
+
+
+@dataclass(frozen=True)
+class HeldOutPlan:
+    """Attributes:
+    local_map: references each held-out one is localized against (its nearest by centre).
+    radius_m: references within this distance of a held-out one are held out with it.
+    top_k: references retrieved per query, as a localize request's ``top_k``.
+    estimator: the estimator, as a localize request's.
+    time_budget_s: each held-out query's budget, as a localize request's.
+    """
+
+    local_map: int
+    radius_m: float
+    top_k: int
+    estimator: PoseEstimator
+    time_budget_s: float | None
+
+
+class DescribedReferences:
+    """References described by one localizer from their originals, the most recently used
+    ``capacity`` kept (held-out maps overlap: neighbours are described once while they are
+    near the references held out)."""
+
+    def __init__(self, localizer: Localizer, originals: Originals, capacity: int) -> None:
+        self.localizer = localizer
+        self.originals = originals
+        self.capacity = capacity
+        self._kept: OrderedDict[str, ReferenceData | None] = OrderedDict()
+        self.described = 0
+
+    def get(self, reference: MapReference) -> ReferenceData | None:
+        """Its description, or None when its original cannot be read or described."""
+        if reference.image_id in self._kept:
+            self._kept.move_to_end(reference.image_id)
+            return self._kept[reference.image_id]
+        try:
+            data: ReferenceData | None = self.localizer.describe_reference(
+                self.originals.image(reference.image_id),
+                reference.camera,
+                self.originals.depth(reference.image_id),
+            )
+            self.described += 1
+        except (InvalidInputError, LookupError, OSError) as exc:
+            logger.warning("self-evaluation: reference %s left out: %s", reference.name, exc)
+            data = None
+        self._kept[reference.image_id] = data
+        if len(self._kept) > self.capacity:
+            self._kept.popitem(last=False)
+        return data
+
+
+def evaluate(
+    localizer: Localizer,
+    references: Sequence[MapReference],
+    sample: Sequence[int],
+    originals: Originals,
+    plan: HeldOutPlan,
+    cache_capacity: int,
+    stopped: Callable[[], bool] = lambda: False,
+    progress: Callable[[int], None] = lambda done: None,
+) -> list[HeldOutAnswer]:
+    """Localizes each ``references[i]`` of ``sample`` against its held-out map (``plan``),
+    from its original, with its camera; ``progress(done)`` after each.
+
+    Raises:
+        EvaluationCancelled: ``stopped()`` turned true.
+    """
+    centers = np.stack([r.cam_from_world.center for r in references])
+    described = DescribedReferences(localizer, originals, cache_capacity)
+    answers: list[HeldOutAnswer] = []
+    for done, index in enumerate(sample, start=1):
+        if stopped():
+            raise EvaluationCancelled
+        query = references[index]
+        kept, _ = held_out_map(centers, index, plan.local_map, plan.radius_m)
+        store = MemoryReferenceStore()
+        for k in kept:
+            reference = references[k]
+            data = described.get(reference)
+            if data is not None:
+                store.add(
+                    reference.name,
+                    reference.camera,
+                    reference.cam_from_world,
+                    data,
+                    reference.image_id,
+                )
+        answer = _localize(localizer, query, originals, store, plan)
+        if answer is not None:
+            answers.append(answer)
+        progress(done)
+    return answers
+
+
+def _localize(
+    localizer: Localizer,
+    query: MapReference,
+    originals: Originals,
+    store: MemoryReferenceStore,
+    plan: HeldOutPlan,
+) -> HeldOutAnswer | None:
+    """The held-out reference localized, or None when its original cannot be read."""
+    try:
+        image = originals.image(query.image_id)
+    except (LookupError, OSError) as exc:
+        logger.warning("self-evaluation: %s not held out: %s", query.name, exc)
+        return None
+    params = LocalizeParams(
+        camera=query.camera,
+        estimator=plan.estimator,
+        top_k=plan.top_k,
+        time_budget_s=plan.time_budget_s,
+    )
+    start = time.perf_counter()
+    try:
+        result = localizer.localize(image, params, store)
+    except InvalidInputError as exc:
+        logger.warning("self-evaluation: %s not held out: %s", query.name, exc)
+        return None
+    latency_ms = (time.perf_counter() - start) * 1e3
+    position, rotation = float("inf"), float("inf")
+    if result.localized and result.cam_from_world is not None:
+        position, rotation = pose_error(result.cam_from_world, query.cam_from_world)
+    return HeldOutAnswer(
+        image_id=query.image_id,
+        name=query.name,
+        localized=result.localized,
+        reason=result.reason,
+        position_error_m=position,
+        rotation_error_deg=rotation,
+        confidence=result.confidence,
+        num_inliers=result.num_inliers,
+        latency_ms=latency_ms,
+    )

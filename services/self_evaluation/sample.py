@@ -1,0 +1,42 @@
+"""Which references a self-evaluation holds out, and which of the others stand in for the map
+around each of them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.types import FloatArray, IntArray
+
+
+def spread_sample(centers: FloatArray, count: int) -> IntArray:
+    """``count`` indices of ``centers`` ((N, 3)) spread over the map: farthest-point sampling
+    from the centre nearest the centroid, so that every part of the map is held out about as
+    often as its extent asks (deterministic; every index when ``count >= N``)."""
+    n = len(centers)
+    if count >= n:
+        return np.arange(n)
+    chosen = [int(np.argmin(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))]
+    distance = np.linalg.norm(centers - centers[chosen[0]], axis=1)
+    while len(chosen) < count:
+        farthest = int(np.argmax(distance))
+        chosen.append(farthest)
+        distance = np.minimum(distance, np.linalg.norm(centers - centers[farthest], axis=1))
+    return np.asarray(chosen)
+
+
+def held_out_map(
+    centers: FloatArray, held_out: int, size: int, radius_m: float
+) -> tuple[IntArray, IntArray]:
+    """The map a held-out reference is localized against, and what is held out with it.
+
+    Returns ``(kept, removed)``: ``removed`` is the reference and every other whose centre
+    lies within ``radius_m`` of its centre (0: the reference alone); ``kept`` the ``size``
+    nearest of the rest by centre, nearest first (a local map: the references retrieval could
+    reach around it, so that the cost of a held-out query does not grow with the map).
+    """
+    distance = np.linalg.norm(centers - centers[held_out], axis=1)
+    near = distance <= radius_m
+    near[held_out] = True
+    order = np.argsort(distance, kind="stable")
+    kept = order[~near[order]][:size]
+    return kept, np.flatnonzero(near)

@@ -1,0 +1,136 @@
+"""What a self-evaluation measures of one configuration, and the rule that picks the
+configuration a map is best served by."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+# (metres, degrees): the recall thresholds reported, as the field reports them
+THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0), (0.25, 2.0))
+# an answer above this confidence should be right: within (RIGHT_M, RIGHT_DEG)
+CONFIDENT = 0.8
+RIGHT_M, RIGHT_DEG = 0.25, 5.0
+# the recommendation: the fastest configuration whose recall at every threshold is within
+# RECALL_MARGIN of the best and whose median position error is within MEDIAN_MARGIN times the
+# best (or MEDIAN_FLOOR_M of it, for maps where every configuration is within millimetres)
+RECALL_MARGIN = 0.05
+MEDIAN_MARGIN = 1.25
+MEDIAN_FLOOR_M = 0.005
+
+
+@dataclass(frozen=True)
+class HeldOutAnswer:
+    """One reference localized against the map without it: its errors against its stored
+    pose (``inf`` when not localized)."""
+
+    image_id: str
+    name: str
+    localized: bool
+    reason: str | None
+    position_error_m: float
+    rotation_error_deg: float
+    confidence: float
+    num_inliers: int
+    latency_ms: float
+
+    def within(self, max_m: float, max_deg: float) -> bool:
+        return self.position_error_m <= max_m and self.rotation_error_deg <= max_deg
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "image_id": self.image_id,
+            "name": self.name,
+            "localized": self.localized,
+            "reason": self.reason,
+            "position_error_m": _finite(self.position_error_m),
+            "rotation_error_deg": _finite(self.rotation_error_deg),
+            "confidence": self.confidence,
+            "num_inliers": self.num_inliers,
+            "latency_ms": self.latency_ms,
+        }
+
+
+def recall_key(max_m: float, max_deg: float) -> str:
+    return f"{max_m * 100:g}cm_{max_deg:g}deg"
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def _quantile(values: list[float], q: float) -> float | None:
+    """The ``q`` quantile of the errors, failures counted as infinite (None when it falls on
+    one: more than ``1 - q`` of the answers failed)."""
+    if not values:
+        return None
+    ordered = np.sort(np.asarray(values, np.float64))
+    value = float(ordered[min(len(ordered) - 1, math.ceil(q * len(ordered)) - 1)])
+    return _finite(value)
+
+
+def summarize(answers: list[HeldOutAnswer]) -> dict[str, Any]:
+    """Recall at ``THRESHOLDS``, median and p90 errors (nearest rank, failures infinite), the
+    confidence's precision and recall at ``CONFIDENT``, the median latency and the failures by
+    reason."""
+    n = len(answers)
+    right = [a for a in answers if a.within(RIGHT_M, RIGHT_DEG)]
+    confident = [a for a in answers if a.localized and a.confidence > CONFIDENT]
+    confident_right = [a for a in confident if a.within(RIGHT_M, RIGHT_DEG)]
+    latencies = [a.latency_ms for a in answers]
+    positions = [a.position_error_m for a in answers]
+    rotations = [a.rotation_error_deg for a in answers]
+    return {
+        "held_out": n,
+        "localized": sum(a.localized for a in answers),
+        "recall": {
+            recall_key(m, d): (sum(a.within(m, d) for a in answers) / n if n else 0.0)
+            for m, d in THRESHOLDS
+        },
+        "position_error_m": {"median": _quantile(positions, 0.5), "p90": _quantile(positions, 0.9)},
+        "rotation_error_deg": {
+            "median": _quantile(rotations, 0.5),
+            "p90": _quantile(rotations, 0.9),
+        },
+        "confidence": {
+            "threshold": CONFIDENT,
+            "confident": len(confident),
+            # of the answers above the threshold, the share within (RIGHT_M, RIGHT_DEG)
+            "precision": len(confident_right) / len(confident) if confident else None,
+            # of the answers within (RIGHT_M, RIGHT_DEG), the share above the threshold
+            "recall": len(confident_right) / len(right) if right else None,
+        },
+        "latency_ms": {"median": float(np.median(latencies)) if latencies else None},
+        "failures": dict(Counter(a.reason or "unknown" for a in answers if not a.localized)),
+    }
+
+
+def recommend(summaries: dict[str, dict[str, Any]]) -> str | None:
+    """The configuration a map is best served by, of those summarized: the fastest (median
+    latency) of those whose recall at every threshold is within ``RECALL_MARGIN`` of the best
+    and whose median position error is within ``MEDIAN_MARGIN`` times (or ``MEDIAN_FLOOR_M``
+    of) the best; None when none localized anything."""
+    measured = {name: s for name, s in summaries.items() if s["localized"]}
+    if not measured:
+        return None
+    keys = [recall_key(m, d) for m, d in THRESHOLDS]
+    best_recall = {k: max(s["recall"][k] for s in measured.values()) for k in keys}
+    medians = [s["position_error_m"]["median"] for s in measured.values()]
+    best_median = min((m for m in medians if m is not None), default=None)
+
+    def close_enough(summary: dict[str, Any]) -> bool:
+        if any(summary["recall"][k] < best_recall[k] - RECALL_MARGIN for k in keys):
+            return False
+        median = summary["position_error_m"]["median"]
+        if best_median is None:
+            return True
+        return median is not None and median <= max(
+            best_median * MEDIAN_MARGIN, best_median + MEDIAN_FLOOR_M
+        )
+
+    candidates = [name for name, s in measured.items() if close_enough(s)]
+    return min(candidates, key=lambda name: measured[name]["latency_ms"]["median"])

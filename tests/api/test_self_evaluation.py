@@ -1,0 +1,163 @@
+"""POST /v1/maps/{id}/evaluations: a map measures itself on its own references, each held out
+and localized against the rest from its original, in the background; the result reads back
+through the API and /metrics. SQLite and PostgreSQL, real SIFT descriptions of rendered views
+with exact poses."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from tests.conftest import create_map, make_client, upload_view
+from tests.polling import wait_until
+from tools.synthetic.scene import SyntheticView
+
+REFERENCES = 12
+HELD_OUT = 6
+
+
+@pytest.fixture
+def client(database_url: str, localizer: Any, tmp_path: Path) -> Iterator[TestClient]:
+    # no exported model: only sift can run
+    settings = {"data_dir": tmp_path / "data", "features": "sift", "models_dir": tmp_path / "none"}
+    with make_client(database_url, localizer, **settings) as c:
+        yield c
+
+
+def _map(client: TestClient, views: list[SyntheticView], count: int = REFERENCES) -> str:
+    map_id = create_map(client)
+    for view in views[:count]:
+        assert upload_view(client, map_id, view).status_code == 201
+    return map_id
+
+
+def _hold_worker(client: TestClient) -> threading.Event:
+    """Occupies the evaluation worker's one thread until the event is set."""
+    release = threading.Event()
+    client.app.state.evaluator.worker.schedule("hold", release.wait)  # type: ignore[attr-defined]
+    return release
+
+
+def _finished(client: TestClient, location: str) -> dict[str, Any]:
+    def body() -> dict[str, Any]:
+        answer: dict[str, Any] = client.get(location).json()
+        return answer
+
+    assert wait_until(lambda: body()["state"] not in ("queued", "running"), timeout_s=180.0)
+    return body()
+
+
+def test_a_map_measures_itself(client: TestClient, reference_views: list[SyntheticView]) -> None:
+    map_id = _map(client, reference_views)
+    started = client.post(
+        f"/v1/maps/{map_id}/evaluations",
+        json={"configurations": ["sift"], "sample_size": HELD_OUT},
+    )
+    assert started.status_code == 202, started.text
+    location = started.headers["Location"]
+    assert started.json()["state"] == "queued"
+    assert started.json()["request"]["configurations"] == ["sift"]
+    evaluation = _finished(client, location)
+    assert evaluation["state"] == "done", evaluation
+    assert evaluation["progress"] == {"done": HELD_OUT, "total": HELD_OUT}
+    result = evaluation["result"]
+    assert result["recommended"] == "sift" and result["served"] == "sift"
+    assert result["references"] == REFERENCES
+    sift = result["configurations"]["sift"]
+    assert sift["held_out"] == HELD_OUT
+    # exact poses and a rendered scene: each held-out reference is found within millimetres
+    assert sift["localized"] == HELD_OUT and sift["recall"]["5cm_5deg"] == 1.0
+    assert sift["position_error_m"]["p90"] < 0.01
+    assert sift["confidence"]["precision"] in (None, 1.0)
+    assert sift["latency_ms"]["median"] > 0 and sift["duration_s"] > 0
+    names = {view.name for view in reference_views[:REFERENCES]}
+    held = sift["references"]
+    assert len(held) == HELD_OUT and {r["name"] for r in held} <= names
+    assert len({r["image_id"] for r in held}) == HELD_OUT  # spread: no reference twice
+    assert all(r["localized"] and r["position_error_m"] < 0.01 for r in held)
+    listed = client.get(f"/v1/maps/{map_id}/evaluations").json()
+    assert listed["total"] == 1
+    [item] = listed["items"]
+    assert item["id"] == evaluation["id"]
+    assert item["result"]["configurations"]["sift"]["references"] is None
+    metrics = client.get("/metrics").text
+    assert 'slloc_self_evaluations_total{state="done"} 1.0' in metrics
+    assert f"slloc_self_evaluation_queries_total {float(HELD_OUT)}" in metrics
+    assert (
+        f'slloc_map_self_evaluation_recall{{configuration="sift",map="scene",map_id="{map_id}",'
+        'threshold="5cm_5deg"} 1.0' in metrics
+    )
+
+
+def test_neighbours_within_the_radius_are_held_out_too(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    """A radius that covers the whole map leaves each held-out query nothing to match."""
+    map_id = _map(client, reference_views, 6)
+    started = client.post(
+        f"/v1/maps/{map_id}/evaluations",
+        json={"configurations": ["sift"], "sample_size": 3, "holdout_radius_m": 1000},
+    )
+    assert started.status_code == 202, started.text
+    evaluation = _finished(client, started.headers["Location"])
+    sift = evaluation["result"]["configurations"]["sift"]
+    assert sift["localized"] == 0 and sift["failures"] == {"no_references": 3}
+    assert sift["recall"]["25cm_2deg"] == 0.0 and sift["position_error_m"]["median"] is None
+    assert evaluation["result"]["recommended"] is None
+
+
+def test_refusals(client: TestClient, reference_views: list[SyntheticView]) -> None:
+    map_id = _map(client, reference_views, 1)
+    url = f"/v1/maps/{map_id}/evaluations"
+    one = client.post(url, json={"configurations": ["sift"]})
+    assert one.status_code == 409 and "two references" in one.json()["detail"]
+    assert upload_view(client, map_id, reference_views[1]).status_code == 201
+    unknown = client.post(url, json={"configurations": ["nope"]})
+    assert unknown.status_code == 422 and "nope" in unknown.json()["detail"]
+    missing = client.post(url, json={"configurations": ["xfeat-lg"]})
+    assert missing.status_code == 422
+    assert "xfeat-lg cannot run on this server" in missing.json()["detail"]
+    for body in ({"sample_size": 0}, {"top_k": 51}, {"holdout_radius_m": -1}, {"estimator": "x"}):
+        assert client.post(url, json=body).status_code == 422, body
+    assert client.post("/v1/maps/unknown/evaluations", json={}).status_code == 404
+    assert client.get(f"{url}/unknown").status_code == 404
+    release = _hold_worker(client)
+    try:
+        first = client.post(url, json={"configurations": ["sift"]})
+        assert first.status_code == 202, first.text
+        second = client.post(url, json={"configurations": ["sift"]})
+        assert second.status_code == 409 and first.json()["id"] in second.json()["detail"]
+        # cancelled before it ran: it ends cancelled and runs no query
+        assert client.delete(first.headers["Location"]).status_code == 204
+    finally:
+        release.set()
+    client.app.state.evaluator.worker.wait(60.0)  # type: ignore[attr-defined]
+    cancelled = client.get(first.headers["Location"]).json()
+    assert cancelled["state"] == "cancelled" and cancelled["result"] is None
+    # a finished evaluation is deleted
+    assert client.delete(first.headers["Location"]).status_code == 204
+    assert client.get(first.headers["Location"]).status_code == 404
+
+
+def test_an_interrupted_evaluation_runs_again_after_a_restart(
+    database_url: str, localizer: Any, tmp_path: Path, reference_views: list[SyntheticView]
+) -> None:
+    settings = {"data_dir": tmp_path / "data", "features": "sift", "models_dir": tmp_path / "none"}
+    with make_client(database_url, localizer, **settings) as client:
+        map_id = _map(client, reference_views, 6)
+        release = _hold_worker(client)
+        started = client.post(
+            f"/v1/maps/{map_id}/evaluations", json={"configurations": ["sift"], "sample_size": 2}
+        )
+        assert started.status_code == 202
+        client.app.state.evaluator._stopping.set()  # type: ignore[attr-defined]
+        release.set()
+    with make_client(database_url, localizer, **settings) as client:
+        evaluation = _finished(client, started.headers["Location"])
+        assert evaluation["state"] == "done", evaluation
+        assert evaluation["result"]["configurations"]["sift"]["localized"] == 2
