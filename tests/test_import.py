@@ -34,9 +34,10 @@ from db.session import make_engine
 from services.estimators.registry import DEFAULT_ESTIMATOR
 from services.geo.geodesy import Geodetic
 from services.geo.registration import GeoRegistration
+from services.geometry.rigid import Rigid3d
 from services.localization.localizer import Localizer
 from tools import cli
-from tools.importers import read_colmap
+from tools.importers import read_colmap, read_kapture
 from tools.synthetic.dataset import write_synthetic_dataset
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_depth_png, encode_png
 
@@ -712,6 +713,189 @@ def test_kapture_bad_camera_and_missing_image_fail_their_records_only(
     rows = stored(slloc_env).by_name()
     assert set(rows) == {names[i] for i in (0, 3, 5)}
     assert rows[names[3]].camera_model == "OPENCV_FISHEYE"
+
+
+# lines of naver/kapture's samples/m1x/sensors (a rig of basler and phone cameras, lidar, wifi
+# and bluetooth sensors; some camera records have no trajectory) and samples/t265/kapture/sensors
+# (fisheye cameras "001"/"002" in a rig whose poses are left blank)
+M1X_BASLER = "22970285"
+M1X_PHONE = "AC01324954"
+M1X_SENSORS = """\
+# kapture format: 1.1
+# sensor_id, name, sensor_type, [sensor_params]+
+lidar0, vertical, lidar
+22970285, basler, camera, FULL_OPENCV, 2048, 1536, 1725.842032333, 1725.842032333, 1024, 768, 0, 0, 0, 0, 0, 0, 0, 0
+AC01324954, SM-G960N, camera, FULL_OPENCV, 2160, 2880, 2192.6345, 2192.6345, 1080, 1440, 0.309526634993, -1.68546591669, 0.000516016398484, 0.000304875649237, 2.77731885597, 0, 0, 0
+AC01324954_wifi, SM-G960N, wifi
+AC01324954_bluetooth, SM-G960N, bluetooth
+"""  # noqa: E501
+M1X_RIGS = """\
+# kapture format: 1.1
+# rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz
+rig, lidar0, 2.7755575615628914e-17, -0.7071065623731627, 2.775557561562891e-17, -0.7071065623731627, -2.2204460492503132e-17, -0.4, 4.4408920985006264e-17
+rig, 22970285, 0.9961943560988198, -0.08715594366579707, 5.551115123125783e-17, 0.0, 4.2106138900441864e-17, 0.7585167658481613, -0.26308222888717814
+rig, AC01324954, 0.9622504041297736, -0.08418603535678781, 0.2578341082862, -0.02255800947400302, 8.64655776076572e-07, 0.8612863842075814, -0.2791071861039822
+rig, AC01324954_wifi, 0.9622504041297736, -0.08418603535678781, 0.2578341082862, -0.02255800947400302, 8.64655776076572e-07, 0.8612863842075814, -0.2791071861039822
+"""  # noqa: E501
+M1X_TRAJECTORIES = """\
+# kapture format: 1.1
+# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz
+1555399760151000, rig, -0.03998314727387317, 0.000810622029022933, 0.9991982250752731, 0.0020501074914821946, 488.0082384493067, -8.29482066055861, 457.6611476035122
+1555399760779869, rig, 0.04238353652823318, -0.0016328897188389035, -0.999100324950315, -0.0004523990708042991, 490.19333570481507, -7.546964488110166, 455.01595635993596
+"""  # noqa: E501
+M1X_RECORDS = """\
+# kapture format: 1.1
+# timestamp, device_id, image_path
+1555399760151000, AC01324954, AC01324954/AC01324954_1555399760151000.jpg
+1555399760779869, 22970285, 22970285/1555399760779869.jpg
+1555399761168000, AC01324954, AC01324954/AC01324954_1555399761168000.jpg
+1555399761779869, 22970285, 22970285/1555399761779869.jpg
+"""
+M1X_WIFI = """\
+# kapture format: 1.1
+# timestamp  , device_id      , BSSID            , frequency, RSSI, SSID          , scan_time_start, scan_time_end
+1555398770307, AC01324954_wifi, 68:72:51:80:52:df, 2417     ,-33.0, M1X_PicoM2    , 0              , 0
+1555398770307, AC01324955_wifi, 68:72:51:80:52:df, 2417     ,-34.0, M1X_PicoM2    , 0              , 0
+"""  # noqa: E501
+T265_SENSORS = """\
+# kapture format: 1.1
+# sensor_id, name, sensor_type, [sensor_params]+
+001, , camera, OPENCV_FISHEYE, 848, 800, 284.468, 285.51, 424.355, 393.742, 0.0008, 0.031, -0.03, 0.005
+002, , camera, OPENCV_FISHEYE, 848, 800, 283.999, 285.266, 417.246, 400.402, -0.002, 0.039, -0.038, 0.007
+"""  # noqa: E501
+T265_RIGS = """\
+# kapture format: 1.1
+# rig_id, sensor_id, qw, qx, qy, qz, tx, ty, tz
+ rig0,   001,     ,     ,     ,     ,     ,     ,     
+ rig0,   002,     ,     ,     ,     ,     ,     ,     
+"""  # noqa: W291
+T265_POSE = "0.9540331248716523, -0.03768128483784883, -0.2972570621910482, -0.0062565444214723875"
+
+
+def write_kapture_text(root: Path, **files: str) -> Path:
+    """``sensors/<name>.txt`` for each keyword argument."""
+    (root / "sensors").mkdir(parents=True)
+    for name, text in files.items():
+        (root / "sensors" / f"{name}.txt").write_text(text)
+    return root
+
+
+def _kapture_rows(text: str) -> list[list[str]]:
+    return [[v.strip() for v in line.split(",")] for line in text.splitlines() if line[:1] != "#"]
+
+
+def test_read_kapture_m1x_rig_and_records_without_pose(tmp_path: Path) -> None:
+    """m1x's metadata: FULL_OPENCV cameras of a rig (lidar, wifi and bluetooth sensors beside
+    them, wifi records of a sensor it does not declare) are read with each camera's pose as
+    rigs.txt ∘ trajectories.txt; the camera records whose timestamp has no trajectory are
+    refused by name, saying so, instead of being left out silently."""
+    root = write_kapture_text(
+        tmp_path / "m1x",
+        sensors=M1X_SENSORS,
+        rigs=M1X_RIGS,
+        trajectories=M1X_TRAJECTORIES,
+        records_camera=M1X_RECORDS,
+        records_wifi=M1X_WIFI,
+    )
+    cam_from_rig = {
+        row[1]: Rigid3d.from_quaternion(np.array(row[2:6], float), np.array(row[6:], float))
+        for row in _kapture_rows(M1X_RIGS)
+    }
+    rig_from_world = {
+        int(row[0]): Rigid3d.from_quaternion(np.array(row[2:6], float), np.array(row[6:], float))
+        for row in _kapture_rows(M1X_TRAJECTORIES)
+    }
+    source = read_kapture(root)
+    expected = {
+        f"{M1X_PHONE}/{M1X_PHONE}_1555399760151000.jpg": (M1X_PHONE, 1555399760151000),
+        f"{M1X_BASLER}/1555399760779869.jpg": (M1X_BASLER, 1555399760779869),
+    }
+    assert {item.metadata.name for item in source.items} == set(expected)
+    for item in source.items:
+        sensor_id, timestamp = expected[item.metadata.name]
+        truth = cam_from_rig[sensor_id].compose(rig_from_world[timestamp])
+        pose = item.metadata.cam_from_world.to_rigid()
+        np.testing.assert_allclose(pose.rotation, truth.rotation, atol=1e-9)
+        np.testing.assert_allclose(pose.center, truth.center, atol=1e-9)
+        assert item.metadata.camera.model == "FULL_OPENCV"
+        assert len(item.metadata.camera.params) == 12
+        assert item.image_path == root / "sensors" / "records_data" / item.metadata.name
+    refused = {r.name: r.reason for r in source.rejected}
+    assert refused == {
+        f"{M1X_PHONE}/{M1X_PHONE}_1555399761168000.jpg": "no pose: trajectories.txt has "
+        f"nothing at timestamp 1555399761168000 for '{M1X_PHONE}' nor for its rig 'rig'",
+        f"{M1X_BASLER}/1555399761779869.jpg": "no pose: trajectories.txt has nothing at "
+        f"timestamp 1555399761779869 for '{M1X_BASLER}' nor for its rig 'rig'",
+    }
+
+
+def test_read_kapture_t265_blank_rig_and_partial_poses(tmp_path: Path) -> None:
+    """t265's rigs.txt leaves the cameras' poses in their rig blank, and kapture allows a
+    trajectory without rotation or translation: a record whose pose needs such a blank is
+    refused saying which (kapture.rigs_remove used to raise on them, ending the import); the
+    cameras' own trajectories are read; with no posed record at all the error names why."""
+    trajectories = (
+        "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz\n"
+        f"0, 001, {T265_POSE}, 2.7749402281860904, 0.13236653865769618, -2.868626176500939\n"
+        f"1, rig0, {T265_POSE}, 2.7429402281860904, 0.13236653865769618, -2.868626176500939\n"
+        "2, 001, , , , , 2.77, 0.13, -2.86\n"
+    )
+    records = "0, 001, leftraw/1.jpg\n1, 001, leftraw/2.jpg\n1, 002, rightraw/2.jpg\n"
+    records += "2, 001, leftraw/3.jpg\n3, 002, rightraw/4.jpg\n"
+    root = write_kapture_text(
+        tmp_path / "t265",
+        sensors=T265_SENSORS,
+        rigs=T265_RIGS,
+        trajectories=trajectories,
+        records_camera=records,
+    )
+    source = read_kapture(root)
+    assert [item.metadata.name for item in source.items] == ["leftraw/1.jpg"]
+    camera = source.items[0].metadata.camera
+    assert (camera.model, camera.width, camera.height) == ("OPENCV_FISHEYE", 848, 800)
+    np.testing.assert_allclose(
+        source.items[0].metadata.cam_from_world.translation,
+        [2.7749402281860904, 0.13236653865769618, -2.868626176500939],
+    )
+    blank_rig = (
+        "no pose: its pose in rig 'rig0' has no rotation and translation (blank in rigs.txt)"
+    )
+    assert {r.name: r.reason for r in source.rejected} == {
+        "leftraw/2.jpg": blank_rig,
+        "rightraw/2.jpg": blank_rig,
+        "leftraw/3.jpg": "no pose: its trajectory at timestamp 2 has no rotation",
+        "rightraw/4.jpg": "no pose: trajectories.txt has nothing at timestamp 3 for '002' "
+        "nor for its rig 'rig0'",
+    }
+    (root / "sensors" / "records_camera.txt").write_text("1, 001, leftraw/2.jpg\n")
+    with pytest.raises(ValueError, match=r"no camera record has a pose \(first: leftraw/2.jpg"):
+        read_kapture(root)
+
+
+def test_kapture_records_without_pose_are_refused_by_name(
+    slloc_env: str,
+    views: list[SyntheticView],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A camera record with no trajectory is counted and named in the import's report (it
+    was left out silently); the posed records are added and the command exits 1."""
+    root = tmp_path / "kapture"
+    write_kapture(views, root)
+    data = kapture_from_dir(str(root))
+    assert data.trajectories is not None
+    del data.trajectories[2]
+    kapture_to_dir(str(root), data)
+    run = run_import(capsys, "--map", "scene", "--kapture", root)
+    assert run.rc == 1, run.out + run.err
+    assert run.summary() == (len(views), 0, len(views) - 1)
+    name = _name(2, views[2])
+    assert (
+        f"[refused] {name}: FAILED: no pose: trajectories.txt has nothing at timestamp 2 "
+        "for 'cam'" in run.out
+    ), run.out
+    assert f"done: {len(views) - 1} added, 1 failed" in run.out
+    assert name not in stored(slloc_env).by_name()
 
 
 def test_read_colmap_every_model_and_unknown_ones(

@@ -7,7 +7,7 @@ import csv
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pycolmap
@@ -18,6 +18,9 @@ from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
 from services.geometry.camera import CAMERA_MODELS
 from services.geometry.rigid import Rigid3d
+
+if TYPE_CHECKING:
+    import kapture
 
 CSV_COLUMNS = (
     "image",
@@ -132,7 +135,10 @@ def read_kapture(root: Path) -> SourceImages:
     ``sensors/records_data``).
 
     A record whose camera slloc refuses (a model it does not know, implausible intrinsics,
-    malformed parameters) is rejected on its own.
+    malformed parameters) is rejected on its own, and so is a record with no pose: no
+    trajectory of its camera (or of the camera's rig) at its timestamp, or only a partial one
+    (kapture leaves a rotation or translation blank when it is unknown, in trajectories.txt
+    and in rigs.txt alike).
 
     Raises:
         ValueError: not a kapture dataset, or no posed camera record.
@@ -147,8 +153,18 @@ def read_kapture(root: Path) -> SourceImages:
     trajectories = data.trajectories
     if trajectories is None or data.records_camera is None or data.sensors is None:
         raise ValueError(f"{root}: a kapture dataset needs sensors, trajectories and records")
-    if data.rigs is not None:
-        trajectories = kapture.rigs_remove(trajectories, data.rigs)
+    rigs = data.rigs if data.rigs is not None else kapture.Rigs()
+    # kapture cannot compose a partial pose (rigs_remove raises on it): leave those out here
+    # and name them when a record needs them (_no_pose_reason)
+    complete_rigs = kapture.Rigs()
+    for rig_id, sensor_id, pose in kapture.flatten(rigs):
+        if _is_complete(pose):
+            complete_rigs[rig_id, sensor_id] = pose
+    complete = kapture.Trajectories()
+    for timestamp, device_id, pose in kapture.flatten(trajectories):
+        if _is_complete(pose):
+            complete[timestamp, device_id] = pose
+    trajectories = kapture.rigs_remove(complete, complete_rigs)
     gnss_ids = {
         sensor_id
         for sensor_id, sensor in data.sensors.items()
@@ -156,9 +172,13 @@ def read_kapture(root: Path) -> SourceImages:
     }
     items: list[ImportItem] = []
     rejected: list[RejectedItem] = []
+    posed = 0
     for timestamp, sensor_id, name in kapture.flatten(data.records_camera, is_sorted=True):
         if (timestamp, sensor_id) not in trajectories:
+            reason = _no_pose_reason(data.trajectories, rigs, timestamp, sensor_id)
+            rejected.append(RejectedItem(name, f"no pose: {reason}"))
             continue
+        posed += 1
         sensor = data.sensors.get(sensor_id)
         try:
             if sensor is None:
@@ -194,9 +214,50 @@ def read_kapture(root: Path) -> SourceImages:
             rejected.append(RejectedItem(name, validation_message(exc)))
             continue
         items.append(ImportItem(metadata, Path(get_image_fullpath(str(root), name))))
-    if not items and not rejected:
-        raise ValueError(f"{root}: no camera record has a pose")
+    if not posed:
+        first = f" (first: {rejected[0].name}: {rejected[0].reason})" if rejected else ""
+        raise ValueError(f"{root}: no camera record has a pose{first}")
     return SourceImages(items, rejected)
+
+
+def _is_complete(pose: kapture.PoseTransform) -> bool:
+    """Whether a kapture pose has both its rotation and its translation (either may be None:
+    a blank field of trajectories.txt or rigs.txt)."""
+    return not _missing_part(pose)
+
+
+def _no_pose_reason(
+    trajectories: kapture.Trajectories, rigs: kapture.Rigs, timestamp: int, sensor_id: str
+) -> str:
+    """Why the record (``timestamp``, ``sensor_id``) has no camera pose, on one line."""
+    at_time = trajectories.get(timestamp, {})
+    if sensor_id in at_time:  # only a partial pose, or a rig pose that left it out
+        missing = _missing_part(at_time[sensor_id])
+        if missing:
+            return f"its trajectory at timestamp {timestamp} has no {missing}"
+    rig_ids = [rig_id for rig_id, sensors in rigs.items() if sensor_id in sensors]
+    for rig_id in rig_ids:
+        if rig_id not in at_time:
+            continue
+        missing = _missing_part(at_time[rig_id])
+        if missing:
+            return f"the trajectory of its rig {rig_id!r} at timestamp {timestamp} has no {missing}"
+        missing = _missing_part(rigs[rig_id][sensor_id])
+        if missing:
+            return f"its pose in rig {rig_id!r} has no {missing} (blank in rigs.txt)"
+        return f"its rig {rig_id!r} has no complete pose at timestamp {timestamp}"
+    rigs_named = f" nor for its rig {' / '.join(map(repr, rig_ids))}" if rig_ids else ""
+    return f"trajectories.txt has nothing at timestamp {timestamp} for {sensor_id!r}{rigs_named}"
+
+
+def _missing_part(pose: kapture.PoseTransform) -> str:
+    """What a kapture pose lacks: "rotation", "translation", both, or "" when complete."""
+    parts = [
+        part
+        for part, missing in (("rotation", pose.r is None), ("translation", pose.t is None))
+        if missing
+    ]
+    return " and ".join(parts)
 
 
 def read_csv(path: Path) -> list[ImportItem]:
