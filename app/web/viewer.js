@@ -2,6 +2,8 @@
 // their previews on the image planes, over a ground grid (and a compass on geo-registered
 // maps), and localizes a query image through the API, drawing its frustum (or, for a
 // low-confidence answer, the candidate pose dashed), its GeoPose and its inlier matches.
+// When the map has a finished self-evaluation, its held-out references are coloured by their
+// held-out position error and a side panel shows what it measured.
 // Poses are cam_from_world (x_cam = R·x_world + t), quaternions [w, x, y, z]; pixel
 // coordinates follow COLMAP (the centre of the top-left pixel is (0.5, 0.5)), which is also the
 // canvas convention, so they are drawn without an offset.
@@ -19,18 +21,36 @@ const COLORS = {
   reference: 0x7f8c9a, retrieved: 0xf39c12, inliers: 0x27ae60, query: 0xe74c3c,
   candidate: 0x8e44ad, grid: 0xb8c0c8, gridCentre: 0x8a939c, north: 0x1f5fbf, east: 0x6c7a89,
 };
+// a held-out reference's colour by its position error in the map's latest self-evaluation
+// (metres; the last band also takes the references that were not localized)
+const ERROR_BANDS = [
+  { band: "under-5cm", below: 0.05, color: 0x1e9e4a, label: "< 5 cm" },
+  { band: "under-25cm", below: 0.25, color: 0xd4ac0d, label: "< 25 cm" },
+  { band: "under-1m", below: 1.0, color: 0xe8730c, label: "< 1 m" },
+  { band: "over-1m", below: Infinity, color: 0xa31515, label: "≥ 1 m or not localized" },
+];
+const EVALUATION_REFRESHES = 20; // looks at a queued / running evaluation, then a button
+const EVALUATION_REFRESH_S = [4, 30]; // first wait, growing ×1.25 up to the second
+const MARKER_PX = 9; // the dot at a held-out camera's centre (px; 15 when picked)
+const PICK_PX = 12; // a pointer this close to a dot hovers / picks it
 
 const $ = (id) => document.getElementById(id);
 const state = {
   mapId: null,
   images: new Map(),
-  frusta: new Map(), // image id → { group, lines, plane }
+  frusta: new Map(), // image id → { group, lines, rim, plane, base colour }
   query: null, // the query's (or candidate's) frustum
   three: null,
   geo: null, // the map's geo-registration, null when it has none
   frame: null, // { mid, up, north, radius, ground } of the drawn map
   thumbnails: { queue: [], running: 0, loaded: 0, requested: new Set(), generation: 0 },
   matches: { pairs: [], index: 0, queryBitmap: null, token: 0 },
+  // the map's self-evaluation: the finished one shown (with its references), the one still
+  // running, the held-out references by image id, their dots in 3D and the refresh timer
+  evaluation: {
+    token: 0, done: null, active: null, configuration: null, heldOut: new Map(),
+    markers: new Map(), selected: null, timer: null, refreshes: 0,
+  },
 };
 
 // --- API --------------------------------------------------------------------------------
@@ -211,6 +231,7 @@ function drawReferences() {
   $("scene").dataset.candidateFrustum = "0";
   $("scene").dataset.thumbnails = "0";
   state.frusta.clear();
+  state.evaluation.markers.clear(); // disposed with the group below
   state.query = null;
   resetThumbnails();
   if (!three) return;
@@ -232,7 +253,7 @@ function drawReferences() {
     group.name = image.id;
     group.add(lines);
     three.group.add(group);
-    state.frusta.set(image.id, { group, lines, rim, plane: null });
+    state.frusta.set(image.id, { group, lines, rim, plane: null, base: COLORS.reference });
   }
   $("scene").dataset.referenceFrusta = String(state.frusta.size);
 
@@ -472,6 +493,7 @@ async function selectMap(map, button) {
   setStatus(`loading ${map.name}…`);
   clearResult();
   const geo = loadGeoRegistration(map.id);
+  const evaluation = openEvaluation(map); // read while the images load
   try {
     let total = Infinity;
     while (state.images.size < Math.min(total, MAX_IMAGES)) {
@@ -490,6 +512,7 @@ async function selectMap(map, button) {
   state.geo = await geo;
   showGeoRegistration(state.geo);
   drawReferences();
+  showEvaluation(await evaluation, true);
   $("localize").disabled = false;
   $("map-ready").dataset.ready = "true";
 }
@@ -610,7 +633,7 @@ function showResult(result, bitmap, camera) {
 }
 
 function highlight(result) {
-  for (const { lines } of state.frusta.values()) lines.material.color.setHex(COLORS.reference);
+  for (const { lines, base } of state.frusta.values()) lines.material.color.setHex(base);
   for (const ref of result.retrieved) {
     const frustum = state.frusta.get(ref.image_id);
     if (frustum) {
@@ -647,6 +670,406 @@ function drawQuery(result, camera) {
     scene.dataset[`${key}Centre`] = JSON.stringify(centre(pose));
   }
   three.render();
+}
+
+// --- self-evaluation --------------------------------------------------------------------
+
+const formatLength = (m) => (m === null || m === undefined ? "—"
+  : m < 0.01 ? `${(m * 1000).toFixed(1)} mm` : m < 1 ? `${(m * 100).toFixed(1)} cm`
+    : `${m.toFixed(2)} m`);
+const formatShare = (x) => (x === null || x === undefined ? "—" : `${(100 * x).toFixed(0)}%`);
+const hex = (color) => `#${color.toString(16).padStart(6, "0")}`;
+
+function bandOf(ref) {
+  const error = ref.localized ? ref.position_error_m : null;
+  if (error === null || error === undefined) return ERROR_BANDS[ERROR_BANDS.length - 1];
+  return ERROR_BANDS.find((b) => error < b.below);
+}
+
+// what one held-out reference's query gave, in words
+function describeHeldOut(ref) {
+  if (!ref.localized || ref.position_error_m === null) {
+    return `not localized: ${ref.reason || "unknown"} (${ref.num_inliers} inliers, ` +
+      `${ref.latency_ms.toFixed(0)} ms)`;
+  }
+  return `${formatLength(ref.position_error_m)}, ${ref.rotation_error_deg.toFixed(2)}° off; ` +
+    `${ref.num_inliers} inliers, confidence ${ref.confidence.toFixed(2)}, ` +
+    `${ref.latency_ms.toFixed(0)} ms`;
+}
+
+// the map's latest finished evaluation (with its references), the newest one still queued or
+// running and the newest of all; evaluations are listed newest first
+async function fetchEvaluations(mapId) {
+  let active = null;
+  let latest = null;
+  let finished = null;
+  for (let offset = 0, pages = 0; pages < 5 && !finished; pages += 1) {
+    const page = await (await api(
+      `/v1/maps/${mapId}/evaluations?offset=${offset}&limit=20`)).json();
+    latest = latest || page.items[0] || null;
+    active = active || page.items.find((e) => e.state === "queued" || e.state === "running") ||
+      null;
+    finished = page.items.find((e) => e.state === "done") || null;
+    offset += page.items.length;
+    if (!page.items.length || offset >= page.total) break;
+  }
+  let done = null;
+  if (finished) {
+    const shown = state.evaluation.done;
+    done = shown && shown.id === finished.id ? shown
+      : await (await api(`/v1/maps/${mapId}/evaluations/${finished.id}`)).json();
+  }
+  return { done, active, latest };
+}
+
+// a new map: forget the last one's evaluation and read this one's
+async function openEvaluation(map) {
+  const ev = state.evaluation;
+  clearTimeout(ev.timer);
+  Object.assign(ev, {
+    token: ev.token + 1, done: null, active: null, configuration: null, heldOut: new Map(),
+    selected: null, timer: null, refreshes: 0, map,
+  });
+  const panel = $("evaluation");
+  panel.dataset.state = "loading";
+  $("eval-summary").textContent = "Reading the map's self-evaluations…";
+  $("eval-summary").className = "";
+  for (const id of ["eval-progress", "eval-legend", "eval-table", "eval-refresh"]) $(id).hidden = true;
+  $("eval-references").replaceChildren();
+  showSelected(null);
+  return readEvaluations(map.id, ev.token);
+}
+
+async function readEvaluations(mapId, token) {
+  try {
+    return { token, mapId, ...(await fetchEvaluations(mapId)) };
+  } catch (error) {
+    return { token, mapId, error };
+  }
+}
+
+// fills the panel; `recolour`: the frusta were drawn anew (or the finished evaluation changed)
+function showEvaluation(answer, recolour = false) {
+  const ev = state.evaluation;
+  if (answer.token !== ev.token) return; // another map was picked meanwhile
+  const panel = $("evaluation");
+  if (answer.error) {
+    const where = ev.done ? $("eval-progress") : $("eval-summary"); // keep what was shown
+    if (!ev.done) panel.dataset.state = "error";
+    where.hidden = false;
+    where.textContent = `Self-evaluations: ${answer.error.message}`;
+    where.className = "error";
+    $("eval-refresh").hidden = false;
+    return;
+  }
+  $("eval-progress").className = "";
+  $("eval-summary").className = "";
+  const changed = (answer.done && answer.done.id) !== (ev.done && ev.done.id);
+  ev.done = answer.done;
+  ev.active = answer.active;
+  if (changed || recolour) {
+    const result = ev.done ? ev.done.result : null;
+    const names = result ? Object.keys(result.configurations) : [];
+    ev.configuration = result ? (names.includes(result.served) ? result.served : names[0]) : null;
+    const refs = ev.configuration ? result.configurations[ev.configuration].references || [] : [];
+    ev.heldOut = new Map(refs.map((ref) => [ref.image_id, ref]));
+    ev.selected = ev.heldOut.has(ev.selected) ? ev.selected : null;
+    colourHeldOut();
+    showEvaluationResult();
+  }
+  panel.dataset.state = ev.done ? "done" : answer.latest ? answer.latest.state : "none";
+  if (ev.done) panel.dataset.evaluationId = ev.done.id;
+  else delete panel.dataset.evaluationId;
+  if (!ev.done) showNoEvaluation(answer.latest);
+  showProgress();
+  scheduleEvaluationRefresh();
+}
+
+function showNoEvaluation(latest) {
+  const summary = $("eval-summary");
+  summary.replaceChildren();
+  const map = state.evaluation.map;
+  if (latest && latest.state === "failed") {
+    summary.append(`The last self-evaluation failed: ${latest.error || "no reason given"}. `);
+  } else if (latest && latest.state === "cancelled") {
+    summary.append("The last self-evaluation was cancelled. ");
+  } else {
+    summary.append(`This map has no ${state.evaluation.active ? "finished " : ""}` +
+      "self-evaluation yet. ");
+  }
+  if (state.evaluation.active) return; // the progress line says the rest
+  const command = document.createElement("code");
+  command.id = "eval-command";
+  command.textContent = `slloc self-evaluate --url ${window.location.origin} --map ` +
+    `${/\s/.test(map.name) ? JSON.stringify(map.name) : map.name} --api-key <admin key>`;
+  const route = document.createElement("code");
+  route.textContent = `POST /v1/maps/${map.id}/evaluations`;
+  summary.append("To measure how well it localizes its own references, run ", command,
+    " or call ", route, " with an admin key; this page only shows the result.");
+}
+
+function showProgress() {
+  const ev = state.evaluation;
+  const line = $("eval-progress");
+  line.hidden = !ev.active;
+  $("eval-refresh").hidden = !ev.active;
+  if (!ev.active) {
+    delete line.dataset.state;
+    return;
+  }
+  const { done, total } = ev.active.progress;
+  line.dataset.state = ev.active.state;
+  line.dataset.done = String(done);
+  line.dataset.total = String(total);
+  const what = ev.done ? "A newer self-evaluation" : "A self-evaluation";
+  // a queued one counts its queries when it starts
+  line.textContent = ev.active.state === "queued" ? `${what} is queued; it has not started yet.`
+    : `${what} is running: ${done} / ${total} held-out queries done.`;
+  if (ev.refreshes >= EVALUATION_REFRESHES) line.append(" (Check again for news.)");
+}
+
+// a queued or running evaluation is looked at again a bounded number of times, less and less
+// often; "Check again" starts another such series
+function scheduleEvaluationRefresh() {
+  const ev = state.evaluation;
+  clearTimeout(ev.timer);
+  ev.timer = null;
+  if (!ev.active || ev.refreshes >= EVALUATION_REFRESHES) return;
+  const [first, most] = EVALUATION_REFRESH_S;
+  const wait = Math.min(first * 1.25 ** ev.refreshes, most);
+  const { token } = ev;
+  ev.timer = setTimeout(() => refreshEvaluation(token, true), wait * 1000);
+}
+
+async function refreshEvaluation(token, automatic) {
+  const ev = state.evaluation;
+  if (token !== ev.token || !ev.map) return;
+  clearTimeout(ev.timer);
+  ev.timer = null;
+  ev.refreshes = automatic ? ev.refreshes + 1 : 0;
+  showEvaluation(await readEvaluations(ev.map.id, token));
+}
+
+function showEvaluationResult() {
+  const ev = state.evaluation;
+  const table = $("eval-table");
+  const legend = $("eval-legend");
+  const list = $("eval-references");
+  const panel = $("evaluation");
+  list.replaceChildren();
+  table.replaceChildren();
+  table.hidden = legend.hidden = !ev.done;
+  delete panel.dataset.configuration;
+  delete panel.dataset.recommended;
+  if (!ev.done) {
+    showSelected(null);
+    return;
+  }
+  const result = ev.done.result;
+  panel.dataset.configuration = ev.configuration;
+  panel.dataset.recommended = result.recommended || "";
+  const when = new Date(ev.done.finished_at || ev.done.created_at);
+  const summary = $("eval-summary");
+  summary.replaceChildren();
+  const date = document.createElement("time");
+  date.id = "eval-date";
+  date.dateTime = ev.done.finished_at || ev.done.created_at;
+  date.textContent = when.toLocaleString();
+  const measured = result.configurations[ev.configuration];
+  const servedNote = ev.configuration === result.served ? "the configuration this server serves"
+    : `this server serves ${result.served}, which it did not measure`;
+  summary.append("Self-evaluation of ", date, `: ${measured.held_out} of the map's ` +
+    `${result.references} references held out, each localized against the rest. Their frusta ` +
+    `are coloured by the position error under ${ev.configuration} (${servedNote}).`);
+  const recommended = document.createElement("p");
+  recommended.id = "eval-recommended";
+  recommended.textContent = result.recommended
+    ? `Recommended: ${result.recommended}.`
+    : "Recommended: none (no configuration localized a held-out reference).";
+  summary.append(recommended);
+
+  // recall at (5 cm, 5°) and (25 cm, 2°), median error and median latency per configuration
+  const head = document.createElement("tr");
+  for (const [title, hint] of [
+    ["config", "feature configuration"],
+    ["recall\n5\u00a0cm\u00a05°", "share within (5 cm, 5°)"],
+    ["recall\n25\u00a0cm\u00a02°", "share within (25 cm, 2°)"],
+    ["median\nerror", "median position error"],
+    ["p50\nlatency", "median time of a held-out query"]]) {
+    const th = document.createElement("th");
+    th.textContent = title;
+    th.title = hint;
+    head.append(th);
+  }
+  table.append(head);
+  for (const [name, c] of Object.entries(result.configurations)) {
+    const row = document.createElement("tr");
+    row.dataset.configuration = name;
+    const marks = [name === result.served ? "served" : "", name === result.recommended ? "★" : ""]
+      .filter(Boolean).join(", ");
+    const cells = [marks ? `${name} (${marks})` : name, formatShare(c.recall["5cm_5deg"]),
+      formatShare(c.recall["25cm_2deg"]), formatLength(c.position_error_m.median),
+      c.latency_ms.median === null ? "—" : `${c.latency_ms.median.toFixed(0)} ms`];
+    cells.forEach((text, k) => {
+      const td = document.createElement("td");
+      td.dataset.field = ["name", "recall-5cm-5deg", "recall-25cm-2deg", "median-error",
+        "median-latency"][k];
+      td.textContent = text;
+      row.append(td);
+    });
+    table.append(row);
+  }
+
+  // the legend, with how many held-out references fall in each band
+  const counts = new Map(ERROR_BANDS.map((b) => [b.band, 0]));
+  for (const ref of ev.heldOut.values()) counts.set(bandOf(ref).band, counts.get(bandOf(ref).band) + 1);
+  legend.replaceChildren("Held out:");
+  for (const b of ERROR_BANDS) {
+    const swatch = document.createElement("span");
+    swatch.style.background = hex(b.color);
+    const item = document.createElement("em");
+    item.dataset.band = b.band;
+    item.append(swatch, `${b.label} (${counts.get(b.band)})`);
+    legend.append(item);
+  }
+  legend.append(" other references keep their grey; ★ recommended.");
+
+  // the held-out references, worst first; a click picks one (as a click on its dot does)
+  const refs = [...ev.heldOut.values()].sort((a, b) =>
+    (b.localized ? b.position_error_m ?? Infinity : Infinity) -
+    (a.localized ? a.position_error_m ?? Infinity : Infinity) || a.name.localeCompare(b.name));
+  for (const ref of refs) {
+    const item = document.createElement("li");
+    item.dataset.imageId = ref.image_id;
+    item.dataset.band = bandOf(ref).band;
+    item.tabIndex = 0;
+    const swatch = document.createElement("span");
+    swatch.className = "swatch";
+    swatch.style.background = hex(bandOf(ref).color);
+    item.append(swatch, `${ref.name}: ${describeHeldOut(ref)}`);
+    item.addEventListener("click", () => selectHeldOut(ref.image_id));
+    item.addEventListener("keydown", (event) => {
+      if (event.key === "Enter" || event.key === " ") selectHeldOut(ref.image_id);
+    });
+    list.append(item);
+  }
+  showSelected(ev.selected);
+}
+
+// held-out frusta take their band's colour and a dot at the camera centre (drawn over
+// everything, previews included, and keeping its colour when a query's highlight recolours
+// the lines)
+function colourHeldOut() {
+  const ev = state.evaluation;
+  const three = state.three;
+  for (const marker of ev.markers.values()) {
+    marker.parent?.remove(marker);
+    marker.geometry.dispose();
+    marker.material.dispose();
+  }
+  ev.markers.clear();
+  const bands = {};
+  for (const [id, frustum] of state.frusta) {
+    const ref = ev.heldOut.get(id);
+    const image = state.images.get(id);
+    frustum.base = ref ? bandOf(ref).color : COLORS.reference;
+    frustum.lines.material.color.setHex(frustum.base);
+    if (!ref || !three || !image) continue;
+    const { THREE } = three;
+    const point = centre(image.cam_from_world);
+    const marker = new THREE.Points(
+      new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(...point)]),
+      new THREE.PointsMaterial({
+        color: frustum.base, size: MARKER_PX, sizeAttenuation: false, depthTest: false,
+        transparent: true })); // drawn with the previews, after them (renderOrder)
+    marker.renderOrder = 2;
+    marker.name = `held out ${ref.name}`;
+    marker.userData.point = point;
+    frustum.group.add(marker);
+    ev.markers.set(id, marker);
+    bands[id] = bandOf(ref).band;
+  }
+  $("scene").dataset.heldOutFrusta = String(ev.markers.size);
+  $("scene").dataset.heldOut = JSON.stringify(bands);
+  if (three) three.render();
+}
+
+// a point of the map in the page's (client) coordinates, null behind the camera
+function onScreen(point) {
+  const three = state.three;
+  const p = new three.THREE.Vector3(...point).project(three.camera);
+  if (!(Math.abs(p.z) <= 1)) return null;
+  const rect = three.renderer.domElement.getBoundingClientRect();
+  return [rect.left + ((p.x + 1) / 2) * rect.width, rect.top + ((1 - p.y) / 2) * rect.height];
+}
+
+// the held-out reference whose dot is nearest the pointer, within PICK_PX
+function heldOutAt(x, y) {
+  let best = null;
+  let nearest = PICK_PX;
+  for (const [id, marker] of state.evaluation.markers) {
+    const at = onScreen(marker.userData.point);
+    const d = at ? Math.hypot(at[0] - x, at[1] - y) : Infinity;
+    if (d <= nearest) [best, nearest] = [id, d];
+  }
+  return best;
+}
+
+function selectHeldOut(id) {
+  state.evaluation.selected = id;
+  showSelected(id);
+}
+
+function showSelected(id) {
+  const ev = state.evaluation;
+  const line = $("eval-selected");
+  const ref = id ? ev.heldOut.get(id) : null;
+  for (const item of $("eval-references").children) {
+    item.setAttribute("aria-current", String(item.dataset.imageId === id));
+  }
+  for (const [markerId, marker] of ev.markers) {
+    marker.material.size = markerId === id ? MARKER_PX + 6 : MARKER_PX;
+  }
+  delete line.dataset.imageId;
+  delete line.dataset.band;
+  delete line.dataset.screen;
+  line.textContent = ev.heldOut.size ? "Click a coloured dot (or a line below) for its error." : "";
+  if (ref) {
+    line.dataset.imageId = id;
+    line.dataset.band = bandOf(ref).band;
+    line.textContent = `${ref.name} held out: ${describeHeldOut(ref)}`;
+    const marker = ev.markers.get(id);
+    const at = marker && onScreen(marker.userData.point);
+    if (at) line.dataset.screen = JSON.stringify(at.map((v) => Math.round(v)));
+  }
+  if (state.three) state.three.render();
+}
+
+// hovering a held-out dot names its error; a click (not a drag of the view) picks it
+function watchHeldOutPointer(three) {
+  const canvas = three.renderer.domElement;
+  const tip = $("eval-tip");
+  let down = null;
+  canvas.addEventListener("pointermove", (event) => {
+    const id = event.buttons ? null : heldOutAt(event.clientX, event.clientY);
+    const ref = id ? state.evaluation.heldOut.get(id) : null;
+    tip.hidden = !ref;
+    canvas.style.cursor = ref ? "pointer" : "";
+    if (!ref) return;
+    const box = $("scene").getBoundingClientRect();
+    tip.textContent = `${ref.name} held out: ${describeHeldOut(ref)}`;
+    tip.dataset.imageId = id;
+    tip.style.left = `${event.clientX - box.left + 14}px`;
+    tip.style.top = `${event.clientY - box.top + 14}px`;
+  });
+  canvas.addEventListener("pointerleave", () => { tip.hidden = true; });
+  canvas.addEventListener("pointerdown", (event) => { down = [event.clientX, event.clientY]; });
+  canvas.addEventListener("pointerup", (event) => {
+    if (!down || Math.hypot(event.clientX - down[0], event.clientY - down[1]) > 4) return;
+    down = null;
+    const id = heldOutAt(event.clientX, event.clientY);
+    if (id) selectHeldOut(id);
+  });
 }
 
 // --- GeoPose ----------------------------------------------------------------------------
@@ -807,6 +1230,7 @@ async function main() {
     loadMaps();
   });
   $("reload-maps").addEventListener("click", loadMaps);
+  $("eval-refresh").addEventListener("click", () => refreshEvaluation(state.evaluation.token, false));
   $("localize-form").addEventListener("submit", localize);
   $("match-prev").addEventListener("click", () => showFigure(state.matches.index - 1));
   $("match-next").addEventListener("click", () => showFigure(state.matches.index + 1));
@@ -815,7 +1239,10 @@ async function main() {
     if (event.key === "ArrowRight") showFigure(state.matches.index + 1);
   });
   const modules = await loadThree();
-  if (modules) state.three = setUpScene(modules);
+  if (modules) {
+    state.three = setUpScene(modules);
+    watchHeldOutPointer(state.three);
+  }
   document.body.dataset.ready = "true";
   await loadMaps();
 }

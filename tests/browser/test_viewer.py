@@ -3,7 +3,8 @@ playwright): a real uvicorn server on a free port with auth on and a map seeded 
 synthetic scene; the page is used as a person would (key, map, query upload) and what it draws
 is checked in the DOM, in the page's state (data attributes) and in the pixels, with no
 JavaScript error on the way. Screenshots go to pytest's ``tmp_path`` (their paths printed) and
-to ``test-artifacts/`` (or ``$SLLOC_TEST_ARTIFACTS``)."""
+to ``test-artifacts/`` (or ``$SLLOC_TEST_ARTIFACTS``). The server runs sift only (no exported
+model), as the self-evaluation tests' does."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -28,6 +30,7 @@ from app.settings import Settings
 from app.viewer import vendor_installed
 from services.localization.localizer import Localizer
 from tests.conftest import image_metadata
+from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticView, encode_png
 
 playwright = pytest.importorskip("playwright.sync_api", reason="playwright is in the dev extra")
@@ -41,6 +44,14 @@ MAX_LINES = 50  # inlier lines per match figure in viewer.js
 # map x → East, map z → North, map −y → Up: the synthetic room's y points down
 ENU_FROM_MAP = {"rotation": [0.5**0.5, -(0.5**0.5), 0.0, 0.0], "translation": [10.0, 20.0, 3.0]}
 ORIGIN = {"latitude": 48.137154, "longitude": 11.576124, "height": 520.0}
+# the self-evaluation's colour bands in viewer.js: (upper bound in metres, band, RGB)
+ERROR_BANDS = [
+    (0.05, "under-5cm", (0x1E, 0x9E, 0x4A)),
+    (0.25, "under-25cm", (0xD4, 0xAC, 0x0D)),
+    (1.0, "under-1m", (0xE8, 0x73, 0x0C)),
+    (float("inf"), "over-1m", (0xA3, 0x15, 0x15)),
+]
+EVALUATED_REFERENCES, HELD_OUT = 8, 4
 
 
 def _chromium() -> str:
@@ -60,6 +71,19 @@ class Served:
     map_id: str
     query: SyntheticView
     query_png: Path
+    app: Any  # the FastAPI app, for its evaluation worker
+
+
+def _seed_map(api: httpx.Client, name: str, views: list[SyntheticView]) -> str:
+    map_id: str = api.post("/v1/maps", json={"name": name}).json()["id"]
+    for view in views:
+        response = api.post(
+            f"/v1/maps/{map_id}/images",
+            files={"image": (view.name, encode_png(view.image), "image/png")},
+            data={"metadata": json.dumps(image_metadata(view))},
+        )
+        assert response.status_code == 201, response.text
+    return map_id
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +97,9 @@ def served(
     settings = Settings(
         database_url=f"sqlite:///{tmp / 'viewer.db'}",
         api_keys=f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
+        data_dir=tmp / "data",
+        features="sift",
+        models_dir=tmp / "no-models",
     )
     app = create_app(settings, localizer=localizer)
     sock = socket.socket()
@@ -87,18 +114,11 @@ def served(
         time.sleep(0.05)
     try:
         with httpx.Client(base_url=url, headers={"X-API-Key": ADMIN_KEY}, timeout=60) as api:
-            map_id = api.post("/v1/maps", json={"name": "synthetic room"}).json()["id"]
-            for view in reference_views[:NUM_REFERENCES]:
-                response = api.post(
-                    f"/v1/maps/{map_id}/images",
-                    files={"image": (view.name, encode_png(view.image), "image/png")},
-                    data={"metadata": json.dumps(image_metadata(view))},
-                )
-                assert response.status_code == 201, response.text
+            map_id = _seed_map(api, "synthetic room", reference_views[:NUM_REFERENCES])
         query = query_views[0]
         query_png = tmp / "query.png"
         query_png.write_bytes(encode_png(query.image))
-        yield Served(url, map_id, query, query_png)
+        yield Served(url, map_id, query, query_png, app)
     finally:
         server.should_exit = True
         thread.join(timeout=30)
@@ -131,13 +151,14 @@ def _watch_errors(page: playwright.Page) -> list[str]:
     return errors
 
 
-def _open_map(page: playwright.Page, served: Served) -> None:
-    """Type the client key and pick the map; returns once it is drawn."""
+def _open_map(page: playwright.Page, served: Served, map_id: str | None = None) -> None:
+    """Type the client key and pick the map (``served``'s unless ``map_id``); returns once it
+    is drawn."""
     page.goto(served.url + "/")
     page.wait_for_selector("body[data-ready=true]")
     page.fill("#api-key", CLIENT_KEY)
     page.click("#save-key")
-    page.click(f"#maps button[data-map-id='{served.map_id}']")
+    page.click(f"#maps button[data-map-id='{map_id or served.map_id}']")
     page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
     page.wait_for_selector("#localize:not([disabled])")
 
@@ -333,3 +354,133 @@ def test_viewer_without_three_js_still_localizes(
     _screenshot(page, tmp_path, "viewer-without-three.png")
     assert errors == [], errors
     page.close()
+
+
+def _band(reference: dict[str, Any]) -> tuple[str, tuple[int, int, int]]:
+    error = reference["position_error_m"] if reference["localized"] else None
+    if error is None:  # not localized
+        return ERROR_BANDS[-1][1:]
+    return next((band, rgb) for top, band, rgb in ERROR_BANDS if error < top)
+
+
+def test_viewer_colours_the_self_evaluation(
+    browser: playwright.Browser,
+    served: Served,
+    reference_views: list[SyntheticView],
+    tmp_path: Path,
+) -> None:
+    """Without an evaluation the panel says how to start one; a queued one shows as queued;
+    once done, exactly the held-out references are coloured by their held-out error (the
+    panel, the legend, the frusta's dots in the pixels), and a dot names its error when
+    hovered and picks it when clicked."""
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors = _watch_errors(page)
+    _open_map(page, served)
+    panel = page.locator("#evaluation")
+    assert panel.get_attribute("data-state") == "none"
+    command = page.locator("#eval-command").inner_text()
+    assert command.startswith(f'slloc self-evaluate --url {served.url} --map "synthetic room"')
+    playwright.expect(panel).to_contain_text(f"POST /v1/maps/{served.map_id}/evaluations")
+    assert page.locator("#scene").get_attribute("data-held-out-frusta") == "0"
+
+    with httpx.Client(base_url=served.url, headers={"X-API-Key": ADMIN_KEY}, timeout=60) as api:
+        views = reference_views[:EVALUATED_REFERENCES]
+        map_id = _seed_map(api, "evaluated room", views)
+        try:
+            # the worker's one thread is held: the evaluation stays queued while the page looks
+            release = threading.Event()
+            served.app.state.evaluator.worker.schedule("hold", release.wait)
+            try:
+                started = api.post(
+                    f"/v1/maps/{map_id}/evaluations",
+                    json={"configurations": ["sift"], "sample_size": HELD_OUT},
+                )
+                assert started.status_code == 202, started.text
+                _open_map(page, served, map_id)
+                assert panel.get_attribute("data-state") == "queued"
+                progress = page.locator("#eval-progress")
+                assert progress.get_attribute("data-state") == "queued"
+                playwright.expect(progress).to_contain_text("queued")
+                assert page.locator("#eval-command").count() == 0  # one is on its way
+                assert page.locator("#scene").get_attribute("data-held-out-frusta") == "0"
+            finally:
+                release.set()
+            location = started.headers["Location"]
+            assert wait_until(
+                lambda: api.get(location).json()["state"] not in ("queued", "running"),
+                timeout_s=180.0,
+            )
+            evaluation = api.get(location).json()
+            assert evaluation["state"] == "done", evaluation
+
+            # the page looks again by itself (after 4 s, then less and less often)
+            page.wait_for_selector(
+                "#evaluation[data-state=done]", state="attached", timeout=240_000
+            )
+            result = evaluation["result"]
+            assert result["served"] == "sift"
+            references = result["configurations"]["sift"]["references"]
+            assert len(references) == HELD_OUT
+            expected = {r["image_id"]: _band(r)[0] for r in references}
+            assert panel.get_attribute("data-evaluation-id") == evaluation["id"]
+            assert panel.get_attribute("data-configuration") == "sift"
+            assert panel.get_attribute("data-recommended") == (result["recommended"] or "")
+            assert page.locator("#eval-date").get_attribute("datetime") is not None
+            playwright.expect(page.locator("#eval-recommended")).to_contain_text(
+                f"Recommended: {result['recommended']}"
+            )
+            assert progress.is_hidden()
+            row = page.locator("#eval-table tr[data-configuration=sift]")
+            recall = result["configurations"]["sift"]["recall"]
+            for field, key in (("recall-5cm-5deg", "5cm_5deg"), ("recall-25cm-2deg", "25cm_2deg")):
+                cell = row.locator(f"td[data-field={field}]").inner_text()
+                assert cell == f"{100 * recall[key]:.0f}%", (field, cell)
+            assert "ms" in row.locator("td[data-field=median-latency]").inner_text()
+            # exactly the held-out references are coloured, each in its error's band
+            scene = page.locator("#scene")
+            assert scene.get_attribute("data-held-out-frusta") == str(HELD_OUT)
+            assert json.loads(scene.get_attribute("data-held-out") or "null") == expected
+            items = page.locator("#eval-references li")
+            assert items.count() == HELD_OUT
+            listed = {
+                items.nth(i).get_attribute("data-image-id"): items.nth(i).get_attribute("data-band")
+                for i in range(HELD_OUT)
+            }
+            assert listed == expected
+            for _, band, _ in ERROR_BANDS:
+                count = sum(1 for b in expected.values() if b == band)
+                legend = page.locator(f"#eval-legend em[data-band={band}]").inner_text()
+                assert legend.endswith(f"({count})"), legend
+            # the dots are drawn in their band's colour
+            drawn = _pixels(scene.screenshot())
+            for band, rgb in {_band(r)[0]: _band(r)[1] for r in references}.items():
+                coloured = np.all(np.abs(drawn - rgb) < 12, axis=-1).sum()
+                assert coloured > 20, f"{coloured} pixels of {band}'s colour"
+
+            # picking: from the list, then by hovering and clicking a dot in the 3D view
+            first, second = references[0], references[1]
+            page.click(f"#eval-references li[data-image-id='{first['image_id']}']")
+            selected = page.locator("#eval-selected")
+            assert selected.get_attribute("data-image-id") == first["image_id"]
+            assert selected.get_attribute("data-band") == expected[first["image_id"]]
+            playwright.expect(selected).to_contain_text(f"{first['name']} held out")
+            x, y = json.loads(selected.get_attribute("data-screen") or "null")
+            box = scene.bounding_box()
+            assert box is not None
+            assert (
+                box["x"] < x < box["x"] + box["width"] and box["y"] < y < box["y"] + box["height"]
+            )
+            page.click(f"#eval-references li[data-image-id='{second['image_id']}']")
+            assert selected.get_attribute("data-image-id") == second["image_id"]
+            page.mouse.move(x, y)
+            tip = page.locator("#eval-tip")
+            playwright.expect(tip).to_be_visible()
+            assert tip.get_attribute("data-image-id") == first["image_id"]
+            playwright.expect(tip).to_contain_text(first["name"])
+            page.mouse.click(x, y)
+            assert selected.get_attribute("data-image-id") == first["image_id"]
+            _screenshot(page, tmp_path, "viewer-evaluation.png")
+            assert errors == [], errors
+            page.close()
+        finally:
+            assert api.delete(f"/v1/maps/{map_id}").status_code == 204

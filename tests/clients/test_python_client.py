@@ -67,6 +67,26 @@ def test_upload_references_and_localize_the_demo_query(
         with pytest.raises(ProblemError) as taken:
             slloc.add_image_metadata(demo_map.id, metas[0].with_suffix(".png"), first)
         assert taken.value.status == 409
+        # the map measures itself on three of its references, held out, with the server's
+        # configuration
+        served = slloc.health().models.features
+        started = slloc.start_evaluation(demo_map.id, configurations=[served], sample_size=3)
+        seen: list[str] = []
+        evaluation = slloc.wait_for_evaluation(
+            demo_map.id,
+            started.id,
+            timeout_s=300.0,
+            poll_s=0.2,
+            on_progress=lambda e: seen.append(e.state),
+        )
+        assert evaluation.state == "done", evaluation.error
+        assert seen[-1] == "done"
+        assert evaluation.result is not None
+        measured = evaluation.result.configurations[served]
+        assert measured.held_out == 3 and measured.localized >= 2
+        assert measured.references is not None and len(measured.references) == 3
+        assert [e.id for e in slloc.list_evaluations(demo_map.id).items] == [started.id]
+
         slloc.delete_image(demo_map.id, added.id)
         assert slloc.get_map(demo_map.id).image_count == len(metas) - 1
         slloc.delete_map(demo_map.id)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -113,6 +114,7 @@ def markdown(evaluation: dict[str, Any]) -> str:
 
 
 def self_evaluate_main(args: argparse.Namespace) -> int:
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per poll would drown progress
     headers = {"X-API-Key": args.api_key} if args.api_key else {}
     with httpx.Client(base_url=args.url.rstrip("/"), headers=headers, timeout=60.0) as client:
         try:

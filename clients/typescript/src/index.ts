@@ -24,6 +24,9 @@ export type FrameIn = Schemas["FrameIn"];
 export type LocalizeParamsIn = Schemas["LocalizeParamsIn"];
 export type LocalizeResult = Schemas["LocalizeResult"];
 export type ReindexOut = Schemas["ReindexOut"];
+export type EvaluationCreate = Schemas["EvaluationCreate"];
+export type EvaluationOut = Schemas["EvaluationOut"];
+export type EvaluationPage = Schemas["EvaluationPage"];
 export type GeoRegistrationIn = Schemas["GeoRegistrationIn"];
 export type GeoRegistrationEstimateIn = Schemas["GeoRegistrationEstimateIn"];
 export type GeoRegistrationOut = Schemas["GeoRegistrationOut"];
@@ -247,6 +250,28 @@ export class Client {
 
   reindexMap(mapId: string): Promise<ReindexOut> {
     return this.json("POST", `/v1/maps/${enc(mapId)}/reindex`);
+  }
+
+  /** Start measuring the map on its own references in the background (admin); the fields
+   * left out take the server's defaults. */
+  startEvaluation(mapId: string, request: Partial<EvaluationCreate> = {}): Promise<EvaluationOut> {
+    return this.json("POST", `/v1/maps/${enc(mapId)}/evaluations`, { json: request });
+  }
+
+  getEvaluation(mapId: string, evaluationId: string): Promise<EvaluationOut> {
+    return this.json("GET", `/v1/maps/${enc(mapId)}/evaluations/${enc(evaluationId)}`);
+  }
+
+  /** The map's evaluations, newest first, without their per-reference rows. */
+  listEvaluations(mapId: string, page: { offset?: number; limit?: number } = {}): Promise<EvaluationPage> {
+    return this.json("GET", `/v1/maps/${enc(mapId)}/evaluations`, {
+      query: { offset: page.offset ?? 0, limit: page.limit ?? 20 },
+    });
+  }
+
+  /** Cancel an unfinished evaluation, or delete a finished one (admin). */
+  deleteEvaluation(mapId: string, evaluationId: string): Promise<void> {
+    return this.empty("DELETE", `/v1/maps/${enc(mapId)}/evaluations/${enc(evaluationId)}`);
   }
 
   // images

@@ -48,6 +48,21 @@ try {
 assert.ok(notFound instanceof ProblemError && notFound instanceof Error);
 assert.equal(notFound.status, 404);
 assert.ok(notFound.requestId);
+
+// a self-evaluation with the server's configuration, two references held out
+const served = health.models.features;
+const started = await slloc.startEvaluation(map.id, { configurations: [served], sample_size: 2 });
+assert.equal(started.state, "queued");
+let evaluation = started;
+for (let i = 0; i < 600 && ["queued", "running"].includes(evaluation.state); i += 1) {
+  await new Promise((resolve) => setTimeout(resolve, 200));
+  evaluation = await slloc.getEvaluation(map.id, started.id);
+}
+assert.equal(evaluation.state, "done", String(evaluation.error));
+assert.equal(evaluation.result.configurations[served].held_out, 2);
+assert.deepEqual((await slloc.listEvaluations(map.id)).items.map((e) => e.id), [started.id]);
+await slloc.deleteEvaluation(map.id, started.id);
+assert.equal((await slloc.listEvaluations(map.id)).total, 0);
 await slloc.deleteMap(map.id);
 
 // Retry-After: a server answering 503 twice, then an empty map page

@@ -16,6 +16,8 @@ from pydantic import BaseModel
 from slloc_client.errors import ProblemError, retry_after_s
 from slloc_client.models import (
     CameraSchema,
+    EvaluationOut,
+    EvaluationPage,
     FeatureOptions,
     FrameIn,
     GeoPoseReq,
@@ -208,6 +210,76 @@ class Client:
     def reindex_map(self, map_id: str) -> ReindexOut:
         """Retrain the map's retrieval vocabulary now (admin)."""
         return self._send(ReindexOut, "POST", f"/v1/maps/{_q(map_id)}/reindex")
+
+    # -- self-evaluations ----------------------------------------------------------------
+
+    def start_evaluation(
+        self,
+        map_id: str,
+        *,
+        configurations: Sequence[str] | None = None,
+        sample_size: int | None = None,
+        holdout_radius_m: float | None = None,
+        top_k: int | None = None,
+        estimator: str | None = None,
+    ) -> EvaluationOut:
+        """Start measuring the map on its own references in the background (admin); the
+        fields not given take the server's defaults. ``wait_for_evaluation`` follows it."""
+        body = {
+            key: value
+            for key, value in (
+                ("configurations", list(configurations) if configurations else None),
+                ("sample_size", sample_size),
+                ("holdout_radius_m", holdout_radius_m),
+                ("top_k", top_k),
+                ("estimator", estimator),
+            )
+            if value is not None
+        }
+        return self._send(EvaluationOut, "POST", f"/v1/maps/{_q(map_id)}/evaluations", json=body)
+
+    def get_evaluation(self, map_id: str, evaluation_id: str) -> EvaluationOut:
+        return self._get(EvaluationOut, f"/v1/maps/{_q(map_id)}/evaluations/{_q(evaluation_id)}")
+
+    def list_evaluations(
+        self, map_id: str, *, offset: int = 0, limit: int = 20
+    ) -> EvaluationPage:
+        """The map's evaluations, newest first, without their per-reference rows."""
+        return self._get(
+            EvaluationPage,
+            f"/v1/maps/{_q(map_id)}/evaluations",
+            params={"offset": offset, "limit": limit},
+        )
+
+    def delete_evaluation(self, map_id: str, evaluation_id: str) -> None:
+        """Cancel an unfinished evaluation, or delete a finished one (admin)."""
+        self.request("DELETE", f"/v1/maps/{_q(map_id)}/evaluations/{_q(evaluation_id)}")
+
+    def wait_for_evaluation(
+        self,
+        map_id: str,
+        evaluation_id: str,
+        *,
+        timeout_s: float = 3600.0,
+        poll_s: float = 2.0,
+        on_progress: Callable[[EvaluationOut], None] | None = None,
+    ) -> EvaluationOut:
+        """The evaluation once it has ended (done, failed or cancelled); ``on_progress``
+        sees it at each poll.
+
+        Raises:
+            TimeoutError: it had not ended after ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            evaluation = self.get_evaluation(map_id, evaluation_id)
+            if on_progress is not None:
+                on_progress(evaluation)
+            if evaluation.state not in ("queued", "running"):
+                return evaluation
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"evaluation {evaluation_id} still {evaluation.state}")
+            time.sleep(poll_s)
 
     # -- images ----------------------------------------------------------------------------
 
