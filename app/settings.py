@@ -107,7 +107,7 @@ class Settings(BaseSettings):
         25 * 1024 * 1024, gt=0, description="Per-file upload limit in bytes; 413 above it"
     )
     body_memory_mib: int = Field(
-        256,
+        128,
         gt=0,
         description="Memory that request bodies (and the uploads read from them) may hold at "
         "once, MiB: a body's declared length (1.7× for JSON, parsed whole) is reserved before "
@@ -115,11 +115,12 @@ class Settings(BaseSettings):
         "least one largest body: 1.7 × (2 × SLLOC_MAX_UPLOAD_BYTES + 1 MiB)",
     )
     max_image_pixels: int = Field(
-        24_000_000,
+        4096 * 3072,
         gt=0,
-        description="Decoded image size limit in pixels (6000×4000), checked from the header "
-        "before decoding; 413 above it. Each worker may decode one image this large and a "
-        "depth map of as many pixels at once: 12 bytes a pixel, 275 MiB at the default",
+        description="Decoded image size limit in pixels (4096×3072: a 12 Mpx phone photo "
+        "fits), checked from the header before decoding; 413 above it. Each worker may decode "
+        "one image this large and a depth map of as many pixels at once: 12 bytes a pixel, "
+        "144 MiB at the default",
     )
     max_top_k: int = Field(
         50, gt=0, description="Largest top_k a localize request may ask for (422 above)"
@@ -146,7 +147,7 @@ class Settings(BaseSettings):
         "(its CPU affinity); set it under a container CPU quota",
     )
     reference_cache_mib: int = Field(
-        256,
+        192,
         ge=0,
         description="Decoded reference features (and depth) kept in memory between "
         "requests, MiB; 0 = off",
