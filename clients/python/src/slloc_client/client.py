@@ -241,9 +241,7 @@ class Client:
     def get_evaluation(self, map_id: str, evaluation_id: str) -> EvaluationOut:
         return self._get(EvaluationOut, f"/v1/maps/{_q(map_id)}/evaluations/{_q(evaluation_id)}")
 
-    def list_evaluations(
-        self, map_id: str, *, offset: int = 0, limit: int = 20
-    ) -> EvaluationPage:
+    def list_evaluations(self, map_id: str, *, offset: int = 0, limit: int = 20) -> EvaluationPage:
         """The map's evaluations, newest first, without their per-reference rows."""
         return self._get(
             EvaluationPage,
