@@ -26,7 +26,7 @@ from db.blobs import BlobStore
 from db.models import MapEvaluation
 from db.repositories.evaluations import EvaluationRepository
 from db.store import camera_of, pose_of, unusable
-from services.components import EngineConfig, ModelsMissingError, build_localizer, missing_models
+from services.components import EngineConfig, build_localizer, missing_models
 from services.errors import InvalidInputError
 from services.estimators.registry import get_estimator
 from services.features.configs import AUTO_CHOICES, FALLBACK_FEATURES, get_feature_config
@@ -228,7 +228,7 @@ class Evaluator:
             self._run(evaluation_id)
         except (EvaluationCancelled, NotFoundError):  # cancelled, or its map deleted
             logger.info("self-evaluation %s stopped", evaluation_id)
-        except (SQLAlchemyError, ModelsMissingError, InvalidInputError, RuntimeError) as exc:
+        except Exception as exc:  # a background job: whatever stops it ends it, never stuck
             logger.exception("self-evaluation %s failed", evaluation_id)
             self._end(evaluation_id, "failed", error=str(exc) or type(exc).__name__)
 
@@ -251,6 +251,10 @@ class Evaluator:
                         MapReference(image.id, image.name, camera_of(image), pose_of(image))
                     )
                     keys[image.id] = (str(image.original_key), image.depth_key)
+            if len(references) < 2:
+                raise InvalidInputError(
+                    "the map has fewer than two usable references with their originals"
+                )
             configurations = list(request.configurations or ())
             sample = [
                 int(i)

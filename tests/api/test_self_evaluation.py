@@ -161,3 +161,21 @@ def test_an_interrupted_evaluation_runs_again_after_a_restart(
         evaluation = _finished(client, started.headers["Location"])
         assert evaluation["state"] == "done", evaluation
         assert evaluation["result"]["configurations"]["sift"]["localized"] == 2
+
+
+def test_a_map_that_shrank_before_its_turn_fails_with_the_reason(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    map_id = _map(client, reference_views, 2)
+    release = _hold_worker(client)
+    try:
+        started = client.post(f"/v1/maps/{map_id}/evaluations", json={"configurations": ["sift"]})
+        assert started.status_code == 202, started.text
+        [image, _] = client.get(f"/v1/maps/{map_id}/images").json()["items"]
+        assert client.delete(f"/v1/maps/{map_id}/images/{image['id']}").status_code == 204
+    finally:
+        release.set()
+    evaluation = _finished(client, started.headers["Location"])
+    assert evaluation["state"] == "failed" and evaluation["result"] is None
+    assert "fewer than two usable references" in evaluation["error"]
+    assert 'slloc_self_evaluations_total{state="failed"} 1.0' in client.get("/metrics").text
