@@ -69,7 +69,7 @@ def test_upload_references_and_localize_the_demo_query(
         assert taken.value.status == 409
         # the map measures itself on three of its references, held out, with the server's
         # configuration
-        served = slloc.health().models.features
+        served = slloc.get_map(demo_map.id).features.preset
         started = slloc.start_evaluation(demo_map.id, configurations=[served], sample_size=3)
         seen: list[str] = []
         evaluation = slloc.wait_for_evaluation(

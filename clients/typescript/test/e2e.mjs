@@ -50,7 +50,7 @@ assert.equal(notFound.status, 404);
 assert.ok(notFound.requestId);
 
 // a self-evaluation with the server's configuration, two references held out
-const served = health.models.features;
+const served = (await slloc.getMap(map.id)).features.preset;
 const started = await slloc.startEvaluation(map.id, { configurations: [served], sample_size: 2 });
 assert.equal(started.state, "queued");
 let evaluation = started;
