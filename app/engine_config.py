@@ -4,6 +4,7 @@ retrieval), the thread plan and the memory bound, resolved once at start-up."""
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
@@ -11,6 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.settings import Settings
 from db.repositories.images import ImageRepository
 from services.components import EngineConfig
+from services.features.configs import get_feature_config
 from services.runtime.memory import MemoryBound, MemoryInputs, memory_bound
 from services.runtime.onnx import OnnxOptions
 from services.runtime.threads import ThreadPlan, plan_threads
@@ -93,6 +95,15 @@ def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) ->
         max_keypoints=settings.max_keypoints,
         max_top_k=settings.max_top_k,
         reference_cache_mib=settings.reference_cache_mib,
+        evaluation_extras=tuple(
+            (
+                replace(engine, features=name, wide_threads=None).model_file_bytes(),
+                get_feature_config(name).extractor,
+                get_feature_config(name).max_side,
+            )
+            for name in settings.parsed_evaluation_features()
+            if name != engine.features
+        ),
     )
 
 

@@ -99,10 +99,13 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             blobs,
             app.state.reference_cache,
             on_switch=train if served.vlad else None,
+            slots=app.state.admission.slots,
         )
         app.state.reextractor.resume()
         # maps' self-evaluations; those a restart interrupted run again
-        app.state.evaluator = Evaluator(app.state.sessions, app.state.localizer, served, blobs)
+        app.state.evaluator = Evaluator(
+            app.state.sessions, app.state.localizer, served, blobs, app.state.admission.slots
+        )
         app.state.evaluator.resume()
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)

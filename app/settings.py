@@ -75,6 +75,13 @@ class Settings(BaseSettings):
         f"else {FALLBACK_FEATURES}) or one of {', '.join(feature_config_names())}; "
         "`slloc features` lists what each runs and the models it needs",
     )
+    evaluation_features: str = Field(
+        "",
+        description="Feature configurations besides the server's own that self-evaluations "
+        "may measure, comma-separated (e.g. sift,aliked): each loads its models while an "
+        "evaluation measures it, and the memory bound counts the largest; empty = the "
+        "server's own configuration only",
+    )
     onnx_providers: str = Field(
         "auto",
         description="Comma-separated onnxruntime execution providers in order of preference; "
@@ -243,6 +250,21 @@ class Settings(BaseSettings):
     def max_body_bytes(self) -> int:
         """The largest request body: two uploads (image, depth) and 1 MiB of form fields."""
         return 2 * self.max_upload_bytes + 1024 * 1024
+
+    def parsed_evaluation_features(self) -> tuple[str, ...]:
+        """``evaluation_features`` as names, without duplicates."""
+        names = (n.strip() for n in self.evaluation_features.split(","))
+        return tuple(dict.fromkeys(n for n in names if n))
+
+    @model_validator(mode="after")
+    def _check_evaluation_features(self) -> Settings:
+        known = feature_config_names()
+        unknown = [n for n in self.parsed_evaluation_features() if n not in known]
+        if unknown:
+            raise ValueError(
+                f"evaluation_features: unknown {', '.join(unknown)}; known: {', '.join(known)}"
+            )
+        return self
 
     @model_validator(mode="after")
     def _check_body_memory(self) -> Settings:

@@ -113,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         add_bench_arguments,
         add_calibrate_arguments,
         add_eval_arguments,
+        add_self_evaluate_arguments,
     )
 
     add_eval_arguments(
@@ -122,8 +123,6 @@ def main(argv: list[str] | None = None) -> int:
     add_calibrate_arguments(
         sub.add_parser("calibrate", help="fit the confidence model on slloc eval results")
     )
-    from tools.evaluation.self_evaluate import add_self_evaluate_arguments
-
     add_self_evaluate_arguments(
         sub.add_parser(
             "self-evaluate",
@@ -161,6 +160,13 @@ def main(argv: list[str] | None = None) -> int:
 
         return bench_main(args)
     if args.command == "self-evaluate":
+        if _missing_modules("httpx"):
+            print(
+                "slloc self-evaluate needs httpx (the optional evaluation tools): "
+                "pip install '.[eval]'",
+                file=sys.stderr,
+            )
+            return 2
         from tools.evaluation.self_evaluate import self_evaluate_main
 
         return self_evaluate_main(args)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
@@ -29,9 +30,10 @@ from db.store import camera_of, pose_of, unusable
 from services.components import EngineConfig, build_localizer, missing_models
 from services.errors import InvalidInputError
 from services.estimators.registry import get_estimator
-from services.features.configs import AUTO_CHOICES, FALLBACK_FEATURES, get_feature_config
+from services.features.configs import get_feature_config
 from services.localization.localizer import Localizer
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.memory import EVALUATION_DESCRIBED
 from services.self_evaluation.run import EvaluationCancelled, HeldOutPlan, MapReference, evaluate
 from services.self_evaluation.sample import spread_sample
 from services.self_evaluation.summary import recommend, summarize
@@ -44,8 +46,9 @@ DEFAULT_SAMPLE = 30
 MAX_SAMPLE = 200
 # references a held-out one is localized against: its nearest (a local map)
 LOCAL_MAP = 40
-# references kept described between held-out queries
-DESCRIBED_CAPACITY = 120
+# references kept described between held-out queries (the memory bound counts them:
+# services/runtime/memory.py)
+DESCRIBED_CAPACITY = EVALUATION_DESCRIBED
 # maps whose latest results are kept for /metrics (the most recently evaluated)
 LATEST_KEPT = 1000
 # each held-out query's time budget (seconds), as a localize request's
@@ -76,11 +79,10 @@ class EvaluationRequest:
         )
 
 
-def evaluable(engine: EngineConfig) -> list[str]:
-    """The configurations an evaluation measures by default: the server's, then the automatic
-    choices and the weight-free fallback whose models are built."""
-    names = [engine.features, *AUTO_CHOICES, FALLBACK_FEATURES]
-    unique = list(dict.fromkeys(names))
+def evaluable(engine: EngineConfig, allowed: tuple[str, ...]) -> list[str]:
+    """The configurations an evaluation measures by default: the server's, then those of
+    ``allowed`` (``SLLOC_EVALUATION_FEATURES``) whose models are built."""
+    unique = list(dict.fromkeys([engine.features, *allowed]))
     return [n for n in unique if n == engine.features or not missing_models(engine.models_dir, n)]
 
 
@@ -89,20 +91,28 @@ def start_evaluation(
     engine: EngineConfig,
     map_id: str,
     request: EvaluationRequest,
+    allowed: tuple[str, ...],
     evaluator: Evaluator | None,
 ) -> MapEvaluation:
-    """Stores a queued evaluation of the map and schedules it.
+    """Stores a queued evaluation of the map and schedules it; ``allowed``: the
+    configurations besides the server's it may measure (``SLLOC_EVALUATION_FEATURES``).
 
     Raises:
         NotFoundError: unknown map.
-        InvalidInputError: an unknown configuration or estimator, or one whose models are not
-            built.
+        InvalidInputError: an unknown configuration or estimator, one not allowed, or one
+            whose models are not built.
         ConflictError: the map is being evaluated, or has fewer than two references with
             their originals.
     """
-    configurations = list(request.configurations or evaluable(engine))
+    configurations = list(request.configurations or evaluable(engine, allowed))
     for name in configurations:
         get_feature_config(name)  # unknown: 422
+        if name != engine.features and name not in allowed:
+            raise InvalidInputError(
+                f"configurations: {name} is not measured on this server: it measures its own "
+                f"({engine.features}) and those of SLLOC_EVALUATION_FEATURES "
+                f"({', '.join(allowed) or 'none'})"
+            )
         problem = name != engine.features and missing_models(engine.models_dir, name)
         if problem:
             raise InvalidInputError(f"configurations: {name} cannot run on this server: {problem}")
@@ -191,8 +201,12 @@ class Evaluator:
         localizer: Localizer,
         engine: EngineConfig,
         blobs: BlobStore,
+        slots: AbstractContextManager[object] | None = None,
     ) -> None:
+        """``slots``: held around each description and held-out query (the localize
+        workers' semaphore: an evaluation computes in a worker's place, within its memory)."""
         self.sessions = sessions
+        self.slots = slots if slots is not None else nullcontext()
         self.localizer = localizer
         self.engine = engine
         self.blobs = blobs
@@ -292,6 +306,7 @@ class Evaluator:
                 originals,
                 plan,
                 DESCRIBED_CAPACITY,
+                self.slots,
                 stopped=lambda: self._stopped(evaluation_id),
                 progress=partial(self._progress, evaluation_id, offset),
             )

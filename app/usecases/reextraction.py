@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
@@ -112,9 +113,13 @@ class Reextractor:
         blobs: BlobStore,
         features_cache: ReferenceFeatureCache | None = None,
         on_switch: Callable[[str, Localizer], None] | None = None,
+        slots: AbstractContextManager[object] | None = None,
     ) -> None:
         """``on_switch(map_id, localizer)``: called after a map switched, with the
-        localizer of its new options (e.g. to train its retrieval vocabulary)."""
+        localizer of its new options (e.g. to train its retrieval vocabulary); ``slots``:
+        held around each description (the localize workers' semaphore: a description
+        computes in a worker's place, within its memory)."""
+        self.slots = slots if slots is not None else nullcontext()
         self.sessions = sessions
         self.localizer = localizer
         self.blobs = blobs
@@ -177,7 +182,8 @@ class Reextractor:
             original = read_original(self.blobs, key) if key is not None else None
             if original is None:
                 raise InvalidInputError(f"its original {key} is missing from the blob store")
-            data = localizer.describe_reference(original, camera)
+            with self.slots:
+                data = localizer.describe_reference(original, camera)
         except (InvalidInputError, BlobStoreError) as exc:
             logger.warning("map %s: reference %s not described again: %s", map_id, image_id, exc)
             return False

@@ -69,6 +69,8 @@ LIGHTGLUE_MIB_PER_MILLION_PAIRS = 90.0
 # the parsed string, the decoded image); a multipart body costs its size (parts past 1 MiB
 # are spooled to files and read back once)
 JSON_BODY_FACTOR = 1.7
+# references a self-evaluation keeps described between its held-out queries
+EVALUATION_DESCRIBED = 60
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,9 @@ class MemoryInputs:
     max_keypoints: int
     max_top_k: int
     reference_cache_mib: int
+    # the other configurations self-evaluations may load: (model file bytes, extractor,
+    # longer image side) of each
+    evaluation_extras: tuple[tuple[int, str, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -116,14 +121,32 @@ class MemoryBound:
         return f"{self.total_mib:.0f} MiB ({parts}, retrieval_index {self.retrieval_index_mib:.0f})"
 
 
+def _extraction_rate(extractor: str) -> float:
+    """Peak MiB per megapixel of ``extractor`` (an unknown one: the largest known)."""
+    return EXTRACTION_MIB_PER_MEGAPIXEL.get(extractor, max(EXTRACTION_MIB_PER_MEGAPIXEL.values()))
+
+
 def memory_bound(inputs: MemoryInputs) -> MemoryBound:
     """The bound's terms in MiB from ``inputs`` (the module docstring says what each holds)."""
     i = inputs
     megapixels = i.max_side * i.max_side / 1e6
-    extraction = EXTRACTION_MIB_PER_MEGAPIXEL.get(
-        i.extractor, max(EXTRACTION_MIB_PER_MEGAPIXEL.values())
-    )
+    extraction = _extraction_rate(i.extractor)
     feature_bytes = FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(i.extractor, 128)
+    # a self-evaluation computes in a localize worker's place (it holds a worker slot), plus
+    # the references it keeps described and, measuring another configuration, that one's
+    # models and its extraction beyond the served one's
+    extras = [
+        MODEL_RESIDENT_PER_FILE_MIB * files / MIB
+        + max(0.0, _extraction_rate(extractor) * side * side / 1e6 - extraction * megapixels)
+        for files, extractor, side in i.evaluation_extras
+    ]
+    described = max(
+        [
+            FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(e, 128)
+            for _, e, _ in i.evaluation_extras
+        ]
+        + [feature_bytes]
+    )
     matcher = MATCHER_MIB + LIGHTGLUE_MIB_PER_MILLION_PAIRS * i.lightglue_keypoints**2 / 1e6
     terms = {
         "runtime": RUNTIME_MIB,
@@ -133,5 +156,7 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
         "decode": i.workers * DECODE_BYTES_PER_PIXEL * i.max_image_pixels / MIB,
         "matching": i.workers * (matcher + i.max_top_k * i.max_keypoints * 2 * feature_bytes / MIB),
         "bodies": float(i.body_memory_mib),
+        "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * described / MIB
+        + max(extras, default=0.0),
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})

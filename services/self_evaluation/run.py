@@ -7,6 +7,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -105,17 +106,20 @@ def evaluate(
     originals: Originals,
     plan: HeldOutPlan,
     cache_capacity: int,
+    slot: AbstractContextManager[object] | None = None,
     stopped: Callable[[], bool] = lambda: False,
     progress: Callable[[int], None] = lambda done: None,
 ) -> list[HeldOutAnswer]:
     """Localizes each ``references[i]`` of ``sample`` against its held-out map (``plan``),
-    from its original, with its camera; ``progress(done)`` after each.
+    from its original, with its camera; ``progress(done)`` after each. ``slot`` is held
+    around each description and each held-out query (e.g. a localize worker's semaphore).
 
     Raises:
         EvaluationCancelled: ``stopped()`` turned true.
     """
     centers = np.stack([r.cam_from_world.center for r in references])
     described = DescribedReferences(localizer, originals, cache_capacity)
+    slot = slot if slot is not None else nullcontext()
     answers: list[HeldOutAnswer] = []
     for done, index in enumerate(sample, start=1):
         if stopped():
@@ -125,7 +129,8 @@ def evaluate(
         store = MemoryReferenceStore()
         for k in kept:
             reference = references[k]
-            data = described.get(reference)
+            with slot:
+                data = described.get(reference)
             if data is not None:
                 store.add(
                     reference.name,
@@ -134,7 +139,8 @@ def evaluate(
                     data,
                     reference.image_id,
                 )
-        answer = _localize(localizer, query, originals, store, plan)
+        with slot:
+            answer = _localize(localizer, query, originals, store, plan)
         if answer is not None:
             answers.append(answer)
         progress(done)

@@ -119,9 +119,10 @@ def test_refusals(client: TestClient, reference_views: list[SyntheticView]) -> N
     assert upload_view(client, map_id, reference_views[1]).status_code == 201
     unknown = client.post(url, json={"configurations": ["nope"]})
     assert unknown.status_code == 422 and "nope" in unknown.json()["detail"]
-    missing = client.post(url, json={"configurations": ["xfeat-lg"]})
-    assert missing.status_code == 422
-    assert "xfeat-lg cannot run on this server" in missing.json()["detail"]
+    # a configuration other than the server's needs SLLOC_EVALUATION_FEATURES
+    other = client.post(url, json={"configurations": ["xfeat-lg"]})
+    assert other.status_code == 422
+    assert "xfeat-lg is not measured on this server" in other.json()["detail"]
     for body in ({"sample_size": 0}, {"top_k": 51}, {"holdout_radius_m": -1}, {"estimator": "x"}):
         assert client.post(url, json=body).status_code == 422, body
     assert client.post("/v1/maps/unknown/evaluations", json={}).status_code == 404
@@ -179,3 +180,23 @@ def test_a_map_that_shrank_before_its_turn_fails_with_the_reason(
     assert evaluation["state"] == "failed" and evaluation["result"] is None
     assert "fewer than two usable references" in evaluation["error"]
     assert 'slloc_self_evaluations_total{state="failed"} 1.0' in client.get("/metrics").text
+
+
+def test_other_configurations_are_measured_where_the_settings_allow_them(
+    database_url: str, localizer: Any, tmp_path: Path, reference_views: list[SyntheticView]
+) -> None:
+    """SLLOC_EVALUATION_FEATURES lists them: measured by default when their models are built,
+    refused by name when they are not."""
+    models = tmp_path / "none"
+    settings = {"data_dir": tmp_path / "data", "features": "sift", "models_dir": models}
+    with make_client(database_url, localizer, evaluation_features="xfeat-lg", **settings) as c:
+        map_id = _map(c, reference_views, 2)
+        missing = c.post(f"/v1/maps/{map_id}/evaluations", json={"configurations": ["xfeat-lg"]})
+        assert missing.status_code == 422
+        assert "xfeat-lg cannot run on this server" in missing.json()["detail"]
+        # by default, the server's own and those allowed whose models are built (none here)
+        started = c.post(f"/v1/maps/{map_id}/evaluations", json={"sample_size": 1})
+        assert started.status_code == 202, started.text
+        assert started.json()["request"]["configurations"] == ["sift"]
+    with pytest.raises(ValueError, match="evaluation_features: unknown nope"):
+        make_client(database_url, localizer, evaluation_features="sift,nope", **settings)

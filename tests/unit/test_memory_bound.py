@@ -3,6 +3,7 @@ arithmetic, and each setting moving its term."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ from services.features.configs import get_feature_config
 from services.runtime.manifest import read_manifest
 from services.runtime.memory import (
     DECODE_BYTES_PER_PIXEL,
+    EVALUATION_DESCRIBED,
     EXTRACTION_MIB_PER_MEGAPIXEL,
     FEATURE_BYTES_PER_KEYPOINT,
     LIGHTGLUE_MIB_PER_MILLION_PAIRS,
@@ -67,6 +69,8 @@ def test_terms_follow_the_settings_arithmetic() -> None:
         "decode": workers * DECODE_BYTES_PER_PIXEL * 40_000_000 / MIB,
         "matching": workers * (MATCHER_MIB + 50 * 4096 * sift_feature_bytes / MIB),
         "bodies": 256.0,
+        # a self-evaluation's described references (it computes in a worker's place)
+        "self_evaluation": EVALUATION_DESCRIBED * 4096 * sift_feature_bytes / 2 / MIB,
     }
     assert bound.terms == pytest.approx(expected, abs=0.06)
     assert bound.fixed_mib == pytest.approx(sum(expected.values()), abs=0.5)
@@ -108,6 +112,7 @@ def test_matching_grows_with_the_keypoints_lightglue_sees() -> None:
         ({"max_keypoints": 1024}, "matching"),
         ({"body_memory_mib": 512}, "bodies"),
         ({"reference_cache_mib": 0}, "reference_cache"),
+        ({"evaluation_features": "aliked"}, "self_evaluation"),
     ],
 )
 def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> None:
@@ -153,3 +158,20 @@ def test_retrieval_index_adds_to_the_total() -> None:
     grown = bound.with_retrieval_index(3 * MIB)
     assert (bound.total_mib, grown.total_mib, grown.fixed_mib) == (15.0, 18.0, 15.0)
     assert "retrieval_index 3" in grown.describe()
+
+
+def test_another_configuration_a_self_evaluation_may_load_is_counted() -> None:
+    """Its models and the extraction beyond the served one's (aliked at 640 px on a sift
+    server capped at 1024 px: 2950 × 0.41 − 230 × 1.05 MiB)."""
+    base = _bound(_settings()).terms["self_evaluation"]
+    settings = _settings(evaluation_features="aliked")
+    aliked = replace(
+        engine_config(settings), features="aliked", wide_threads=None
+    ).model_file_bytes()
+    extra = MODEL_RESIDENT_PER_FILE_MIB * aliked / MIB + max(
+        0.0,
+        EXTRACTION_MIB_PER_MEGAPIXEL["aliked-n16"] * 640 * 640 / 1e6
+        - EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 1024 * 1024 / 1e6,
+    )
+    # aliked's 128-float descriptors are sift's size: the described references cost the same
+    assert _bound(settings).terms["self_evaluation"] == pytest.approx(base + extra, abs=0.1)

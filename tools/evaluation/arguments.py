@@ -1,5 +1,5 @@
-"""Arguments of ``slloc eval``, ``slloc calibrate`` and ``slloc bench`` (light imports: the
-CLI builds them for every command)."""
+"""Arguments of ``slloc eval``, ``slloc calibrate``, ``slloc bench`` and ``slloc
+self-evaluate`` (light imports: the CLI builds them for every command)."""
 
 from __future__ import annotations
 
@@ -173,3 +173,25 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--note", default="", help="what the runs were, for the file")
     parser.add_argument("--out", type=Path, help="write the coefficients file here")
+
+
+def add_self_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", required=True, help="the server")
+    parser.add_argument("--api-key", help="X-API-Key (an admin key to start one)")
+    parser.add_argument("--map", required=True, help="the map's name or id")
+    parser.add_argument(
+        "--configurations",
+        help="comma-separated feature configurations (default: every one the server can run)",
+    )
+    parser.add_argument("--sample-size", type=int, help="references held out (default 30)")
+    parser.add_argument(
+        "--holdout-radius", type=float, help="hold out the references within this distance too"
+    )
+    parser.add_argument("--top-k", type=int, help="references retrieved per held-out query")
+    parser.add_argument(
+        "--latest", action="store_true", help="print the latest finished one; start nothing"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=3600.0, help="seconds to wait for it (default 3600)"
+    )
+    parser.add_argument("--json", type=Path, help="also write the evaluation as JSON here")

@@ -8,7 +8,6 @@ import json
 import logging
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -16,28 +15,6 @@ import httpx
 from services.self_evaluation.summary import THRESHOLDS, recall_key
 
 POLL_S = 2.0
-
-
-def add_self_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", required=True, help="the server")
-    parser.add_argument("--api-key", help="X-API-Key (an admin key to start one)")
-    parser.add_argument("--map", required=True, help="the map's name or id")
-    parser.add_argument(
-        "--configurations",
-        help="comma-separated feature configurations (default: every one the server can run)",
-    )
-    parser.add_argument("--sample-size", type=int, help="references held out (default 30)")
-    parser.add_argument(
-        "--holdout-radius", type=float, help="hold out the references within this distance too"
-    )
-    parser.add_argument("--top-k", type=int, help="references retrieved per held-out query")
-    parser.add_argument(
-        "--latest", action="store_true", help="print the latest finished one; start nothing"
-    )
-    parser.add_argument(
-        "--timeout", type=float, default=3600.0, help="seconds to wait for it (default 3600)"
-    )
-    parser.add_argument("--json", type=Path, help="also write the evaluation as JSON here")
 
 
 def _map_id(client: httpx.Client, name_or_id: str) -> str:

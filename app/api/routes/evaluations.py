@@ -12,6 +12,7 @@ from app.api.deps import (
     Limit,
     Offset,
     SessionsDep,
+    SettingsDep,
 )
 from app.errors import problem_responses
 from app.schemas.evaluations import EvaluationCreate, EvaluationOut, EvaluationPage
@@ -32,6 +33,7 @@ def start_evaluation(
     sessions: SessionsDep,
     engine: EngineConfigDep,
     evaluator: EvaluatorDep,
+    settings: SettingsDep,
     response: Response,
     body: EvaluationCreate | None = None,
 ) -> EvaluationOut:
@@ -39,9 +41,11 @@ def start_evaluation(
     localized, each as a query with its own camera against the rest of the map, for each
     configuration asked for; poll the evaluation (``Location``) for its progress and result.
     409 while another evaluation of the map runs, or when fewer than two references have
-    their originals; 422 for a configuration whose models this server lacks."""
+    their originals; 422 for a configuration this server does not measure (its own and
+    ``SLLOC_EVALUATION_FEATURES``) or whose models it lacks."""
     request = (body or EvaluationCreate()).to_request()
-    row = evaluations.start_evaluation(sessions, engine, map_id, request, evaluator)
+    allowed = settings.parsed_evaluation_features()
+    row = evaluations.start_evaluation(sessions, engine, map_id, request, allowed, evaluator)
     response.headers["Location"] = f"/v1/maps/{map_id}/evaluations/{row.id}"
     return EvaluationOut.from_row(row)
 

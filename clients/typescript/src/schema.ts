@@ -100,7 +100,8 @@ export interface paths {
          *     localized, each as a query with its own camera against the rest of the map, for each
          *     configuration asked for; poll the evaluation (``Location``) for its progress and result.
          *     409 while another evaluation of the map runs, or when fewer than two references have
-         *     their originals; 422 for a configuration whose models this server lacks.
+         *     their originals; 422 for a configuration this server does not measure (its own and
+         *     ``SLLOC_EVALUATION_FEATURES``) or whose models it lacks.
          */
         post: operations["start_evaluation"];
         delete?: never;
