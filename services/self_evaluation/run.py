@@ -76,7 +76,6 @@ class DescribedReferences:
         self.originals = originals
         self.capacity = capacity
         self._kept: OrderedDict[str, ReferenceData | None] = OrderedDict()
-        self.described = 0
 
     def get(self, reference: MapReference) -> ReferenceData | None:
         """Its description, or None when its original cannot be read or described."""
@@ -89,7 +88,6 @@ class DescribedReferences:
                 reference.camera,
                 self.originals.depth(reference.image_id),
             )
-            self.described += 1
         except (InvalidInputError, LookupError, OSError) as exc:
             logger.warning("self-evaluation: reference %s left out: %s", reference.name, exc)
             data = None
@@ -125,7 +123,7 @@ def evaluate(
         if stopped():
             raise EvaluationCancelled
         query = references[index]
-        kept, _ = held_out_map(centers, index, plan.local_map, plan.radius_m)
+        kept = held_out_map(centers, index, plan.local_map, plan.radius_m)
         store = MemoryReferenceStore()
         for k in kept:
             reference = references[k]

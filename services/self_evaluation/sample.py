@@ -24,19 +24,14 @@ def spread_sample(centers: FloatArray, count: int) -> IntArray:
     return np.asarray(chosen)
 
 
-def held_out_map(
-    centers: FloatArray, held_out: int, size: int, radius_m: float
-) -> tuple[IntArray, IntArray]:
-    """The map a held-out reference is localized against, and what is held out with it.
-
-    Returns ``(kept, removed)``: ``removed`` is the reference and every other whose centre
-    lies within ``radius_m`` of its centre (0: the reference alone); ``kept`` the ``size``
-    nearest of the rest by centre, nearest first (a local map: the references retrieval could
-    reach around it, so that the cost of a held-out query does not grow with the map).
-    """
+def held_out_map(centers: FloatArray, held_out: int, size: int, radius_m: float) -> IntArray:
+    """The references a held-out one is localized against: the ``size`` nearest to it by
+    centre, nearest first, of those farther than ``radius_m`` from it (0: all but itself). A
+    local map: the references retrieval could reach around it, so that the cost of a held-out
+    query does not grow with the map."""
     distance = np.linalg.norm(centers - centers[held_out], axis=1)
     near = distance <= radius_m
     near[held_out] = True
-    order = np.argsort(distance, kind="stable")
-    kept = order[~near[order]][:size]
-    return kept, np.flatnonzero(near)
+    order: IntArray = np.argsort(distance, kind="stable")
+    kept: IntArray = order[~near[order]][:size]
+    return kept

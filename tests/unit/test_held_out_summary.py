@@ -1,0 +1,74 @@
+"""The self-evaluation's sample, held-out maps, summaries and recommendation, on layouts and
+answers whose outcome is known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.self_evaluation.sample import held_out_map, spread_sample
+from services.self_evaluation.summary import HeldOutAnswer, recommend, summarize
+
+
+def _line(n: int) -> np.ndarray:
+    """Camera centres 1 m apart along x."""
+    return np.stack([np.arange(n, dtype=np.float64), np.zeros(n), np.zeros(n)], axis=1)
+
+
+def test_the_sample_spreads_from_the_middle_to_the_ends() -> None:
+    sample = spread_sample(_line(11), 3)
+    assert sample.tolist() == [5, 0, 10]  # the middle, then the farthest, then the other end
+    # then the first of the points farthest from those (2, 3, 7, 8 tie at 2 m), and so on
+    assert sorted(spread_sample(_line(11), 5).tolist()) == [0, 2, 5, 7, 10]
+    assert sorted(spread_sample(_line(4), 10).tolist()) == [0, 1, 2, 3]  # all, when asked more
+
+
+def test_the_held_out_map_is_the_nearest_beyond_the_radius() -> None:
+    centers = _line(10)
+    assert held_out_map(centers, 5, 3, 0.0).tolist() == [4, 6, 3]
+    # within 2 m of the held-out reference: 3, 4, 6, 7 go with it
+    assert held_out_map(centers, 5, 3, 2.0).tolist() == [2, 8, 1]
+    assert held_out_map(centers, 0, 100, 0.0).tolist() == list(range(1, 10))
+    assert held_out_map(centers, 0, 100, 1000.0).tolist() == []
+
+
+def _answer(
+    error_m: float | None, confidence: float = 0.9, latency: float = 100.0
+) -> HeldOutAnswer:
+    localized = error_m is not None
+    return HeldOutAnswer(
+        image_id="i",
+        name="n",
+        localized=localized,
+        reason=None if localized else "no_consensus",
+        position_error_m=error_m if localized else math.inf,
+        rotation_error_deg=0.5 if localized else math.inf,
+        confidence=confidence if localized else 0.0,
+        num_inliers=100 if localized else 0,
+        latency_ms=latency,
+    )
+
+
+def test_summary_counts_failures_as_infinite_errors() -> None:
+    answers = [_answer(0.01), _answer(0.03), _answer(0.2, confidence=0.5), _answer(None)]
+    summary = summarize(answers)
+    assert summary["held_out"] == 4 and summary["localized"] == 3
+    assert summary["recall"] == {"5cm_5deg": 0.5, "10cm_10deg": 0.5, "25cm_2deg": 0.75}
+    assert summary["position_error_m"] == {"median": 0.03, "p90": None}  # p90 is a failure
+    assert summary["failures"] == {"no_consensus": 1}
+    # two answers above 0.8, both right; three right answers in all
+    assert summary["confidence"]["precision"] == 1.0
+    assert summary["confidence"]["recall"] == 2 / 3
+    assert summarize([])["position_error_m"] == {"median": None, "p90": None}
+
+
+def test_the_recommendation_is_the_fastest_close_to_the_best() -> None:
+    accurate = summarize([_answer(0.010, latency=900.0)] * 10)
+    close = summarize([_answer(0.012, latency=200.0)] * 10)
+    fast_but_coarse = summarize([_answer(0.030, latency=100.0)] * 10)
+    failing = summarize([_answer(0.010, latency=50.0)] * 5 + [_answer(None)] * 5)
+    summaries = {"a": accurate, "b": close, "c": fast_but_coarse, "d": failing}
+    assert recommend(summaries) == "b"  # c's median is 3x the best, d misses half
+    assert recommend({"a": accurate}) == "a"
+    assert recommend({"x": summarize([_answer(None)] * 3)}) is None
