@@ -73,6 +73,13 @@ class Latency(BaseModel):
     median: float | None = Field(description="Median time of a held-out query (ms)")
 
 
+class Distance(BaseModel):
+    median: float | None = Field(
+        description="From a held-out reference to the nearest reference it was localized "
+        "against (map units): compare with how far your queries are from the map"
+    )
+
+
 class HeldOutOut(BaseModel):
     """One reference localized against the map without it (errors against its stored pose;
     null when not localized)."""
@@ -86,6 +93,9 @@ class HeldOutOut(BaseModel):
     confidence: float
     num_inliers: int
     latency_ms: float
+    nearest_reference_m: float | None = Field(
+        description="From its camera centre to the nearest reference it was localized against"
+    )
 
 
 class ConfigurationResult(BaseModel):
@@ -99,6 +109,7 @@ class ConfigurationResult(BaseModel):
     rotation_error_deg: Percentiles
     confidence: ConfidenceCheck
     latency_ms: Latency
+    nearest_reference_m: Distance
     failures: dict[str, int] = Field(description="Held-out references not localized, by reason")
     duration_s: float = Field(description="Time this configuration's measurement took")
     references: list[HeldOutOut] | None = Field(

@@ -4,11 +4,12 @@ own camera, against a local map of the others described from their originals."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -125,11 +126,13 @@ def evaluate(
         query = references[index]
         kept = held_out_map(centers, index, plan.local_map, plan.radius_m)
         store = MemoryReferenceStore()
+        nearest = math.inf
         for k in kept:
             reference = references[k]
             with slot:
                 data = described.get(reference)
             if data is not None:
+                nearest = min(nearest, float(np.linalg.norm(centers[k] - centers[index])))
                 store.add(
                     reference.name,
                     reference.camera,
@@ -140,7 +143,7 @@ def evaluate(
         with slot:
             answer = _localize(localizer, query, originals, store, plan)
         if answer is not None:
-            answers.append(answer)
+            answers.append(replace(answer, nearest_reference_m=nearest))
         progress(done)
     return answers
 

@@ -37,6 +37,8 @@ class HeldOutAnswer:
     confidence: float
     num_inliers: int
     latency_ms: float
+    # from its camera centre to the nearest reference it was localized against (inf: none)
+    nearest_reference_m: float = math.inf
 
     def within(self, max_m: float, max_deg: float) -> bool:
         return self.position_error_m <= max_m and self.rotation_error_deg <= max_deg
@@ -52,6 +54,7 @@ class HeldOutAnswer:
             "confidence": self.confidence,
             "num_inliers": self.num_inliers,
             "latency_ms": self.latency_ms,
+            "nearest_reference_m": _finite(self.nearest_reference_m),
         }
 
 
@@ -105,6 +108,7 @@ def summarize(answers: list[HeldOutAnswer]) -> dict[str, Any]:
             "recall": len(confident_right) / len(right) if right else None,
         },
         "latency_ms": {"median": float(np.median(latencies)) if latencies else None},
+        "nearest_reference_m": {"median": _quantile([a.nearest_reference_m for a in answers], 0.5)},
         "failures": dict(Counter(a.reason or "unknown" for a in answers if not a.localized)),
     }
 

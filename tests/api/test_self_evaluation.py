@@ -80,6 +80,10 @@ def test_a_map_measures_itself(client: TestClient, reference_views: list[Synthet
     assert len(held) == HELD_OUT and {r["name"] for r in held} <= names
     assert len({r["image_id"] for r in held}) == HELD_OUT  # spread: no reference twice
     assert all(r["localized"] and r["position_error_m"] < 0.01 for r in held)
+    # each was localized against the others: the nearest of them lies a view's spacing away
+    assert all(0 < r["nearest_reference_m"] < 10 for r in held)
+    distances = sorted(r["nearest_reference_m"] for r in held)
+    assert sift["nearest_reference_m"]["median"] == distances[(HELD_OUT + 1) // 2 - 1]
     listed = client.get(f"/v1/maps/{map_id}/evaluations").json()
     assert listed["total"] == 1
     [item] = listed["items"]
@@ -108,6 +112,8 @@ def test_neighbours_within_the_radius_are_held_out_too(
     sift = evaluation["result"]["configurations"]["sift"]
     assert sift["localized"] == 0 and sift["failures"] == {"no_references": 3}
     assert sift["recall"]["25cm_2deg"] == 0.0 and sift["position_error_m"]["median"] is None
+    assert sift["nearest_reference_m"]["median"] is None
+    assert all(r["nearest_reference_m"] is None for r in sift["references"])
     assert evaluation["result"]["recommended"] is None
 
 

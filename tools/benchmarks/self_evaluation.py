@@ -4,7 +4,8 @@ localizes its queries (``slloc eval --url``), then evaluates the map on its own 
 (``slloc self-evaluate``); the two sets of figures are printed side by side.
 
     python -m tools.benchmarks.self_evaluation DATASET[::REFERENCES::QUERIES] [...] \
-        [--features xfeat-lg,sift,aliked] [--sample-size 30] [--out out/self-evaluation]
+        [--features xfeat-lg,sift,aliked] [--sample-size 30] [--holdout-radius 0] \
+        [--out out/self-evaluation]
 
 A dataset is what ``slloc eval`` takes, optionally with its split rules (default: the
 dataset's suggestion), e.g. ``kitti05/frames.csv::range:0-299 every:3::range:1-299 every:6``.
@@ -31,7 +32,9 @@ def _run(command: list[str]) -> None:
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
 
 
-def measure(dataset: str, features: str, sample_size: int, out: Path) -> dict[str, Any]:
+def measure(
+    dataset: str, features: str, sample_size: int, radius_m: float, out: Path
+) -> dict[str, Any]:
     """The query split's and the self-evaluation's figures of one configuration."""
     out.mkdir(parents=True, exist_ok=True)
     path, *rules = dataset.split("::")
@@ -48,7 +51,8 @@ def measure(dataset: str, features: str, sample_size: int, out: Path) -> dict[st
         _run(
             [sys.executable, "-m", "tools.cli", "self-evaluate", "--url", server.url,
              "--map", item["id"], "--configurations", features,
-             "--sample-size", str(sample_size), "--json", str(out / "self.json")]
+             "--sample-size", str(sample_size), "--holdout-radius", str(radius_m),
+             "--json", str(out / "self.json")]
         )  # fmt: skip
         self_s = time.perf_counter() - start
     [query_summary] = json.loads((out / "queries" / "results.json").read_text())[
@@ -87,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("datasets", nargs="+")
     parser.add_argument("--features", default="xfeat-lg,sift,aliked")
     parser.add_argument("--sample-size", type=int, default=30)
+    parser.add_argument(
+        "--holdout-radius", type=float, default=0.0, help="hold out the neighbours this close"
+    )
     parser.add_argument("--out", type=Path, default=Path("out/self-evaluation"))
     args = parser.parse_args(argv)
     header = (
@@ -100,7 +107,13 @@ def main(argv: list[str] | None = None) -> int:
         name = Path(dataset.split("::")[0]).resolve()
         name = name.parent if name.is_file() else name
         for features in args.features.split(","):
-            figures = measure(dataset, features, args.sample_size, args.out / name.name / features)
+            figures = measure(
+                dataset,
+                features,
+                args.sample_size,
+                args.holdout_radius,
+                args.out / name.name / features,
+            )
             results[f"{name.name}/{features}"] = figures
             rows.append(_row(name.name, features, figures))
             print(rows[-1], file=sys.stderr, flush=True)

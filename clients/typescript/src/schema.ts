@@ -525,6 +525,7 @@ export interface components {
             latency_ms: components["schemas"]["Latency"];
             /** Localized */
             localized: number;
+            nearest_reference_m: components["schemas"]["Distance"];
             /** @description Failures count as infinite */
             position_error_m: components["schemas"]["Percentiles"];
             /**
@@ -560,6 +561,14 @@ export interface components {
              * @description This server describes queries alike: they are searched
              */
             served: boolean;
+        };
+        /** Distance */
+        Distance: {
+            /**
+             * Median
+             * @description From a held-out reference to the nearest reference it was localized against (map units): compare with how far your queries are from the map
+             */
+            median: number | null;
         };
         /** EnuFromMapSchema */
         EnuFromMapSchema: {
@@ -1082,6 +1091,11 @@ export interface components {
             localized: boolean;
             /** Name */
             name: string;
+            /**
+             * Nearest Reference M
+             * @description From its camera centre to the nearest reference it was localized against
+             */
+            nearest_reference_m: number | null;
             /** Num Inliers */
             num_inliers: number;
             /** Position Error M */

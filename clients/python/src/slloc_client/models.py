@@ -146,6 +146,7 @@ class ConfigurationResult(BaseModel):
     held_out: int = Field(description="References localized against the map without them")
     latency_ms: Latency
     localized: int
+    nearest_reference_m: Distance
     position_error_m: Percentiles = Field(description="Failures count as infinite")
     recall: dict[str, float] = Field(
         description="Share of the held-out references localized within each threshold (keys like 5cm_5deg)"
@@ -162,6 +163,13 @@ class DescribedByOut(BaseModel):
     feature_model: str = Field(description="The extractor that described them, e.g. xfeat-1024-640")
     image_count: int
     served: bool = Field(description="This server describes queries alike: they are searched")
+
+
+class Distance(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    median: float | None = Field(
+        description="From a held-out reference to the nearest reference it was localized against (map units): compare with how far your queries are from the map"
+    )
 
 
 class EnuFromMapSchema(BaseModel):
@@ -478,6 +486,9 @@ class HeldOutOut(BaseModel):
     latency_ms: float
     localized: bool
     name: str
+    nearest_reference_m: float | None = Field(
+        description="From its camera centre to the nearest reference it was localized against"
+    )
     num_inliers: int
     position_error_m: float | None
     reason: str | None
