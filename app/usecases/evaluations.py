@@ -17,7 +17,6 @@ from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
 
-import numpy as np
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -34,10 +33,15 @@ from services.features.configs import get_feature_config
 from services.localization.localizer import Localizer
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.memory import EVALUATION_DESCRIBED
-from services.self_evaluation.run import EvaluationCancelled, HeldOutPlan, MapReference, evaluate
+from services.self_evaluation.run import (
+    EvaluationCancelled,
+    HeldOutPlan,
+    MapReference,
+    centers_of,
+    evaluate,
+)
 from services.self_evaluation.sample import spread_sample
 from services.self_evaluation.summary import recommend, summarize
-from services.types import FloatArray
 
 logger = logging.getLogger(__name__)
 
@@ -46,9 +50,6 @@ DEFAULT_SAMPLE = 30
 MAX_SAMPLE = 200
 # references a held-out one is localized against: its nearest (a local map)
 LOCAL_MAP = 40
-# references kept described between held-out queries (the memory bound counts them:
-# services/runtime/memory.py)
-DESCRIBED_CAPACITY = EVALUATION_DESCRIBED
 # maps whose latest results are kept for /metrics (the most recently evaluated)
 LATEST_KEPT = 1000
 # each held-out query's time budget (seconds), as a localize request's
@@ -273,7 +274,7 @@ class Evaluator:
             sample = [
                 int(i)
                 for i in spread_sample(
-                    _centers(references), min(request.sample_size, len(references))
+                    centers_of(references), min(request.sample_size, len(references))
                 )
             ]
             total = len(sample) * len(configurations)
@@ -305,7 +306,7 @@ class Evaluator:
                 sample,
                 originals,
                 plan,
-                DESCRIBED_CAPACITY,
+                EVALUATION_DESCRIBED,  # the memory bound counts them
                 self.slots,
                 stopped=lambda: self._stopped(evaluation_id),
                 progress=partial(self._progress, evaluation_id, offset),
@@ -365,7 +366,3 @@ class Evaluator:
     def shutdown(self) -> None:
         self._stopping.set()
         self.worker.shutdown()
-
-
-def _centers(references: list[MapReference]) -> FloatArray:
-    return np.stack([r.cam_from_world.center for r in references])

@@ -23,6 +23,7 @@ from services.references.memory import MemoryReferenceStore
 from services.references.store import ReferenceData
 from services.self_evaluation.sample import held_out_map
 from services.self_evaluation.summary import HeldOutAnswer
+from services.types import FloatArray
 
 logger = logging.getLogger(__name__)
 
@@ -98,6 +99,11 @@ class DescribedReferences:
         return data
 
 
+def centers_of(references: Sequence[MapReference]) -> FloatArray:
+    """(N, 3) camera centres of the references."""
+    return np.stack([r.cam_from_world.center for r in references])
+
+
 def evaluate(
     localizer: Localizer,
     references: Sequence[MapReference],
@@ -116,7 +122,7 @@ def evaluate(
     Raises:
         EvaluationCancelled: ``stopped()`` turned true.
     """
-    centers = np.stack([r.cam_from_world.center for r in references])
+    centers = centers_of(references)
     described = DescribedReferences(localizer, originals, cache_capacity)
     slot = slot if slot is not None else nullcontext()
     answers: list[HeldOutAnswer] = []

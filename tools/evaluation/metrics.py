@@ -11,12 +11,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from services.geometry.rigid import Rigid3d, pose_error
+from services.self_evaluation.summary import THRESHOLDS, recall_key
 from services.types import BoolArray, FloatArray
 
 if TYPE_CHECKING:  # the runner needs the `eval` extra (httpx); the CLI reads these names without it
     from tools.evaluation.runner import QueryOutcome
 
-DEFAULT_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0), (0.25, 2.0))
+# the thresholds a map's self-evaluation reports too
+DEFAULT_THRESHOLDS = THRESHOLDS
 # a query is "localizable" when a reference lies within 0.3 m and 15° (ground truth); its
 # retrieval "hits" when a retrieved reference lies within 0.5 m and 30°
 LOCALIZABLE = (0.3, 15.0)
@@ -120,10 +122,6 @@ def within(record: QueryRecord, max_m: float, max_deg: float) -> bool:
     """The record's pose lies within ``max_m`` and ``max_deg`` of the truth (a failure's
     errors are infinite: never)."""
     return record.position_error_m <= max_m and record.rotation_error_deg <= max_deg
-
-
-def recall_key(max_m: float, max_deg: float) -> str:
-    return f"{max_m * 100:g}cm_{max_deg:g}deg"
 
 
 def _quantile(ordered: FloatArray, q: float) -> float:

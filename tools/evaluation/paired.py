@@ -8,7 +8,8 @@ from typing import Any
 
 from scipy.stats import binomtest
 
-from tools.evaluation.metrics import QueryRecord, recall_key, within
+from services.self_evaluation.summary import recall_key
+from tools.evaluation.metrics import QueryRecord, within
 
 CHOOSER = "auto"
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from services.self_evaluation.summary import recall_key
 from tools.evaluation.confidence_curve import REPORTED_THRESHOLDS, TARGET, curve_of
 from tools.evaluation.metrics import (
     CONFIDENT,
@@ -20,7 +21,6 @@ from tools.evaluation.metrics import (
     WRONG_DEG,
     WRONG_M,
     QueryRecord,
-    recall_key,
 )
 
 PLOT_STAGES = ("decode", "extract", "retrieve", "match", "estimate")
