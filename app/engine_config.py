@@ -95,7 +95,7 @@ def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) ->
         max_keypoints=settings.max_keypoints,
         max_top_k=settings.max_top_k,
         reference_cache_mib=settings.reference_cache_mib,
-        evaluation_extras=tuple(
+        other_configurations=tuple(
             (
                 replace(engine, features=name, wide_threads=None).model_file_bytes(),
                 get_feature_config(name).extractor,

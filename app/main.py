@@ -27,6 +27,7 @@ from app.metrics import RequestMetrics, ServiceMetrics
 from app.metrics import router as metrics_router
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
+from app.usecases.auto_features import AutoEvaluation
 from app.usecases.evaluations import Evaluator
 from app.usecases.images import train_vocabulary_if_due
 from app.usecases.reextraction import Reextractor
@@ -34,7 +35,7 @@ from app.viewer import install_viewer
 from db.blobs import open_blob_store
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
-from services.components import build_localizer
+from services.components import Localizers, build_localizer
 from services.localization.localizer import Localizer
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
@@ -64,7 +65,9 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         # what the engine serves, resolved once: the localizer, the memory bound, health and
         # the served-features checks all read it
         app.state.engine_config = served = engine_config(settings, app.state.sessions, plan)
-        app.state.localizer = localizer or build_localizer(served)
+        app.state.localizers = localizers = Localizers(
+            served, localizer or build_localizer(served), settings.parsed_evaluation_features()
+        )
         app.state.ann_builder = BackgroundTrainer("retrieval index")
         app.state.retrieval_cache = RetrievalIndexCache(
             AnnOptions(settings.ann_min_references, settings.ann_nprobe),
@@ -91,20 +94,35 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             if settings.blob_sweep_on_start
             else None
         )
-        # maps whose feature options changed: their references described anew, resumed
+        # maps whose feature options changed: their references described anew, resumed; a
+        # map that switched trains its retrieval vocabulary and is evaluated when it grew
+        # meanwhile
         train = partial(train_vocabulary_if_due, app.state.sessions, app.state.vocabulary_trainer)
+
+        def switched(map_id: str, localizer: Localizer) -> None:
+            if served.vlad:
+                train(map_id, localizer)
+            app.state.evaluator.evaluate_if_due(map_id)
+
         app.state.reextractor = Reextractor(
             app.state.sessions,
-            app.state.localizer,
+            localizers,
             blobs,
             app.state.reference_cache,
-            on_switch=train if served.vlad else None,
+            on_switch=switched,
             slots=app.state.admission.slots,
         )
         app.state.reextractor.resume()
-        # maps' self-evaluations; those a restart interrupted run again
+        # maps' self-evaluations; those a restart interrupted run again; maps that follow
+        # theirs are evaluated as they grow and take the configuration recommended
+        auto = AutoEvaluation(
+            app.state.sessions,
+            localizers,
+            app.state.reextractor,
+            settings.auto_evaluation_references,
+        )
         app.state.evaluator = Evaluator(
-            app.state.sessions, app.state.localizer, served, blobs, app.state.admission.slots
+            app.state.sessions, localizers, blobs, app.state.admission.slots, auto
         )
         app.state.evaluator.resume()
         # health's database probe; apart from the thread pool other routes may fill

@@ -76,11 +76,19 @@ class Settings(BaseSettings):
         "`slloc features` lists what each runs and the models it needs",
     )
     evaluation_features: str = Field(
-        "",
-        description="Feature configurations besides the server's own that self-evaluations "
-        "may measure, comma-separated (e.g. sift,aliked): each loads its models while an "
-        "evaluation measures it, and the memory bound counts the largest; empty = the "
-        "server's own configuration only",
+        FALLBACK_FEATURES,
+        description="Feature configurations besides the server's own that maps may be served "
+        "with and self-evaluations measure, comma-separated (e.g. sift,aliked): a map takes "
+        "one by name or by its self-evaluation's recommendation (features auto); each loads "
+        "its models when first used, those whose models are not built are left out, and the "
+        "memory bound counts them all; empty = the server's own configuration only",
+    )
+    auto_evaluation_references: int = Field(
+        20,
+        ge=0,
+        description="A map that follows its self-evaluation (features auto, the default) is "
+        "evaluated on its own once it has this many references with their originals, then "
+        "again each time it has changed enough (docs: self-evaluation); 0 = only when asked",
     )
     onnx_providers: str = Field(
         "auto",

@@ -72,6 +72,12 @@ class Map(Base):
     reextracting: Mapped[bool] = mapped_column(default=False, server_default=false())
     pending_max_keypoints: Mapped[int | None] = mapped_column(Integer)
     pending_max_side: Mapped[int | None] = mapped_column(Integer)
+    # the feature configuration its references are described with (None: the server's,
+    # SLLOC_FEATURES) and the one they are being re-described with (with reextracting)
+    feature_preset: Mapped[str | None] = mapped_column(String(64))
+    pending_preset: Mapped[str | None] = mapped_column(String(64))
+    # the map takes the configuration its self-evaluation recommends (features "auto")
+    features_auto: Mapped[bool] = mapped_column(default=False, server_default=false())
     # the similarity to the Earth (db/geo.py holds its stored form; None: not registered)
     geo_registration: Mapped[dict[str, object] | None] = mapped_column(JSON)
     # bumped by every image add and delete (cached retrieval indexes compare it)

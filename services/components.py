@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from services.errors import InvalidInputError
 from services.features.base import FeatureExtractor
 from services.features.configs import (
     AUTO,
@@ -265,3 +266,77 @@ def build_localizer(engine: EngineConfig) -> Localizer:
         global_descriptor.name,
     )
     return Localizer(extractor, matcher, global_descriptor, engine.max_pixels)
+
+
+class PresetUnavailableError(InvalidInputError):
+    """A map's feature configuration is not one this server serves."""
+
+
+class Localizers:
+    """The localizers of the feature configurations this server serves maps with: its own
+    (``engine.features``, built at start-up) and those of ``others`` whose models are built,
+    each built on first use and kept; they share the server's global descriptor and models.
+    """
+
+    def __init__(self, engine: EngineConfig, served: Localizer, others: Collection[str] = ()):
+        self.engine = engine
+        self.served = served
+        self.unavailable = {
+            name: problem
+            for name in others
+            if name != engine.features and (problem := missing_models(engine.models_dir, name))
+        }
+        self.choices = tuple(
+            dict.fromkeys(n for n in (engine.features, *others) if n not in self.unavailable)
+        )
+        self._built: dict[str, Localizer] = {engine.features: served}
+        self._models = ModelStore(engine.models_dir, engine.onnx)
+        self._lock = threading.Lock()
+
+    @property
+    def features(self) -> str:
+        """The server's own configuration (``SLLOC_FEATURES``)."""
+        return self.engine.features
+
+    def get(self, preset: str | None = None) -> Localizer:
+        """The localizer of ``preset`` (None: the server's).
+
+        Raises:
+            PresetUnavailableError: a configuration this server does not serve.
+        """
+        name = preset or self.engine.features
+        with self._lock:
+            localizer = self._built.get(name)
+            if localizer is not None:
+                return localizer
+            if name not in self.choices:
+                raise PresetUnavailableError(self.refusal(name))
+            extractor, matcher = build_features(get_feature_config(name), self._models)
+            localizer = Localizer(
+                extractor, matcher, self.served.global_descriptor, self.served.max_pixels
+            )
+            self._built[name] = localizer
+        logger.info("features: %s loaded (%s + %s)", name, extractor.name, matcher.name)
+        return localizer
+
+    def for_map(
+        self, max_keypoints: int | None, max_side: int | None, preset: str | None = None
+    ) -> Localizer:
+        """The localizer of ``preset`` with a map's keypoint budget and image size.
+
+        Raises:
+            PresetUnavailableError: a configuration this server does not serve.
+            InvalidInputError: its extractor cannot honour the options.
+        """
+        return self.get(preset).for_map(max_keypoints, max_side)
+
+    def refusal(self, name: str) -> str:
+        """Why ``name`` is not served here, and what serves it."""
+        problem = self.unavailable.get(name)
+        if problem is not None:
+            return f"feature configuration {name} cannot run on this server: {problem}"
+        return (
+            f"feature configuration {name} is not served here: this server serves "
+            f"{', '.join(self.choices)} (SLLOC_FEATURES and SLLOC_EVALUATION_FEATURES); add "
+            f"{name} to SLLOC_EVALUATION_FEATURES, with its models built, to serve it"
+        )

@@ -19,7 +19,7 @@ from sqlalchemy.engine import make_url
 
 from app.main import create_app
 from app.settings import Settings
-from services.components import EngineConfig, build_localizer
+from services.components import EngineConfig, Localizers, build_localizer
 from services.features.configs import FEATURE_CONFIGS
 from services.localization.localizer import Localizer
 from services.runtime.manifest import ModelEntry, file_sha256, write_entry
@@ -45,9 +45,20 @@ def query_views(scene: SyntheticScene) -> list[SyntheticView]:
     return scene.views(10, stream=2, prefix="query")
 
 
+def _engine_config() -> EngineConfig:
+    return EngineConfig.resolve(Path("/nonexistent-models"), max_pixels=40_000_000)
+
+
 @pytest.fixture(scope="session")
 def localizer() -> Localizer:
-    return build_localizer(EngineConfig.resolve(Path("/nonexistent-models"), max_pixels=40_000_000))
+    return build_localizer(_engine_config())
+
+
+@pytest.fixture(scope="session")
+def localizers(localizer: Localizer) -> Localizers:
+    """The session's localizer as a server's only feature configuration (what the use cases
+    take)."""
+    return Localizers(_engine_config(), localizer)
 
 
 @pytest.fixture(scope="session")
@@ -100,6 +111,8 @@ def write_model_files(models_dir: Path, *names: str) -> None:
 def make_client(
     url: str, localizer: Localizer, raise_server_exceptions: bool = True, **settings: object
 ) -> TestClient:
+    # maps evaluate themselves only where a test asks (tests/api/test_map_features.py)
+    settings.setdefault("auto_evaluation_references", 0)
     app = create_app(Settings(database_url=url, **settings), localizer=localizer)  # type: ignore[arg-type]
     return TestClient(app, raise_server_exceptions=raise_server_exceptions)
 

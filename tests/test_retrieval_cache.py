@@ -14,14 +14,14 @@ from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
-from services.localization.localizer import Localizer
+from services.components import Localizers
 from services.retrieval.cache import RetrievalIndexCache
 from tests.conftest import image_metadata
 from tools.synthetic.scene import SyntheticView, encode_png
 
 
 def test_cache_follows_adds_and_deletes(
-    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+    database_url: str, localizers: Localizers, reference_views: list[SyntheticView]
 ) -> None:
     engine = make_engine(database_url)
     upgrade(engine)
@@ -31,10 +31,10 @@ def test_cache_follows_adds_and_deletes(
 
     def add(view: SyntheticView) -> str:
         image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
-        return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
+        return add_reference_image(sessions, localizers, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache) -> SqlReferenceStore:
-        return reference_store(sessions, map_id, localizer, cache)
+        return reference_store(sessions, map_id, localizers.served, cache)
 
     ids = [add(v) for v in reference_views[:3]]
     cache = RetrievalIndexCache()

@@ -19,6 +19,7 @@ from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.store import SqlReferenceStore
 from db.vocabulary import STAGED_PREFIX, SqlVocabularyStore
+from services.components import Localizers
 from services.geometry.rigid import rotation_error_deg
 from services.localization.localizer import Localizer
 from services.retrieval.cache import RetrievalIndexCache
@@ -34,6 +35,7 @@ from tools.synthetic.scene import SyntheticView, encode_png
 def test_vocabulary_lifecycle(
     database_url: str,
     localizer: Localizer,
+    localizers: Localizers,
     reference_views: list[SyntheticView],
     query_views: list[SyntheticView],
 ) -> None:
@@ -45,7 +47,7 @@ def test_vocabulary_lifecycle(
 
     def add(view: SyntheticView) -> str:
         image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
-        return add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
+        return add_reference_image(sessions, localizers, map_id, image, encode_png(view.image)).id
 
     def store(cache: RetrievalIndexCache | None = None) -> SqlReferenceStore:
         return reference_store(sessions, map_id, localizer, cache)
@@ -158,7 +160,10 @@ def test_global_model_maps_have_no_vocabulary(database_url: str, localizer: Loca
 
 
 def test_training_runs_off_the_request_path(
-    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+    database_url: str,
+    localizer: Localizer,
+    localizers: Localizers,
+    reference_views: list[SyntheticView],
 ) -> None:
     """Adds that make a vocabulary due hand it to the trainer; until it is published, reads go
     on at once with the previous index (here: global descriptors)."""
@@ -173,7 +178,7 @@ def test_training_runs_off_the_request_path(
     ids = [
         add_reference_image(
             sessions,
-            localizer,
+            localizers,
             map_id,
             ImageMetadata.model_validate(image_metadata(view)).to_new_image(),
             encode_png(view.image),
@@ -212,7 +217,10 @@ def test_add_endpoint_trains_in_the_background(
 
 
 def test_background_training_yields_to_an_explicit_one(
-    database_url: str, localizer: Localizer, reference_views: list[SyntheticView]
+    database_url: str,
+    localizer: Localizer,
+    localizers: Localizers,
+    reference_views: list[SyntheticView],
 ) -> None:
     """A due training that finds a version published meanwhile keeps that one; an explicit
     training publishes on top of it."""
@@ -223,7 +231,7 @@ def test_background_training_yields_to_an_explicit_one(
         map_id = MapRepository(session).create("racing", None).id
     for view in reference_views[:3]:
         image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
-        add_reference_image(sessions, localizer, map_id, image, encode_png(view.image))
+        add_reference_image(sessions, localizers, map_id, image, encode_png(view.image))
     store = SqlVocabularyStore(sessions, map_id, localizer.extractor.name)
     explicit = VladIndexer(store).train()
     assert explicit.version == 1

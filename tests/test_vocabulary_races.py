@@ -23,6 +23,7 @@ from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.vocabulary import SqlVocabularyStore
+from services.components import Localizers
 from services.estimators.base import FailureReason
 from services.localization.localizer import Localizer
 from services.retrieval import vlad_index
@@ -71,13 +72,13 @@ def sessions(database_url: str) -> Iterator[sessionmaker[Session]]:
 
 
 def small_map(
-    sessions: sessionmaker[Session], localizer: Localizer, views: list[SyntheticView]
+    sessions: sessionmaker[Session], localizers: Localizers, views: list[SyntheticView]
 ) -> str:
     with sessions.begin() as session:
         map_id = MapRepository(session).create("racing", None).id
     for view in views:
         image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
-        add_reference_image(sessions, localizer, map_id, image, encode_png(view.image))
+        add_reference_image(sessions, localizers, map_id, image, encode_png(view.image))
     return map_id
 
 
@@ -104,18 +105,18 @@ def test_reindex_of_a_map_deleted_while_training_is_404(
 def test_localize_training_inline_survives_the_delete(
     step: str,
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     reference_views: list[SyntheticView],
     query_views: list[SyntheticView],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Without a trainer (the offline tools), a due vocabulary is trained before the search."""
-    map_id = small_map(sessions, localizer, reference_views[:3])
+    map_id = small_map(sessions, localizers, reference_views[:3])
     force_training_due(monkeypatch)
     delete_map_before(monkeypatch, step)
     try:
         result = localize(
-            LocalizeContext(sessions, localizer, max_top_k=10),
+            LocalizeContext(sessions, localizers, max_top_k=10),
             map_id,
             LocalizeRequest(),
             encode_png(query_views[0].image),
@@ -132,21 +133,21 @@ def test_localize_training_inline_survives_the_delete(
 def test_localize_encoding_new_references_survives_the_delete(
     step: str,
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     reference_views: list[SyntheticView],
     query_views: list[SyntheticView],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A published vocabulary encodes the references added since before the search."""
-    map_id = small_map(sessions, localizer, reference_views[:3])
-    VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name)).train()
+    map_id = small_map(sessions, localizers, reference_views[:3])
+    VladIndexer(SqlVocabularyStore(sessions, map_id, localizers.served.extractor.name)).train()
     image = ImageMetadata.model_validate(image_metadata(reference_views[3])).to_new_image()
     add_reference_image(
-        sessions, localizer, map_id, image, encode_png(reference_views[3].image)
+        sessions, localizers, map_id, image, encode_png(reference_views[3].image)
     )  # not encoded yet
     delete_map_before(monkeypatch, step)
     result = localize(
-        LocalizeContext(sessions, localizer, max_top_k=10),
+        LocalizeContext(sessions, localizers, max_top_k=10),
         map_id,
         LocalizeRequest(),
         encode_png(query_views[0].image),
@@ -187,20 +188,20 @@ def test_localize_training_in_the_background_survives_the_delete(
 
 def test_background_job_of_a_deleted_map_is_logged(
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     reference_views: list[SyntheticView],
     monkeypatch: pytest.MonkeyPatch,
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    map_id = small_map(sessions, localizer, reference_views[:3])
+    map_id = small_map(sessions, localizers, reference_views[:3])
     delete_map_before(monkeypatch, "publish")
-    indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
+    indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizers.served.extractor.name))
     with pytest.raises(VocabularyError, match="deleted"):
         indexer.train()
-    map_id = small_map(sessions, localizer, reference_views[:3])
+    map_id = small_map(sessions, localizers, reference_views[:3])
     delete_map_before(monkeypatch, "stage")
     trainer = BackgroundTrainer()
-    indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
+    indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizers.served.extractor.name))
     assert trainer.schedule(map_id, indexer.train)
     trainer.wait(60)  # the job's error stays in the worker
     trainer.shutdown()

@@ -24,7 +24,7 @@ from db.models import FeatureArray, Map, ReferenceImage
 from db.repositories.maps import MapRepository
 from db.session import make_engine, make_session_factory
 from db.vocabulary import SqlVocabularyStore
-from services.localization.localizer import Localizer
+from services.components import Localizers
 from tests.conftest import image_metadata
 from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticView, encode_png
@@ -107,7 +107,7 @@ class OtherWriter:
 
 @pytest.fixture
 def two_images(
-    sessions: sessionmaker[Session], localizer: Localizer, reference_views: list[SyntheticView]
+    sessions: sessionmaker[Session], localizers: Localizers, reference_views: list[SyntheticView]
 ) -> tuple[str, list[str]]:
     with sessions.begin() as session:
         map_id = MapRepository(session).create("locked", None).id
@@ -115,7 +115,7 @@ def two_images(
     for view in reference_views[:2]:
         image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
         ids.append(
-            add_reference_image(sessions, localizer, map_id, image, encode_png(view.image)).id
+            add_reference_image(sessions, localizers, map_id, image, encode_png(view.image)).id
         )
     return map_id, ids
 

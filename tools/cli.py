@@ -273,7 +273,7 @@ def _reindex(map_name: str) -> int:
     from db.migrate import upgrade
     from db.repositories.maps import MapRepository
     from db.session import make_engine, make_session_factory
-    from services.components import build_localizer
+    from services.components import Localizers, build_localizer
 
     settings = get_settings()
     database = make_engine(settings.database_url)
@@ -286,9 +286,9 @@ def _reindex(map_name: str) -> int:
             return 2
         map_id = row.id
     engine = engine_config(settings, sessions)
-    localizer = build_localizer(engine)
+    localizers = Localizers(engine, build_localizer(engine), settings.parsed_evaluation_features())
     try:
-        out = reindex_map(sessions, localizer, map_id, engine.vlad)
+        out = reindex_map(sessions, localizers, map_id, engine.vlad)
     except (NotFoundError, ConflictError) as exc:
         print(f"reindex failed: {exc}", file=sys.stderr)
         return 1
@@ -309,7 +309,7 @@ def _import(args: argparse.Namespace) -> int:
     from db.repositories.images import ImageRepository
     from db.session import make_engine, make_session_factory
     from db.vocabulary import SqlVocabularyStore
-    from services.components import build_localizer
+    from services.components import Localizers, build_localizer
     from services.errors import InvalidInputError
     from services.retrieval.contracts import VocabularyError
     from services.retrieval.vlad_index import VladIndexer
@@ -351,6 +351,7 @@ def _import(args: argparse.Namespace) -> int:
     sessions = make_session_factory(database)
     opened = open_map(sessions, args.map)  # another import may be creating it too
     map_id, max_keypoints, max_side = opened.id, opened.max_keypoints, opened.max_side
+    preset = opened.feature_preset
     with sessions() as session:
         existing = ImageRepository(session).names(map_id)
     pending = list(iter_pending(items, existing))
@@ -362,9 +363,13 @@ def _import(args: argparse.Namespace) -> int:
     for refused in rejected:
         print(f"[refused] {refused.name}: FAILED: {refused.reason}", flush=True)
     engine = engine_config(settings, sessions)
-    localizer = build_localizer(engine)
+    localizers = Localizers(engine, build_localizer(engine), settings.parsed_evaluation_features())
     blobs = open_blob_store(settings.blob_url, settings.database_url, settings.data_dir)
-    feature_model = localizer.for_map(max_keypoints, max_side).extractor.name
+    try:
+        feature_model = localizers.for_map(max_keypoints, max_side, preset).extractor.name
+    except InvalidInputError as exc:
+        print(f"cannot describe the map's references: {exc}", file=sys.stderr)
+        return 2
     failed = stored_meanwhile = 0
     added_here: set[str] = set()
     start = time.perf_counter()
@@ -373,7 +378,7 @@ def _import(args: argparse.Namespace) -> int:
             depth = item.depth_path.read_bytes() if item.depth_path else None
             out = add_reference_image(
                 sessions,
-                localizer,
+                localizers,
                 map_id,
                 item.metadata.to_new_image(),
                 item.image_path.read_bytes(),

@@ -17,8 +17,7 @@ from app.usecases.evaluations import Evaluator
 from app.usecases.localize import LocalizeContext
 from app.usecases.reextraction import Reextractor
 from db.blobs import BlobStore
-from services.components import EngineConfig
-from services.localization.localizer import Localizer
+from services.components import EngineConfig, Localizers
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 
@@ -39,9 +38,11 @@ async def get_sessions(request: Request) -> sessionmaker[Session]:
     return sessions
 
 
-async def get_localizer(request: Request) -> Localizer:
-    localizer: Localizer = request.app.state.localizer
-    return localizer
+async def get_localizers(request: Request) -> Localizers:
+    """The localizers of the feature configurations served: the server's and those of
+    ``SLLOC_EVALUATION_FEATURES``."""
+    localizers: Localizers = request.app.state.localizers
+    return localizers
 
 
 async def get_reference_cache(request: Request) -> ReferenceFeatureCache:
@@ -70,7 +71,7 @@ async def get_localize_context(request: Request) -> LocalizeContext:
     engine: EngineConfig = state.engine_config
     return LocalizeContext(
         sessions=state.sessions,
-        localizer=state.localizer,
+        localizers=state.localizers,
         max_top_k=settings.max_top_k,
         max_time_budget_s=settings.localize_time_budget_s,
         cache=state.retrieval_cache,
@@ -110,7 +111,7 @@ async def get_metrics(request: Request) -> ServiceMetrics:
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 EngineConfigDep = Annotated[EngineConfig, Depends(get_engine_config)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
-LocalizerDep = Annotated[Localizer, Depends(get_localizer)]
+LocalizersDep = Annotated[Localizers, Depends(get_localizers)]
 ReferenceCacheDep = Annotated[ReferenceFeatureCache, Depends(get_reference_cache)]
 AdmissionDep = Annotated[Admission, Depends(get_admission)]
 TrainerDep = Annotated[BackgroundTrainer, Depends(get_vocabulary_trainer)]

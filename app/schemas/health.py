@@ -10,6 +10,11 @@ class ModelsOut(BaseModel):
     matcher: str
     global_descriptor: str
     estimators: list[EstimatorName]
+    feature_configurations: list[str] = Field(
+        description="The feature configurations maps may be served with: the server's "
+        "(SLLOC_FEATURES) first, then those of SLLOC_EVALUATION_FEATURES whose models are "
+        "built"
+    )
 
 
 class RuntimeOut(BaseModel):

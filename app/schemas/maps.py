@@ -30,23 +30,42 @@ class FeatureProgressOut(BaseModel):
     total: int = Field(description="References that have their original to be described from")
 
 
+class PendingFeaturesOut(FeatureOptions):
+    preset: str = Field(description="The feature configuration they are described with")
+
+
 class MapFeaturesOut(FeatureOptions):
-    """The options the map serves with, the server's feature configuration and, while the
-    references are described anew, the options they are described for and how far."""
+    """The feature configuration and options the map serves with, whether it follows its
+    self-evaluation and, while the references are described anew, what they are described
+    for and how far."""
 
     preset: str = Field(
-        description="The server's feature configuration (SLLOC_FEATURES), whose extractor "
-        "describes the map's queries and references"
+        description="The feature configuration whose extractor describes the map's queries "
+        "and references: the server's (SLLOC_FEATURES) until the map chooses another"
     )
-    state: Literal["ready", "re-extracting"] = Field(
-        description="re-extracting: the references are being described anew from their "
-        "originals for `pending`; the map answers with its current descriptions until every "
-        "one is, then switches at once"
+    auto: bool = Field(
+        description="The map takes the configuration its self-evaluation recommends, "
+        "evaluated on its own as it grows (docs: self-evaluation)"
     )
-    pending: FeatureOptions | None = Field(
-        None, description="The options the references are being described for"
+    state: Literal["ready", "evaluating", "re-extracting"] = Field(
+        description="evaluating: a self-evaluation of the map is queued or running; "
+        "re-extracting: the references are being described anew from their originals for "
+        "`pending`; the map answers with its current descriptions until every one is, then "
+        "switches at once"
+    )
+    pending: PendingFeaturesOut | None = Field(
+        None, description="What the references are being described for"
     )
     progress: FeatureProgressOut | None = None
+
+
+class FeatureCreate(FeatureOptions):
+    preset: str = Field(
+        "auto",
+        description="The feature configuration: `auto` (the server's, SLLOC_FEATURES, until "
+        "the map's self-evaluation recommends one of those the server serves) or one of "
+        "them by name (the server's and SLLOC_EVALUATION_FEATURES'; another is refused, 422)",
+    )
 
 
 class MapCreate(BaseModel):
@@ -56,17 +75,19 @@ class MapCreate(BaseModel):
         EstimatorEnum(DEFAULT_ESTIMATOR),
         description="Estimator used when a localize request names none",
     )
-    features: FeatureOptions = Field(
-        default_factory=FeatureOptions,
-        description="Keypoint budget and image size for this map's references and queries",
+    features: FeatureCreate = Field(
+        default_factory=FeatureCreate,
+        description="Feature configuration, keypoint budget and image size for this map's "
+        "references and queries",
     )
 
 
 class FeaturePatch(FeatureOptions):
     preset: str | None = Field(
         None,
-        description="The feature configuration; a server describes every map with its own "
-        "(SLLOC_FEATURES, shown as features.preset): another one is refused (422)",
+        description="The feature configuration: `auto` (follow the map's self-evaluation), or "
+        "one the server serves by name (its own, SLLOC_FEATURES, and those of "
+        "SLLOC_EVALUATION_FEATURES; another is refused, 422); null keeps the map's",
     )
 
 
@@ -79,11 +100,11 @@ class MapPatch(BaseModel):
     )
     features: FeaturePatch | None = Field(
         None,
-        description="New keypoint budget and image size: the map's references are described "
-        "anew from their originals in the background (`features.state` re-extracting) while "
-        "the map answers with the current ones, then it switches at once; the options it "
-        "serves cancel a re-description in progress. 409 when references were added before "
-        "originals were kept",
+        description="New feature configuration, keypoint budget or image size: the map's "
+        "references are described anew from their originals in the background "
+        "(`features.state` re-extracting) while the map answers with the current ones, then "
+        "it switches at once; what it serves cancels a re-description in progress. 409 when "
+        "references were added before originals were kept",
     )
 
 
@@ -158,20 +179,30 @@ class MapOut(BaseModel):
 
     @classmethod
     def from_record(
-        cls, record: MapRecord, serving: MapServing, preset: str, progress: Progress | None
+        cls, record: MapRecord, serving: MapServing, served: str, progress: Progress | None
     ) -> MapOut:
+        """``served``: the server's feature configuration (what a map that has not chosen
+        one is served with)."""
         pending = (
-            FeatureOptions(
-                max_keypoints=record.pending_max_keypoints, max_side=record.pending_max_side
+            PendingFeaturesOut(
+                preset=record.pending_preset or served,
+                max_keypoints=record.pending_max_keypoints,
+                max_side=record.pending_max_side,
             )
             if record.reextracting
             else None
         )
+        state: Literal["ready", "evaluating", "re-extracting"] = "ready"
+        if record.reextracting:
+            state = "re-extracting"
+        elif record.evaluating:
+            state = "evaluating"
         features = MapFeaturesOut(
             max_keypoints=record.max_keypoints,
             max_side=record.max_side,
-            preset=preset,
-            state="re-extracting" if record.reextracting else "ready",
+            preset=record.feature_preset or served,
+            auto=record.features_auto,
+            state=state,
             pending=pending,
             progress=None
             if progress is None

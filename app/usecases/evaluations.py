@@ -3,8 +3,8 @@ rest of the map, for each feature configuration asked for; what it measures is s
 the configuration it recommends (``services/self_evaluation``).
 
 Evaluations run one at a time on a background thread at the lowest CPU priority; an evaluation
-a restart interrupted runs again from its start. A configuration other than the server's loads
-its models for the evaluation's duration.
+a restart interrupted runs again from its start. Each configuration is measured with the
+server's localizer for it (``services.components.Localizers``), loaded on first use and kept.
 """
 
 from __future__ import annotations
@@ -17,20 +17,22 @@ from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.usecases.auto_features import AutoEvaluation
 from app.usecases.errors import ConflictError, NotFoundError
 from app.usecases.maps import require_map
 from db.blobs import BlobStore
-from db.models import MapEvaluation
+from db.models import Map, MapEvaluation
 from db.repositories.evaluations import EvaluationRepository
+from db.repositories.maps import lock_map_row
 from db.store import camera_of, pose_of, unusable
-from services.components import EngineConfig, build_localizer, missing_models
+from services.components import Localizers
 from services.errors import InvalidInputError
 from services.estimators.registry import get_estimator
 from services.features.configs import get_feature_config
-from services.localization.localizer import Localizer
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.memory import EVALUATION_DESCRIBED
 from services.self_evaluation.run import (
@@ -80,23 +82,16 @@ class EvaluationRequest:
         )
 
 
-def evaluable(engine: EngineConfig, allowed: tuple[str, ...]) -> list[str]:
-    """The configurations an evaluation measures by default: the server's, then those of
-    ``allowed`` (``SLLOC_EVALUATION_FEATURES``) whose models are built."""
-    unique = list(dict.fromkeys([engine.features, *allowed]))
-    return [n for n in unique if n == engine.features or not missing_models(engine.models_dir, n)]
-
-
 def start_evaluation(
     sessions: sessionmaker[Session],
-    engine: EngineConfig,
+    localizers: Localizers,
     map_id: str,
     request: EvaluationRequest,
-    allowed: tuple[str, ...],
     evaluator: Evaluator | None,
 ) -> MapEvaluation:
-    """Stores a queued evaluation of the map and schedules it; ``allowed``: the
-    configurations besides the server's it may measure (``SLLOC_EVALUATION_FEATURES``).
+    """Stores a queued evaluation of the map and schedules it. It may measure the
+    configurations the server serves (``localizers.choices``: its own and those of
+    ``SLLOC_EVALUATION_FEATURES`` whose models are built), by default every one.
 
     Raises:
         NotFoundError: unknown map.
@@ -105,32 +100,35 @@ def start_evaluation(
         ConflictError: the map is being evaluated, or has fewer than two references with
             their originals.
     """
-    configurations = list(request.configurations or evaluable(engine, allowed))
+    configurations = list(request.configurations or localizers.choices)
     for name in configurations:
         get_feature_config(name)  # unknown: 422
-        if name != engine.features and name not in allowed:
-            raise InvalidInputError(
-                f"configurations: {name} is not measured on this server: it measures its own "
-                f"({engine.features}) and those of SLLOC_EVALUATION_FEATURES "
-                f"({', '.join(allowed) or 'none'})"
-            )
-        problem = name != engine.features and missing_models(engine.models_dir, name)
+        problem = localizers.unavailable.get(name)
         if problem:
             raise InvalidInputError(f"configurations: {name} cannot run on this server: {problem}")
+        if name not in localizers.choices:
+            raise InvalidInputError(
+                f"configurations: {name} is not measured on this server: it measures "
+                f"{', '.join(localizers.choices)} (SLLOC_FEATURES and "
+                "SLLOC_EVALUATION_FEATURES)"
+            )
     if request.estimator is not None:
         get_estimator(request.estimator)
     with sessions.begin() as session:
-        require_map(session, map_id)
+        map_row = require_map(session, map_id)
+        lock_map_row(session, map_id)  # one of two concurrent starts sees the other's
         repository = EvaluationRepository(session)
         running = repository.active(map_id)
         if running is not None:
             raise ConflictError(f"the map is being evaluated already: evaluation {running.id}")
-        if len(repository.references(map_id)) < 2:
+        if repository.reference_count(map_id) < 2:
             raise ConflictError(
                 "a self-evaluation needs at least two references with their originals"
             )
         stored = asdict(replace(request, configurations=tuple(configurations)))
-        row = repository.create(map_id, {**stored, "configurations": configurations})
+        # the map's revision, to tell when it has changed enough to be evaluated again
+        stored |= {"configurations": configurations, "revision": map_row.revision}
+        row = repository.create(map_id, stored)
         session.expunge(row)
     if evaluator is not None:
         evaluator.schedule(row.id)
@@ -199,17 +197,19 @@ class Evaluator:
     def __init__(
         self,
         sessions: sessionmaker[Session],
-        localizer: Localizer,
-        engine: EngineConfig,
+        localizers: Localizers,
         blobs: BlobStore,
         slots: AbstractContextManager[object] | None = None,
+        auto: AutoEvaluation | None = None,
     ) -> None:
         """``slots``: held around each description and held-out query (the localize
-        workers' semaphore: an evaluation computes in a worker's place, within its memory)."""
+        workers' semaphore: an evaluation computes in a worker's place, within its memory);
+        ``auto``: when maps with ``features: auto`` are evaluated on their own and what
+        follows a finished evaluation (None: only evaluations asked for run)."""
         self.sessions = sessions
         self.slots = slots if slots is not None else nullcontext()
-        self.localizer = localizer
-        self.engine = engine
+        self.localizers = localizers
+        self.auto = auto
         self.blobs = blobs
         self.worker = BackgroundTrainer("self-evaluation")
         self.finished: dict[str, int] = {}  # evaluations ended since start-up, by state
@@ -220,18 +220,23 @@ class Evaluator:
         self._stopping = threading.Event()
 
     def resume(self) -> None:
-        """Schedules the evaluations a restart interrupted (read in the background)."""
+        """Schedules the evaluations a restart interrupted, and those of maps found due (read
+        in the background)."""
         self.worker.schedule("resume", self._resume)
 
     def _resume(self) -> None:
         try:
             with self.sessions() as session:
                 unfinished = EvaluationRepository(session).unfinished()
+                following = list(session.scalars(select(Map.id).where(Map.features_auto)))
         except SQLAlchemyError as exc:
             logger.warning("self-evaluations not resumed, the database is unreachable: %s", exc)
             return
         for evaluation_id in unfinished:
             self.schedule(evaluation_id)
+        # maps that grew while the server was down (``slloc import`` writes the database)
+        for map_id in following:
+            self.evaluate_if_due(map_id)
 
     def schedule(self, evaluation_id: str) -> None:
         self.worker.schedule(evaluation_id, lambda: self.run(evaluation_id))
@@ -255,6 +260,7 @@ class Evaluator:
                 return
             map_row = require_map(session, row.map_id)
             map_id, map_name = map_row.id, map_row.name
+            preset = map_row.feature_preset or self.localizers.features
             options = (map_row.max_keypoints, map_row.max_side)
             request = EvaluationRequest.stored(dict(row.request))
             estimator = get_estimator(request.estimator or map_row.default_estimator)
@@ -297,7 +303,10 @@ class Evaluator:
         originals = _BlobOriginals(self.blobs, keys)
         results: dict[str, dict[str, Any]] = {}
         for position, name in enumerate(configurations):
-            localizer = self._localizer(name, options)
+            # the map's configuration at its options, the others at their defaults
+            localizer = self.localizers.for_map(
+                *(options if name == preset else (None, None)), name
+            )
             start = time.perf_counter()
             offset = position * len(sample)
             answers = evaluate(
@@ -316,25 +325,41 @@ class Evaluator:
                 "duration_s": round(time.perf_counter() - start, 3),
                 "references": [a.as_dict() for a in answers],
             }
+        recommended = recommend(results, preset)
         result = {
             "configurations": results,
-            "recommended": recommend(results),
-            "served": self.engine.features,
+            "recommended": recommended,
+            "served": preset,
             "references": len(references),
         }
+        # the map that follows it moves on before the evaluation reads done: its state goes
+        # from evaluating to re-extracting, never ready in between
+        if self.auto is not None and not self._stopped(evaluation_id):
+            self.auto.finished(map_id, recommended)
         if self._end(evaluation_id, "done", result=result):
             with self._lock:
                 self.latest.pop(map_id, None)  # newest last
                 self.latest[map_id] = (map_name, results)
                 while len(self.latest) > LATEST_KEPT:
                     del self.latest[next(iter(self.latest))]
+            self.evaluate_if_due(map_id)  # the map may have grown while it was evaluated
 
-    def _localizer(self, name: str, options: tuple[int | None, int | None]) -> Localizer:
-        """The server's localizer at the map's options for its own configuration; another
-        configuration's, loaded for this evaluation, at its defaults."""
-        if name == self.engine.features:
-            return self.localizer.for_map(*options)
-        return build_localizer(replace(self.engine, features=name, wide_threads=None))
+    def evaluate_if_due(self, map_id: str) -> None:
+        """Queues an evaluation of the map when ``auto`` finds one due (the map takes its
+        configuration from it and has changed enough since the last): a few reads, then the
+        evaluation runs in the background."""
+        if self.auto is None:
+            return
+        try:
+            with self.sessions() as session:
+                map_row = session.get(Map, map_id)
+                if map_row is None or not self.auto.wanted(session, map_row):
+                    return
+            start_evaluation(self.sessions, self.localizers, map_id, EvaluationRequest(), self)
+        except (NotFoundError, ConflictError, InvalidInputError, SQLAlchemyError) as exc:
+            logger.info("map %s: no automatic self-evaluation: %s", map_id, exc)
+            return
+        logger.info("map %s: self-evaluation started (features auto, the map changed)", map_id)
 
     def _stopped(self, evaluation_id: str) -> bool:
         if self._stopping.is_set():

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import MissingBlobError, NameTakenError, NotFoundError
 from app.usecases.maps import require_map
+from app.usecases.served_features import map_localizer
 from db.blobs import BlobStore
 from db.models import ReferenceImage
 from db.originals import StoredOriginals, read_original, remove_blobs, write_originals
@@ -20,6 +21,7 @@ from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
 from db.store import camera_of, gps_of, pose_of
 from db.vocabulary import SqlVocabularyStore
+from services.components import Localizers
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
@@ -72,7 +74,7 @@ class Original:
 
 def add_reference_image(
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     map_id: str,
     image: NewImage,
     image_bytes: bytes,
@@ -95,6 +97,7 @@ def add_reference_image(
         NotFoundError: unknown map.
         NameTakenError: the map has an image of that name (also when another add stored it
             while this one was describing the image).
+        FeaturesUnavailableError: the map's feature configuration is not served here.
         ImageTooLargeError: the image's header claims more than the localizer's pixel limit.
         InvalidInputError: the image, depth or camera is unusable.
         BlobStoreError: the blob store cannot be reached or refuses the write (nothing
@@ -103,14 +106,14 @@ def add_reference_image(
     taken = f"map already has an image named {image.name!r}"
     # before anything reads the image (EXIF included): a header claiming too many pixels is
     # 413, as on localize
-    check_pixel_limit(image_bytes, localizer.max_pixels)
+    check_pixel_limit(image_bytes, localizers.served.max_pixels)
     if image.gps is None:
         image = replace(image, gps=gps_from_exif(image_bytes))
     with sessions() as session:
         map_row = require_map(session, map_id)
         if ImageRepository(session).name_exists(map_id, image.name):
             raise NameTakenError(taken)
-        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+        localizer = map_localizer(localizers, map_row)
     with slots:
         data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
         preview = (

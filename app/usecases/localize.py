@@ -10,9 +10,10 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.maps import require_map
-from app.usecases.served_features import check_servable
+from app.usecases.served_features import check_servable, map_localizer
 from db.store import SqlReferenceStore
 from db.vocabulary import SqlVocabularyStore
+from services.components import Localizers
 from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
@@ -102,7 +103,8 @@ class LocalizeContext:
 
     Attributes:
         sessions: the database.
-        localizer: the engine (set up for each map by ``for_map``).
+        localizers: the engine, one localizer per feature configuration served (set up for
+            each map by ``for_map``).
         max_top_k: the largest ``top_k`` a request may ask for.
         max_time_budget_s: the time budget, and the largest a request may ask for (None:
             unbounded).
@@ -118,7 +120,7 @@ class LocalizeContext:
     """
 
     sessions: sessionmaker[Session]
-    localizer: Localizer
+    localizers: Localizers
     max_top_k: int
     max_time_budget_s: float | None = None
     cache: RetrievalIndexCache | None = None
@@ -133,9 +135,9 @@ class LocalizeContext:
     def map_engine(
         self, map_id: str, request: LocalizeRequest
     ) -> tuple[Localizer, LocalizeParams, SqlReferenceStore]:
-        """The localizer set up for the map's feature options, the engine's parameters for
-        ``request`` (the estimator resolved: the map's where it names none) and the map's
-        references.
+        """The localizer of the map's feature configuration set up for its options, the
+        engine's parameters for ``request`` (the estimator resolved: the map's where it names
+        none) and the map's references.
 
         Raises:
             NotFoundError: unknown map.
@@ -150,11 +152,12 @@ class LocalizeContext:
                 map_id,
                 map_row.max_keypoints,
                 map_row.max_side,
-                self.localizer,
+                self.localizers,
                 self.models_dir,
                 self.features,
+                map_row.feature_preset,
             )
-            localizer = self.localizer.for_map(map_row.max_keypoints, map_row.max_side)
+            localizer = map_localizer(self.localizers, map_row)
             params = engine_params(
                 request,
                 map_row.default_estimator,

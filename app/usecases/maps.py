@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from datetime import datetime
+from typing import NamedTuple
 
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
@@ -12,12 +13,24 @@ from app.usecases.errors import NameTakenError, NotFoundError
 from db.blobs import BlobStore
 from db.models import Map
 from db.originals import remove_blobs
+from db.repositories.evaluations import EvaluationRepository
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
+from services.components import Localizers
 from services.errors import InvalidInputError
 from services.estimators.registry import DEFAULT_ESTIMATOR
-from services.localization.localizer import Localizer
+from services.features.configs import AUTO
 from services.references.cache import ReferenceFeatureCache
+
+
+class FeatureChoice(NamedTuple):
+    """A map's feature configuration (None: the server's, ``SLLOC_FEATURES``; ``auto`` when
+    creating: the one its self-evaluation recommends) and options (None: the
+    configuration's)."""
+
+    preset: str | None
+    max_keypoints: int | None
+    max_side: int | None
 
 
 @dataclass(frozen=True)
@@ -40,6 +53,12 @@ class MapRecord:
     reextracting: bool = False
     pending_max_keypoints: int | None = None
     pending_max_side: int | None = None
+    # its feature configuration (None: the server's) and the one pending
+    feature_preset: str | None = None
+    pending_preset: str | None = None
+    # it takes the configuration its self-evaluation recommends; one is queued or running
+    features_auto: bool = False
+    evaluating: bool = False
 
 
 def require_map(session: Session, map_id: str) -> Map:
@@ -76,31 +95,41 @@ class FeatureLimits:
 
 def create_map(
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     name: str,
     description: str | None,
     default_estimator: str,
-    max_keypoints: int | None,
-    max_side: int | None,
+    options: FeatureChoice,
     limits: FeatureLimits | None = None,
 ) -> MapRecord:
-    """Create an empty map.
+    """Create an empty map; ``options.preset`` ``auto`` (``AUTO``): served with the
+    server's configuration until its self-evaluation recommends one.
 
     Raises:
-        InvalidInputError: the feature options exceed ``limits``, or the localizer's
-            extractor cannot honour them.
+        InvalidInputError: the feature options exceed ``limits``, a configuration this
+            server does not serve, or its extractor cannot honour the options.
         NameTakenError: the name is taken.
     """
+    preset, max_keypoints, max_side = options
+    auto = preset == AUTO
     if limits is not None:
         limits.check(max_keypoints, max_side)
-    localizer.for_map(max_keypoints, max_side)
+    localizers.for_map(max_keypoints, max_side, None if auto else preset)
     taken = f"a map named {name!r} exists"
     try:
         with sessions.begin() as session:
             repo = MapRepository(session)
             if repo.get_by_name(name) is not None:
                 raise NameTakenError(taken)
-            row = repo.create(name, description, default_estimator, max_keypoints, max_side)
+            row = repo.create(
+                name,
+                description,
+                default_estimator,
+                max_keypoints,
+                max_side,
+                None if auto else preset,
+                auto,
+            )
             return _record(row, 0)
     except IntegrityError as exc:
         raise NameTakenError(taken) from exc
@@ -185,14 +214,18 @@ def update_map(
     description: str | None,
     default_estimator: str | None,
     fields: set[str],
+    features_auto: bool | None = None,
 ) -> None:
-    """Sets the map's ``description`` and ``default_estimator`` where named in ``fields``.
+    """Sets the map's ``description`` and ``default_estimator`` where named in ``fields``,
+    and whether it follows its self-evaluation (None: as it was).
 
     Raises:
         NotFoundError: no such map.
     """
     with sessions.begin() as session:
         row = require_map(session, map_id)
+        if features_auto is not None:
+            row.features_auto = features_auto
         if "description" in fields:
             row.description = description
         if "default_estimator" in fields and default_estimator is not None:
@@ -202,6 +235,7 @@ def update_map(
 def _records(repo: MapRepository, rows: list[Map]) -> list[MapRecord]:
     ids = [row.id for row in rows]
     counts = repo.image_counts(ids)
+    evaluating = EvaluationRepository(repo.session).evaluating(ids)
     without = repo.without_original_counts(ids)
     described = repo.described_by(ids)
     return [
@@ -209,6 +243,7 @@ def _records(repo: MapRepository, rows: list[Map]) -> list[MapRecord]:
             _record(row, counts.get(row.id, 0)),
             without_original=without.get(row.id, 0),
             described_by=tuple(described.get(row.id, ())),
+            evaluating=row.id in evaluating,
         )
         for row in rows
     ]
@@ -227,4 +262,7 @@ def _record(row: Map, image_count: int) -> MapRecord:
         reextracting=row.reextracting,
         pending_max_keypoints=row.pending_max_keypoints,
         pending_max_side=row.pending_max_side,
+        feature_preset=row.feature_preset,
+        pending_preset=row.pending_preset,
+        features_auto=row.features_auto,
     )

@@ -1,6 +1,7 @@
-"""A map's feature options changed: its references are described anew from their originals
-in the background while the map keeps answering with its current descriptions, and the map
-switches to the new ones at once when every reference that has its original is described.
+"""A map's feature configuration or options changed: its references are described anew from
+their originals in the background while the map keeps answering with its current descriptions,
+and the map switches to the new ones at once when every reference that has its original is
+described.
 
 The work runs on one background thread at the lowest CPU priority (``BackgroundTrainer``),
 in batches that each commit, so that a restart loses at most the batch in progress: at
@@ -19,12 +20,13 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import ConflictError
-from app.usecases.maps import MapRecord, require_map
+from app.usecases.maps import FeatureChoice, MapRecord, require_map
 from db.blobs import BlobStore, BlobStoreError
 from db.originals import read_original
 from db.repositories.maps import MapRepository
 from db.repositories.reextraction import Progress, ReextractionRepository
 from db.store import camera_of
+from services.components import Localizers
 from services.errors import InvalidInputError
 from services.geometry.camera import Camera
 from services.localization.localizer import Localizer
@@ -38,43 +40,54 @@ BATCH = 8
 
 
 def reextraction_progress(
-    sessions: sessionmaker[Session], localizer: Localizer, record: MapRecord
+    sessions: sessionmaker[Session], localizers: Localizers, record: MapRecord
 ) -> Progress | None:
-    """How far the map's re-description has come (None: none in progress)."""
+    """How far the map's re-description has come (None: none in progress, or for a
+    configuration this server does not serve)."""
     if not record.reextracting:
         return None
-    target = _target_model(localizer, record.pending_max_keypoints, record.pending_max_side)
+    try:
+        target = _target_model(
+            localizers,
+            record.pending_preset,
+            record.pending_max_keypoints,
+            record.pending_max_side,
+        )
+    except InvalidInputError:
+        return None
     with sessions() as session:
         return ReextractionRepository(session).progress(record.id, target)
 
 
 def change_feature_options(
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     map_id: str,
-    max_keypoints: int | None,
-    max_side: int | None,
+    options: FeatureChoice,
     reextractor: Reextractor | None,
 ) -> None:
-    """Gives the map these feature options: at once when its references are described for
-    them already (none, or the server's extractor at these options); else they are
-    described anew from their originals in the background (``reextractor``) and the map
-    switches when they are. Asking for the options the map serves cancels a re-description
-    in progress; on a map whose references another extractor described (the server's
-    ``SLLOC_FEATURES`` changed), it describes them with the server's.
+    """Gives the map this feature configuration and options: at once when its references
+    are described for them already (none, or that configuration's extractor at these
+    options); else they are described anew from their originals in the background
+    (``reextractor``) and the map switches when they are. Asking for what the map serves
+    cancels a re-description in progress; on a map whose references another extractor
+    described (the server's ``SLLOC_FEATURES`` changed), it describes them anew.
 
     Raises:
         NotFoundError: unknown map.
-        InvalidInputError: the extractor cannot honour the options.
+        InvalidInputError: a configuration not served here, or its extractor cannot honour
+            the options.
         ConflictError: some references have no original to be described again from.
     """
-    target = _target_model(localizer, max_keypoints, max_side)
+    preset, max_keypoints, max_side = options
+    target = _target_model(localizers, preset, max_keypoints, max_side)
     with sessions.begin() as session:
         row = require_map(session, map_id)
         repository = ReextractionRepository(session)
         progress = repository.progress(map_id, target)
         without_original = repository.without_original(map_id, target)
-        if (row.max_keypoints, row.max_side) == (max_keypoints, max_side) and not (
+        serving = (row.feature_preset or localizers.features, row.max_keypoints, row.max_side)
+        if serving == (preset or localizers.features, max_keypoints, max_side) and not (
             progress.total or without_original
         ):
             if row.reextracting:
@@ -88,13 +101,14 @@ def change_feature_options(
                 "before changing the map's feature options"
             )
         if not progress.total:  # every reference is described for these options already
-            row.max_keypoints, row.max_side = max_keypoints, max_side
+            row.feature_preset, row.max_keypoints, row.max_side = options
             repository.cancel(map_id)
             return
-        repository.start(map_id, max_keypoints, max_side)
+        repository.start(map_id, *options)
     logger.info(
-        "map %s: re-describing its references with max_keypoints %s, max_side %s (%s)",
+        "map %s: re-describing its references with %s, max_keypoints %s, max_side %s (%s)",
         map_id,
+        preset or localizers.features,
         max_keypoints,
         max_side,
         target,
@@ -109,7 +123,7 @@ class Reextractor:
     def __init__(
         self,
         sessions: sessionmaker[Session],
-        localizer: Localizer,
+        localizers: Localizers,
         blobs: BlobStore,
         features_cache: ReferenceFeatureCache | None = None,
         on_switch: Callable[[str, Localizer], None] | None = None,
@@ -121,7 +135,7 @@ class Reextractor:
         computes in a worker's place, within its memory)."""
         self.slots = slots if slots is not None else nullcontext()
         self.sessions = sessions
-        self.localizer = localizer
+        self.localizers = localizers
         self.blobs = blobs
         self.features_cache = features_cache
         self.on_switch = on_switch
@@ -159,8 +173,16 @@ class Reextractor:
                 row = MapRepository(session).get(map_id)
                 if row is None or not row.reextracting:
                     return
-                options = (row.pending_max_keypoints, row.pending_max_side)
-                localizer = self.localizer.for_map(*options)
+                options = FeatureChoice(
+                    row.pending_preset, row.pending_max_keypoints, row.pending_max_side
+                )
+                try:
+                    localizer = self.localizers.for_map(
+                        options.max_keypoints, options.max_side, options.preset
+                    )
+                except InvalidInputError as exc:  # e.g. a configuration no longer served
+                    logger.warning("map %s: references not described again: %s", map_id, exc)
+                    return
                 target = localizer.extractor.name
                 batch = [
                     (image.id, image.original_key, camera_of(image))
@@ -197,7 +219,7 @@ class Reextractor:
         self,
         map_id: str,
         localizer: Localizer,
-        options: tuple[int | None, int | None],
+        options: FeatureChoice,
         failed: set[str],
     ) -> bool:
         """Switches the map to its staged descriptions; False when its options changed
@@ -206,7 +228,8 @@ class Reextractor:
             row = MapRepository(session).get(map_id)
             if row is None or not row.reextracting:
                 return True  # deleted or cancelled meanwhile
-            if (row.pending_max_keypoints, row.pending_max_side) != options:
+            pending = (row.pending_preset, row.pending_max_keypoints, row.pending_max_side)
+            if pending != options:
                 return False
             switched = ReextractionRepository(session).switch(
                 map_id, localizer.extractor.name, localizer.global_descriptor.name
@@ -228,5 +251,7 @@ class Reextractor:
         self.worker.shutdown()
 
 
-def _target_model(localizer: Localizer, max_keypoints: int | None, max_side: int | None) -> str:
-    return localizer.for_map(max_keypoints, max_side).extractor.name
+def _target_model(
+    localizers: Localizers, preset: str | None, max_keypoints: int | None, max_side: int | None
+) -> str:
+    return localizers.for_map(max_keypoints, max_side, preset).extractor.name

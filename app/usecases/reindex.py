@@ -9,8 +9,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import ConflictError
 from app.usecases.maps import require_map
+from app.usecases.served_features import map_localizer
 from db.vocabulary import SqlVocabularyStore
-from services.localization.localizer import Localizer
+from services.components import Localizers
 from services.retrieval.contracts import VocabularyError
 from services.retrieval.vlad_index import VladIndexer
 
@@ -39,7 +40,7 @@ class Reindexed:
 
 
 def reindex_map(
-    sessions: sessionmaker[Session], localizer: Localizer, map_id: str, vlad: bool
+    sessions: sessionmaker[Session], localizers: Localizers, map_id: str, vlad: bool
 ) -> Reindexed:
     """Train a new VLAD vocabulary version from the map's stored descriptors and re-encode
     every reference with it (no image is re-read).
@@ -51,7 +52,7 @@ def reindex_map(
     """
     with sessions() as session:
         map_row = require_map(session, map_id)
-        localizer = localizer.for_map(map_row.max_keypoints, map_row.max_side)
+        localizer = map_localizer(localizers, map_row)
     if not vlad:
         raise ConflictError(
             "retrieval uses the ONNX global-descriptor model (SLLOC_GLOBAL_MODEL); "

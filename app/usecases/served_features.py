@@ -20,8 +20,10 @@ from sqlalchemy.orm import Session
 from app.usecases.errors import ConflictError
 from db.models import Map, ReferenceImage
 from db.repositories.maps import MapRepository
+from services.components import Localizers, PresetUnavailableError
 from services.errors import InvalidInputError
 from services.features.configs import FEATURE_CONFIGS, described_by
+from services.localization.localizer import Localizer
 from services.runtime.manifest import read_manifest
 
 
@@ -30,17 +32,21 @@ class _Named(Protocol):
     def name(self) -> str: ...
 
 
-class MapLocalizer(Protocol):
-    """What is read of the localizer: its extractor's and global descriptor's names once set
-    up for a map."""
-
+class _Described(Protocol):
     @property
     def extractor(self) -> _Named: ...
 
     @property
     def global_descriptor(self) -> _Named: ...
 
-    def for_map(self, max_keypoints: int | None, max_side: int | None) -> MapLocalizer: ...
+
+class MapLocalizer(Protocol):
+    """What is read of the server's localizers (``services.components.Localizers``): the
+    names of the extractor and global descriptor a map's configuration and options give."""
+
+    def for_map(
+        self, max_keypoints: int | None, max_side: int | None, preset: str | None = None
+    ) -> _Described: ...
 
 
 class FeaturesUnavailableError(ConflictError):
@@ -96,14 +102,26 @@ def map_serving(
     localizer: MapLocalizer,
     models_dir: Path,
     features: str = "",
+    preset: str | None = None,
 ) -> MapServing:
     """How this server (``localizer``, its models in ``models_dir``, configuration
-    ``features``) serves a map with these feature options whose references are ``groups``
-    of ``(feature model, descriptor model, image count)``."""
+    ``features``) serves a map of configuration ``preset`` (None: the server's) with these
+    feature options whose references are ``groups`` of ``(feature model, descriptor model,
+    image count)``."""
     try:
-        serving = localizer.for_map(max_keypoints, max_side)
+        serving = localizer.for_map(max_keypoints, max_side, preset)
         feature_model = serving.extractor.name
         descriptor_model = serving.global_descriptor.name
+    except PresetUnavailableError as exc:  # the map's configuration is not served here
+        described = tuple(DescribedBy(f, d, n, False) for f, d, n in groups)
+        return MapServing(
+            "",
+            "",
+            described,
+            not described,
+            configurations=(str(preset),),
+            detail=f"map {map_id}: {exc}; until then no localize can be answered on this map",
+        )
     except InvalidInputError:  # options the server's extractor cannot honour
         feature_model = descriptor_model = ""
     described = tuple(
@@ -171,16 +189,20 @@ def check_servable(
     localizer: MapLocalizer,
     models_dir: Path,
     features: str = "",
+    preset: str | None = None,
 ) -> None:
     """Check that this server (``localizer``, not yet set up for the map) can localize
-    against the map. Cheap on a served map: one query for a reference described as this
-    server describes the map's queries.
+    against the map of configuration ``preset``. Cheap on a served map: one query for a
+    reference described as this server describes the map's queries.
 
     Raises:
-        FeaturesUnavailableError: the map has references, none of them described so.
+        FeaturesUnavailableError: the map's configuration is not served here, or the map has
+            references, none of them described so.
     """
     try:
-        serving = localizer.for_map(max_keypoints, max_side)
+        serving = localizer.for_map(max_keypoints, max_side, preset)
+    except PresetUnavailableError as exc:
+        raise FeaturesUnavailableError(f"map {map_id}: {exc}") from None
     except InvalidInputError:
         return  # the localize itself reports the map's options
     feature_model = serving.extractor.name
@@ -200,9 +222,24 @@ def check_servable(
     if session.scalar(select(ReferenceImage.id).where(on_map).limit(1)) is None:
         return  # an empty map: answered no_references
     groups = MapRepository(session).described_by([map_id]).get(map_id, [])
-    verdict = map_serving(map_id, max_keypoints, max_side, groups, localizer, models_dir, features)
+    verdict = map_serving(
+        map_id, max_keypoints, max_side, groups, localizer, models_dir, features, preset
+    )
     if not verdict.servable:
         raise FeaturesUnavailableError(verdict.detail)
+
+
+def map_localizer(localizers: Localizers, map_row: Map) -> Localizer:
+    """The localizer of the map's feature configuration, set up for its options.
+
+    Raises:
+        FeaturesUnavailableError: the map's configuration is not served here.
+        InvalidInputError: its extractor cannot honour the map's options.
+    """
+    try:
+        return localizers.for_map(map_row.max_keypoints, map_row.max_side, map_row.feature_preset)
+    except PresetUnavailableError as exc:
+        raise FeaturesUnavailableError(f"map {map_row.id}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -231,7 +268,7 @@ def unservable_maps(
     options = {
         row.id: row
         for row in session.execute(
-            select(Map.id, Map.name, Map.max_keypoints, Map.max_side).where(
+            select(Map.id, Map.name, Map.max_keypoints, Map.max_side, Map.feature_preset).where(
                 Map.id.in_(list(groups))
             )
         )
@@ -242,7 +279,14 @@ def unservable_maps(
         if row is None:  # deleted between the two reads
             continue
         serving = map_serving(
-            map_id, row.max_keypoints, row.max_side, described, localizer, models_dir, features
+            map_id,
+            row.max_keypoints,
+            row.max_side,
+            described,
+            localizer,
+            models_dir,
+            features,
+            row.feature_preset,
         )
         if not serving.servable:
             count = sum(n for _, _, n in described)

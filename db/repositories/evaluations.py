@@ -41,6 +41,18 @@ class EvaluationRepository:
         )
         return list(rows), int(total or 0)
 
+    def evaluating(self, map_ids: list[str]) -> set[str]:
+        """Those of the maps with an evaluation queued or running."""
+        if not map_ids:
+            return set()
+        return set(
+            self.session.scalars(
+                select(MapEvaluation.map_id).where(
+                    MapEvaluation.map_id.in_(map_ids), MapEvaluation.state.in_(ACTIVE)
+                )
+            )
+        )
+
     def active(self, map_id: str) -> MapEvaluation | None:
         """The map's evaluation still queued or running, if any."""
         return self.session.scalar(
@@ -75,6 +87,26 @@ class EvaluationRepository:
                 .where(ReferenceImage.map_id == map_id, ReferenceImage.original_key.is_not(None))
                 .order_by(ReferenceImage.name)
             )
+        )
+
+    def reference_count(self, map_id: str) -> int:
+        """How many of the map's references have their original."""
+        return int(
+            self.session.scalar(
+                select(func.count()).where(
+                    ReferenceImage.map_id == map_id, ReferenceImage.original_key.is_not(None)
+                )
+            )
+            or 0
+        )
+
+    def latest(self, map_id: str) -> MapEvaluation | None:
+        """The map's most recent evaluation, whatever its state."""
+        return self.session.scalar(
+            select(MapEvaluation)
+            .where(MapEvaluation.map_id == map_id)
+            .order_by(MapEvaluation.created_at.desc(), MapEvaluation.id)
+            .limit(1)
         )
 
     def set_state(self, evaluation_id: str, state: str, **values: object) -> bool:

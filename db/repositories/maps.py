@@ -26,14 +26,20 @@ class MapRepository:
         default_estimator: str | None = None,
         max_keypoints: int | None = None,
         max_side: int | None = None,
+        feature_preset: str | None = None,
+        features_auto: bool = True,
     ) -> Map:
-        """A new map, flushed; ``default_estimator`` None takes the column's default."""
+        """A new map, flushed; ``default_estimator`` None takes the column's default;
+        ``feature_preset`` None serves it with the server's configuration until
+        (``features_auto``) its self-evaluation recommends one."""
         row = Map(
             name=name,
             description=description,
             default_estimator=default_estimator,
             max_keypoints=max_keypoints,
             max_side=max_side,
+            feature_preset=feature_preset,
+            features_auto=features_auto,
         )
         self.session.add(row)
         self.session.flush()

@@ -41,15 +41,21 @@ class ReextractionRepository:
             )
         )
 
-    def start(self, map_id: str, max_keypoints: int | None, max_side: int | None) -> None:
-        """Sets the map's pending options (flushed, not committed); descriptions staged for
-        other options are described again, those staged for these are kept."""
+    def start(
+        self, map_id: str, preset: str | None, max_keypoints: int | None, max_side: int | None
+    ) -> None:
+        """Sets the map's pending configuration and options (flushed, not committed);
+        descriptions staged for others are described again, those staged for these are
+        kept."""
         lock_map_row(self.session, map_id)
         self.session.execute(
             update(Map)
             .where(Map.id == map_id)
             .values(
-                reextracting=True, pending_max_keypoints=max_keypoints, pending_max_side=max_side
+                reextracting=True,
+                pending_preset=preset,
+                pending_max_keypoints=max_keypoints,
+                pending_max_side=max_side,
             )
         )
 
@@ -59,7 +65,12 @@ class ReextractionRepository:
         self.session.execute(
             update(Map)
             .where(Map.id == map_id)
-            .values(reextracting=False, pending_max_keypoints=None, pending_max_side=None)
+            .values(
+                reextracting=False,
+                pending_preset=None,
+                pending_max_keypoints=None,
+                pending_max_side=None,
+            )
         )
         self._drop_staged(map_id)
 
@@ -137,7 +148,8 @@ class ReextractionRepository:
     def switch(self, map_id: str, target_model: str, descriptor_model: str) -> int:
         """The map serves its staged descriptions of ``target_model`` from now on: each
         staged reference's arrays replace its current ones (its VLAD vector is dropped, a
-        new vocabulary encodes it), the pending options become the map's and its revision
+        new vocabulary encodes it), the pending configuration and options become the map's
+        and its revision
         moves. References that could not be described (no original) keep their old
         description, which the map no longer serves. Returns the references switched."""
         lock_map_row(self.session, map_id)
@@ -173,9 +185,11 @@ class ReextractionRepository:
             row.next_feature_model = None
         map_row = self.session.get(Map, map_id)
         assert map_row is not None  # locked above
+        map_row.feature_preset = map_row.pending_preset
         map_row.max_keypoints = map_row.pending_max_keypoints
         map_row.max_side = map_row.pending_max_side
         map_row.reextracting = False
+        map_row.pending_preset = None
         map_row.pending_max_keypoints = map_row.pending_max_side = None
         map_row.revision += 1
         self._drop_staged(map_id)

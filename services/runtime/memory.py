@@ -6,17 +6,18 @@ The bound is the sum of:
 
 - ``runtime``: the interpreter with the service's libraries (FastAPI, SQLAlchemy, OpenCV,
   onnxruntime, numpy, faiss) imported;
-- ``models``: the ONNX sessions of the feature configuration, in proportion to the size of
-  their files;
+- ``models``: the ONNX sessions of the feature configurations served (the server's and
+  ``SLLOC_EVALUATION_FEATURES``'), in proportion to the size of their files;
 - ``reference_cache``: the decoded reference features kept between requests
   (``SLLOC_REFERENCE_CACHE_MIB``);
 - ``extraction``: per localize worker, one feature extraction of a square image at the
-  largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``) by the served extractor: the
-  feature network's activations grow with the pixels it sees, at a rate of its own;
+  largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``, or a configuration's own
+  when larger) by the most demanding extractor served: the feature network's activations
+  grow with the pixels it sees, at a rate of its own;
 - ``decode``: per worker, one decoded image at the pixel limit (``SLLOC_MAX_IMAGE_PIXELS``;
   RGB uint8) and a depth upload of as many pixels (16-bit PNG decoded to float32);
 - ``matching``: per worker, the retrieved references' features (``SLLOC_MAX_TOP_K`` ×
-  ``SLLOC_MAX_KEYPOINTS`` of the served descriptor's size) and the matcher's buffers, which
+  ``SLLOC_MAX_KEYPOINTS`` of the largest descriptor served) and the matcher's buffers, which
   grow with the keypoint pairs LightGlue sees;
 - ``bodies``: request bodies and the uploads read from them, which the server admits only
   within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
@@ -90,9 +91,9 @@ class MemoryInputs:
     max_keypoints: int
     max_top_k: int
     reference_cache_mib: int
-    # the other configurations self-evaluations may load: (model file bytes, extractor,
-    # longer image side) of each
-    evaluation_extras: tuple[tuple[int, str, int], ...] = ()
+    # the other configurations maps may be served with and self-evaluations measure:
+    # (model file bytes, extractor, default longer image side) of each
+    other_configurations: tuple[tuple[int, str, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -129,34 +130,29 @@ def _extraction_rate(extractor: str) -> float:
 def memory_bound(inputs: MemoryInputs) -> MemoryBound:
     """The bound's terms in MiB from ``inputs`` (the module docstring says what each holds)."""
     i = inputs
-    megapixels = i.max_side * i.max_side / 1e6
-    extraction = _extraction_rate(i.extractor)
-    feature_bytes = FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(i.extractor, 128)
-    # a self-evaluation computes in a localize worker's place (it holds a worker slot), plus
-    # the references it keeps described and, measuring another configuration, that one's
-    # models and its extraction beyond the served one's
-    extras = [
-        MODEL_RESIDENT_PER_FILE_MIB * files / MIB
-        + max(0.0, _extraction_rate(extractor) * side * side / 1e6 - extraction * megapixels)
-        for files, extractor, side in i.evaluation_extras
+    # every configuration served may be loaded at once (each map's own), and a worker may
+    # extract and match with any of them: the models add up, the per-worker terms take the
+    # largest
+    served = [(i.model_file_bytes, i.extractor, i.max_side)]
+    configurations = served + [
+        (files, extractor, max(side, i.max_side))
+        for files, extractor, side in i.other_configurations
     ]
-    described = max(
-        [
-            FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(e, 128)
-            for _, e, _ in i.evaluation_extras
-        ]
-        + [feature_bytes]
+    extraction = max(_extraction_rate(e) * side * side / 1e6 for _, e, side in configurations)
+    feature_bytes = max(
+        FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(e, 128) for _, e, _ in configurations
     )
     matcher = MATCHER_MIB + LIGHTGLUE_MIB_PER_MILLION_PAIRS * i.lightglue_keypoints**2 / 1e6
     terms = {
         "runtime": RUNTIME_MIB,
-        "models": MODEL_RESIDENT_PER_FILE_MIB * i.model_file_bytes / MIB,
+        "models": MODEL_RESIDENT_PER_FILE_MIB * sum(f for f, _, _ in configurations) / MIB,
         "reference_cache": float(i.reference_cache_mib),
-        "extraction": i.workers * extraction * megapixels,
+        "extraction": i.workers * extraction,
         "decode": i.workers * DECODE_BYTES_PER_PIXEL * i.max_image_pixels / MIB,
         "matching": i.workers * (matcher + i.max_top_k * i.max_keypoints * 2 * feature_bytes / MIB),
         "bodies": float(i.body_memory_mib),
-        "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * described / MIB
-        + max(extras, default=0.0),
+        # a self-evaluation computes in a localize worker's place (it holds a worker slot),
+        # plus the references it keeps described
+        "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * feature_bytes / MIB,
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})

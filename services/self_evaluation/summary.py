@@ -21,6 +21,9 @@ RIGHT_M, RIGHT_DEG = 0.25, 5.0
 RECALL_MARGIN = 0.05
 MEDIAN_MARGIN = 1.25
 MEDIAN_FLOOR_M = 0.005
+# a map keeps its configuration, when it is one of those, unless the fastest is faster by more
+# than this factor (latencies measured in the background vary by about as much)
+LATENCY_MARGIN = 1.1
 
 
 @dataclass(frozen=True)
@@ -113,11 +116,13 @@ def summarize(answers: list[HeldOutAnswer]) -> dict[str, Any]:
     }
 
 
-def recommend(summaries: dict[str, dict[str, Any]]) -> str | None:
+def recommend(summaries: dict[str, dict[str, Any]], current: str | None = None) -> str | None:
     """The configuration a map is best served by, of those summarized: the fastest (median
     latency) of those whose recall at every threshold is within ``RECALL_MARGIN`` of the best
     and whose median position error is within ``MEDIAN_MARGIN`` times (or ``MEDIAN_FLOOR_M``
-    of) the best; None when none localized anything."""
+    of) the best; ``current``, the map's configuration, while it is one of them and within
+    ``LATENCY_MARGIN`` of the fastest's latency (a map does not move between configurations
+    that measure alike); None when none localized anything."""
     measured = {name: s for name, s in summaries.items() if s["localized"]}
     if not measured:
         return None
@@ -137,4 +142,11 @@ def recommend(summaries: dict[str, dict[str, Any]]) -> str | None:
         )
 
     candidates = [name for name, s in measured.items() if close_enough(s)]
-    return min(candidates, key=lambda name: measured[name]["latency_ms"]["median"])
+
+    def latency(name: str) -> float:
+        return float(measured[name]["latency_ms"]["median"])
+
+    fastest = min(candidates, key=latency)
+    if current in candidates and latency(current) <= LATENCY_MARGIN * latency(fastest):
+        return current
+    return fastest

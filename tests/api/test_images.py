@@ -182,11 +182,11 @@ def test_too_many_pixels_is_413(database_url: str, localizer: object) -> None:
             },
             "cam_from_world": {"rotation": [1, 0, 0, 0], "translation": [0, 0, 0]},
         }
-        client.app.state.localizer.max_pixels = 1_000_000  # type: ignore[attr-defined]
+        client.app.state.localizers.served.max_pixels = 1_000_000  # type: ignore[attr-defined]
         try:
             response = _post(client, map_id, buf.tobytes(), meta)
         finally:
-            client.app.state.localizer.max_pixels = 40_000_000  # type: ignore[attr-defined]
+            client.app.state.localizers.served.max_pixels = 40_000_000  # type: ignore[attr-defined]
         assert response.status_code == 413  # type: ignore[attr-defined]
         assert response.json()["type"].endswith("/image-too-large")  # type: ignore[attr-defined]
     assert _counts(database_url) == (0, 0)

@@ -95,7 +95,11 @@ def test_new_options_switch_after_every_reference_is_described(
         features = patched.json()["features"]
         assert features["state"] == "re-extracting"
         assert features["max_keypoints"] is None  # still serving the old options
-        assert features["pending"] == {"max_keypoints": NEW_BUDGET, "max_side": None}
+        assert features["pending"] == {
+            "preset": "sift",
+            "max_keypoints": NEW_BUDGET,
+            "max_side": None,
+        }
         assert features["progress"] == {"described": 0, "total": REFERENCES}
         assert features["preset"] == "sift"
         # the map keeps answering with its current descriptions meanwhile
@@ -128,7 +132,7 @@ def test_a_restart_resumes_the_redescription(
         sessions = first.app.state.sessions  # type: ignore[attr-defined]
     # what a PATCH leaves when the server stops before its job ran
     with sessions.begin() as session:
-        ReextractionRepository(session).start(map_id, NEW_BUDGET, None)
+        ReextractionRepository(session).start(map_id, None, NEW_BUDGET, None)
     with make_client(database_url, localizer, **settings) as second:
         after = _ready(second, map_id)
         assert after["features"]["max_keypoints"] == NEW_BUDGET
@@ -167,6 +171,7 @@ def test_refusals(client: TestClient, reference_views: list[SyntheticView]) -> N
         "max_keypoints": None,
         "max_side": 512,
         "preset": "sift",
+        "auto": True,
         "state": "ready",
         "pending": None,
         "progress": None,
@@ -174,7 +179,7 @@ def test_refusals(client: TestClient, reference_views: list[SyntheticView]) -> N
     too_many = client.patch(f"/v1/maps/{empty}", json={"features": {"max_keypoints": 10**4}})
     assert too_many.status_code == 422
     other = client.patch(f"/v1/maps/{empty}", json={"features": {"preset": "aliked"}})
-    assert other.status_code == 422 and "describes every map with sift" in other.text
+    assert other.status_code == 422 and "aliked is not served here" in other.text
     same = client.patch(f"/v1/maps/{empty}", json={"features": {"preset": "sift"}})
     assert same.status_code == 200
     assert client.patch("/v1/maps/nope", json={"description": "x"}).status_code == 404

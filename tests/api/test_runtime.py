@@ -165,7 +165,13 @@ def test_health_reports_the_memory_bound(tmp_path: Path, localizer: Localizer) -
     url = f"sqlite:///{tmp_path / 'slloc.db'}"
     bounds = []
     for max_side in (1024, 512):
-        settings = {"cpu_cores": 2, "localize_workers": 2, "max_side": max_side}
+        # the served extractor's terms alone (sift maps extract at their own 1024 px)
+        settings = {
+            "cpu_cores": 2,
+            "localize_workers": 2,
+            "max_side": max_side,
+            "evaluation_features": "",
+        }
         with make_client(url, localizer, **settings) as c:
             runtime = c.get("/v1/health").json()["runtime"]
             state = c.app.state  # type: ignore[attr-defined]

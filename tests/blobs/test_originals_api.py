@@ -121,7 +121,11 @@ def test_map_delete_removes_its_originals_and_failed_adds_leave_none(
 
 
 def test_a_row_that_cannot_commit_takes_its_blobs_back(
-    database_url: str, localizer: Any, tmp_path: Path, reference_views: list[SyntheticView]
+    database_url: str,
+    localizer: Any,
+    localizers: Any,
+    tmp_path: Path,
+    reference_views: list[SyntheticView],
 ) -> None:
     """The add of a name another add stored while this one described the image: its blobs
     were written, its row does not commit (IntegrityError), and the blobs are deleted."""
@@ -143,11 +147,11 @@ def test_a_row_that_cannot_commit_takes_its_blobs_back(
 
         def put(self, key: str, data: bytes) -> None:
             super().put(key, data)
-            add_reference_image(sessions, localizer, map_id, new, data, blobs=blobs)
+            add_reference_image(sessions, localizers, map_id, new, data, blobs=blobs)
 
     racing = StoredMeanwhile(tmp_path / "blobs")
     with pytest.raises(NameTakenError):
-        add_reference_image(sessions, localizer, map_id, new, encode_png(view.image), blobs=racing)
+        add_reference_image(sessions, localizers, map_id, new, encode_png(view.image), blobs=racing)
     report = reconcile(sessions, blobs, 0.0, remove=False)
     assert (report.orphans, report.missing, report.rows_with_originals) == ([], [], 1)
     assert report.blobs == 1

@@ -24,8 +24,14 @@ def test_upload_references_and_localize_the_demo_query(
     live_server: LocalServer, demo: Path
 ) -> None:
     with Client(live_server.url) as slloc:
-        assert slloc.health().status in {"ok", "degraded"}
-        demo_map = slloc.create_map("python-client", description="the demo scene")
+        health = slloc.health()
+        assert health.status in {"ok", "degraded"}
+        # the server's own configuration by name: the map does not evaluate itself as it grows
+        served = health.models.feature_configurations[0]
+        demo_map = slloc.create_map(
+            "python-client", description="the demo scene", features={"preset": served}
+        )
+        assert (demo_map.features.preset, demo_map.features.auto) == (served, False)
         metas = sorted((demo / "references").glob("*.json"))
         first = json.loads(metas[0].read_text())
         added = slloc.add_image(
@@ -69,7 +75,6 @@ def test_upload_references_and_localize_the_demo_query(
         assert taken.value.status == 409
         # the map measures itself on three of its references, held out, with the server's
         # configuration
-        served = slloc.get_map(demo_map.id).features.preset
         started = slloc.start_evaluation(demo_map.id, configurations=[served], sample_size=3)
         seen: list[str] = []
         evaluation = slloc.wait_for_evaluation(

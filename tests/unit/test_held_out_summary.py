@@ -72,3 +72,9 @@ def test_the_recommendation_is_the_fastest_close_to_the_best() -> None:
     assert recommend(summaries) == "b"  # c's median is 3x the best, d misses half
     assert recommend({"a": accurate}) == "a"
     assert recommend({"x": summarize([_answer(None)] * 3)}) is None
+    # a map keeps its configuration while it is close to the best and about as fast as the
+    # fastest of those (within 10 %)
+    about_as_fast = summarize([_answer(0.011, latency=215.0)] * 10)
+    assert recommend({**summaries, "e": about_as_fast}, current="e") == "e"
+    assert recommend(summaries, current="a") == "b"  # 4.5x slower: moves on
+    assert recommend(summaries, current="c") == "b"  # not close to the best: moves on

@@ -43,6 +43,7 @@ def _settings(**values: object) -> Settings:
         "max_keypoints": 4096,
         "max_top_k": 50,
         "reference_cache_mib": 256,
+        "evaluation_features": "",
     }
     return Settings(**{**base, **values})  # type: ignore[arg-type]
 
@@ -112,7 +113,7 @@ def test_matching_grows_with_the_keypoints_lightglue_sees() -> None:
         ({"max_keypoints": 1024}, "matching"),
         ({"body_memory_mib": 512}, "bodies"),
         ({"reference_cache_mib": 0}, "reference_cache"),
-        ({"evaluation_features": "aliked"}, "self_evaluation"),
+        ({"evaluation_features": "aliked"}, "extraction"),
     ],
 )
 def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> None:
@@ -160,18 +161,22 @@ def test_retrieval_index_adds_to_the_total() -> None:
     assert "retrieval_index 3" in grown.describe()
 
 
-def test_another_configuration_a_self_evaluation_may_load_is_counted() -> None:
-    """Its models and the extraction beyond the served one's (aliked at 640 px on a sift
-    server capped at 1024 px: 2950 × 0.41 − 230 × 1.05 MiB)."""
-    base = _bound(_settings()).terms["self_evaluation"]
-    settings = _settings(evaluation_features="aliked")
+def test_every_configuration_served_is_counted() -> None:
+    """Maps may be served with the configurations of SLLOC_EVALUATION_FEATURES as well: their
+    models add up, and a worker's extraction and matching are the most demanding one's (an
+    xfeat-lg server that serves sift too extracts like sift at 1024 px and matches its
+    128-float descriptors)."""
+    xfeat = _settings(features="xfeat-lg")
+    both = _settings(features="xfeat-lg", evaluation_features="sift")
+    alone, served = _bound(xfeat).terms, _bound(both).terms
+    assert served["models"] == alone["models"]  # sift loads no model
+    sift = _bound(_settings()).terms
+    assert served["extraction"] == pytest.approx(sift["extraction"], abs=0.1)
+    assert served["self_evaluation"] == pytest.approx(sift["self_evaluation"], abs=0.1)
+    assert served["matching"] > alone["matching"]
+    settings = _settings(features="xfeat-lg", evaluation_features="aliked")
     aliked = replace(
         engine_config(settings), features="aliked", wide_threads=None
     ).model_file_bytes()
-    extra = MODEL_RESIDENT_PER_FILE_MIB * aliked / MIB + max(
-        0.0,
-        EXTRACTION_MIB_PER_MEGAPIXEL["aliked-n16"] * 640 * 640 / 1e6
-        - EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 1024 * 1024 / 1e6,
-    )
-    # aliked's 128-float descriptors are sift's size: the described references cost the same
-    assert _bound(settings).terms["self_evaluation"] == pytest.approx(base + extra, abs=0.1)
+    expected = alone["models"] + MODEL_RESIDENT_PER_FILE_MIB * aliked / MIB
+    assert _bound(settings).terms["models"] == pytest.approx(expected, abs=0.1)

@@ -43,7 +43,7 @@ def measure(
         start = time.perf_counter()
         _run(
             [sys.executable, "-m", "tools.cli", "eval", path, *split, "--url", server.url,
-             "--keep-map", "--out", str(out / "queries")]
+             "--map-preset", features, "--keep-map", "--out", str(out / "queries")]
         )  # fmt: skip
         queries_s = time.perf_counter() - start
         [item] = httpx.get(f"{server.url}/v1/maps").json()["items"]

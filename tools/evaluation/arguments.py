@@ -110,6 +110,12 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--max-side", type=int, metavar="PX", help="the map's longer image side for features"
     )
+    parser.add_argument(
+        "--map-preset",
+        metavar="NAME",
+        help="with --url: the created map's feature configuration (default: auto, the "
+        "server's until the map's self-evaluation recommends one; the queries wait for it)",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/eval"), help="output folder")
 
 

@@ -278,7 +278,10 @@ def _start(
     left to the background trainer, the vocabulary of the first references made retrieval
     fail queries that eval localizes)."""
     url, pid = stack.enter_context(_server(args, features))
-    loader = HttpRunner(url, args.api_key, "slloc-bench")
+    # the map is served with the configuration benchmarked, not one its evaluation picks
+    loader = HttpRunner(
+        url, args.api_key, "slloc-bench", features={"preset": features} if features else None
+    )
     stack.callback(loader.close)
     label = features or loader.features
     start = time.perf_counter()

@@ -97,6 +97,8 @@ def eval_main(args: argparse.Namespace) -> int:
         for key, value in (("max_keypoints", args.max_keypoints), ("max_side", args.max_side))
         if value is not None
     }
+    if args.map_preset and not args.url:
+        raise SystemExit("--map-preset needs --url (in process, --features names each run's)")
     factories: list[Callable[[], Runner]]
     if args.url:
         factories = [
@@ -106,7 +108,9 @@ def eval_main(args: argparse.Namespace) -> int:
                 args.api_key,
                 f"slloc-eval-{dataset.name}",
                 args.keep_map,
-                features=map_features,
+                features={**map_features, "preset": args.map_preset}
+                if args.map_preset
+                else map_features,
             )
         ]
     else:

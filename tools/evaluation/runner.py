@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 import tempfile
 import time
 import uuid
@@ -28,11 +29,11 @@ from app.usecases.compare_estimators import localize_with_each
 from app.usecases.errors import ConflictError
 from app.usecases.images import add_reference_image
 from app.usecases.localize import LocalizeContext, localize
-from app.usecases.maps import create_map
+from app.usecases.maps import FeatureChoice, create_map
 from app.usecases.reindex import reindex_map
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
-from services.components import EngineConfig, build_localizer
+from services.components import EngineConfig, Localizers, build_localizer
 from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
 from services.localization.answer import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
@@ -123,23 +124,25 @@ class InProcessRunner:
         max_side: int | None = None,
     ) -> None:
         """``max_keypoints``, ``max_side``: the map's feature options (None: the default)."""
-        self.localizer = build_localizer(EngineConfig.resolve(models_dir, max_pixels, features))
+        engine = EngineConfig.resolve(models_dir, max_pixels, features)
+        self.localizers = Localizers(engine, build_localizer(engine))
         self.features = features
         self._tmp = tempfile.TemporaryDirectory(prefix="slloc-eval-")
         self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")
         upgrade(self._engine)
         self.sessions = make_session_factory(self._engine)
+        options = FeatureChoice(features, max_keypoints, max_side)
         self.map_id = create_map(
-            self.sessions, self.localizer, "eval", None, DEFAULT_ESTIMATOR, max_keypoints, max_side
+            self.sessions, self.localizers, "eval", None, DEFAULT_ESTIMATOR, options
         ).id
         self._context = LocalizeContext(
-            self.sessions, self.localizer, max_top_k=1_000_000, cache=RetrievalIndexCache()
+            self.sessions, self.localizers, max_top_k=1_000_000, cache=RetrievalIndexCache()
         )
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
         add_reference_image(
             self.sessions,
-            self.localizer,
+            self.localizers,
             self.map_id,
             metadata_of(image).to_new_image(),
             image.image_path.read_bytes(),
@@ -150,7 +153,7 @@ class InProcessRunner:
         if count < MIN_IMAGES:
             return
         with contextlib.suppress(ConflictError):  # too few descriptors: global descriptors
-            reindex_map(self.sessions, self.localizer, self.map_id, vlad=True)
+            reindex_map(self.sessions, self.localizers, self.map_id, vlad=True)
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()
@@ -213,8 +216,8 @@ def _media_type(name: str) -> str:
 class HttpRunner:
     """A client of a running server: creates a map named ``map_name`` plus a random suffix (or
     uses ``map_id``), uploads references, localizes, and on ``close`` deletes the map it created
-    unless ``keep_map``. ``features``: the created map's ``features`` options (keypoint budget,
-    image size)."""
+    unless ``keep_map``. ``features``: the created map's ``features`` (configuration, keypoint
+    budget, image size)."""
 
     def __init__(
         self,
@@ -223,7 +226,7 @@ class HttpRunner:
         map_name: str = "slloc-eval",
         keep_map: bool = False,
         map_id: str | None = None,
-        features: dict[str, int] | None = None,
+        features: dict[str, Any] | None = None,
     ) -> None:
         headers = {"X-API-Key": api_key} if api_key else {}
         self._client = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=600.0)
@@ -273,11 +276,36 @@ class HttpRunner:
         )
 
     def index_references(self, count: int) -> None:
-        if count < MIN_IMAGES or self.map_id_given:
-            return  # a map the evaluator did not create is evaluated as it is
-        response = self._client.post(f"/v1/maps/{self.map_id}/reindex")
-        if response.status_code != 409:  # 409: retrieval by an ONNX global model
-            response.raise_for_status()
+        """Also waits until the map is ready (``features.state``): a map that follows its
+        self-evaluation is evaluated and may take another configuration first, which
+        ``features`` then names."""
+        if count >= MIN_IMAGES and not self.map_id_given:  # else evaluated as it is
+            response = self._client.post(f"/v1/maps/{self.map_id}/reindex")
+            if response.status_code != 409:  # 409: retrieval by an ONNX global model
+                response.raise_for_status()
+        self.features = self.wait_ready()
+
+    def wait_ready(self, timeout_s: float = 3600.0, poll_s: float = 2.0) -> str:
+        """Polls the map until it is neither evaluating nor re-describing its references
+        (each change of state on stderr); returns the configuration it is served with."""
+        start = time.perf_counter()
+        seen = None
+        while True:
+            features = self._request("GET", f"/v1/maps/{self.map_id}").json()["features"]
+            state = features["state"]
+            if state != seen:
+                print(
+                    f"map {self.map_id}: {state} ({features['preset']}) after "
+                    f"{time.perf_counter() - start:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                seen = state
+            if state == "ready":
+                return str(features["preset"])
+            if time.perf_counter() - start > timeout_s:
+                raise RuntimeError(f"map {self.map_id} not ready after {timeout_s:.0f} s")
+            time.sleep(poll_s)
 
     def localize(self, image: bytes, depth: bytes | None, params: dict[str, Any]) -> QueryOutcome:
         start = time.perf_counter()

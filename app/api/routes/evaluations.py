@@ -7,12 +7,11 @@ from fastapi import APIRouter, Response
 from app.api.deps import (
     AdminKey,
     ClientKey,
-    EngineConfigDep,
     EvaluatorDep,
     Limit,
+    LocalizersDep,
     Offset,
     SessionsDep,
-    SettingsDep,
 )
 from app.errors import problem_responses
 from app.schemas.evaluations import EvaluationCreate, EvaluationOut, EvaluationPage
@@ -31,9 +30,8 @@ router = APIRouter(prefix="/v1/maps/{map_id}/evaluations", tags=["evaluations"])
 def start_evaluation(
     map_id: str,
     sessions: SessionsDep,
-    engine: EngineConfigDep,
+    localizers: LocalizersDep,
     evaluator: EvaluatorDep,
-    settings: SettingsDep,
     response: Response,
     body: EvaluationCreate | None = None,
 ) -> EvaluationOut:
@@ -44,8 +42,7 @@ def start_evaluation(
     their originals; 422 for a configuration this server does not measure (its own and
     ``SLLOC_EVALUATION_FEATURES``) or whose models it lacks."""
     request = (body or EvaluationCreate()).to_request()
-    allowed = settings.parsed_evaluation_features()
-    row = evaluations.start_evaluation(sessions, engine, map_id, request, allowed, evaluator)
+    row = evaluations.start_evaluation(sessions, localizers, map_id, request, evaluator)
     response.headers["Location"] = f"/v1/maps/{map_id}/evaluations/{row.id}"
     return EvaluationOut.from_row(row)
 

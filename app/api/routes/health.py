@@ -12,7 +12,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.datastructures import State
 
-from app.api.deps import LocalizerDep, SessionsDep
+from app.api.deps import LocalizersDep, SessionsDep
 from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOut
 from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
 from db.session import sqlite_not_writable
@@ -57,7 +57,7 @@ async def readyz(request: Request) -> Response:
     problems = []
     if getattr(state, "draining", False):
         problems.append("draining: shutting down")
-    if getattr(state, "localizer", None) is None:
+    if getattr(state, "localizers", None) is None:
         problems.append("models: not loaded")
     sessions = getattr(state, "sessions", None)
     up = False
@@ -87,13 +87,13 @@ async def readyz(request: Request) -> Response:
 
 
 @router.get("/health", operation_id="health")
-async def health(request: Request, sessions: SessionsDep, localizer: LocalizerDep) -> HealthOut:
+async def health(request: Request, sessions: SessionsDep, localizers: LocalizersDep) -> HealthOut:
     """No API key needed. ``status`` is ``ok``, or ``degraded`` when the database is down.
     Never waits behind other requests: the database probe runs on threads of its own."""
     state = request.app.state
     up = await to_thread.run_sync(_database_up, sessions, limiter=state.health_threads)
     count, unservable = (
-        await to_thread.run_sync(_unservable, state, localizer, limiter=state.health_threads)
+        await to_thread.run_sync(_unservable, state, localizers, limiter=state.health_threads)
         if up
         else (0, [])
     )
@@ -113,9 +113,10 @@ async def health(request: Request, sessions: SessionsDep, localizer: LocalizerDe
         ],
         version=version("slloc"),
         models=ModelsOut(
-            features=localizer.extractor.name,
-            matcher=localizer.matcher.name,
-            global_descriptor=localizer.global_descriptor.name,
+            features=localizers.served.extractor.name,
+            matcher=localizers.served.matcher.name,
+            global_descriptor=localizers.served.global_descriptor.name,
+            feature_configurations=list(localizers.choices),
             estimators=estimator_names(),
         ),
         runtime=_runtime(request.app.state),

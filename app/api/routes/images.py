@@ -12,8 +12,9 @@ from app.api.deps import (
     BlobsDep,
     ClientKey,
     EngineConfigDep,
+    EvaluatorDep,
     Limit,
-    LocalizerDep,
+    LocalizersDep,
     Offset,
     ReferenceCacheDep,
     SessionsDep,
@@ -47,11 +48,12 @@ def add_image(
     map_id: str,
     admission: AdmissionDep,
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    localizers: LocalizersDep,
     settings: SettingsDep,
     engine: EngineConfigDep,
     trainer: TrainerDep,
     blobs: BlobsDep,
+    evaluator: EvaluatorDep,
     image: Annotated[UploadFile, File(description="JPEG or PNG")],
     metadata: Annotated[
         str, Form(description=METADATA_HELP, json_schema_extra=json_form_schema(ImageMetadata))
@@ -72,7 +74,7 @@ def add_image(
         depth_bytes = read_upload(depth, settings.max_upload_bytes, "depth") if depth else None
         stored = images.add_reference_image(
             sessions,
-            localizer,
+            localizers,
             map_id,
             meta.to_new_image(),
             image_bytes,
@@ -82,6 +84,7 @@ def add_image(
             preview_max_side=settings.preview_max_side,
             blobs=blobs,
         )
+    evaluator.evaluate_if_due(map_id)
     return ImageOut.from_stored(stored)
 
 
@@ -174,7 +177,9 @@ def delete_image(
     sessions: SessionsDep,
     features_cache: ReferenceCacheDep,
     blobs: BlobsDep,
+    evaluator: EvaluatorDep,
 ) -> Response:
     """Deletes the image's row and features, then its originals in the blob store."""
     images.delete_image(sessions, map_id, image_id, features_cache, blobs)
+    evaluator.evaluate_if_due(map_id)
     return Response(status_code=204)

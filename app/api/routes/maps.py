@@ -10,8 +10,9 @@ from app.api.deps import (
     BlobsDep,
     ClientKey,
     EngineConfigDep,
+    EvaluatorDep,
     Limit,
-    LocalizerDep,
+    LocalizersDep,
     Offset,
     ReextractorDep,
     ReferenceCacheDep,
@@ -24,9 +25,9 @@ from app.usecases import maps
 from app.usecases.reextraction import change_feature_options, reextraction_progress
 from app.usecases.reindex import reindex_map
 from app.usecases.served_features import map_serving
-from services.components import EngineConfig
+from services.components import EngineConfig, Localizers
 from services.errors import InvalidInputError
-from services.localization.localizer import Localizer
+from services.features.configs import AUTO
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
@@ -34,7 +35,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"])
 def _out(
     record: maps.MapRecord,
     sessions: sessionmaker[Session],
-    localizer: Localizer,
+    localizers: Localizers,
     engine: EngineConfig,
 ) -> MapOut:
     serving = map_serving(
@@ -42,11 +43,12 @@ def _out(
         record.max_keypoints,
         record.max_side,
         record.described_by,
-        localizer,
+        localizers,
         engine.models_dir,
         engine.features,
+        record.feature_preset,
     )
-    progress = reextraction_progress(sessions, localizer, record)
+    progress = reextraction_progress(sessions, localizers, record)
     return MapOut.from_record(record, serving, engine.features, progress)
 
 
@@ -60,23 +62,24 @@ def _out(
 def create_map(
     body: MapCreate,
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    localizers: LocalizersDep,
     settings: SettingsDep,
     engine: EngineConfigDep,
 ) -> MapOut:
-    """``features`` must be honourable by the service's extractor and within the service's
-    limits (``SLLOC_MAX_KEYPOINTS``, ``SLLOC_MAX_SIDE``), else 422."""
+    """``features`` must name a configuration the server serves (or ``auto``, the default),
+    be honourable by its extractor and within the service's limits (``SLLOC_MAX_KEYPOINTS``,
+    ``SLLOC_MAX_SIDE``), else 422."""
+    options = body.features
     record = maps.create_map(
         sessions,
-        localizer,
+        localizers,
         body.name,
         body.description,
         body.default_estimator,
-        body.features.max_keypoints,
-        body.features.max_side,
+        maps.FeatureChoice(options.preset, options.max_keypoints, options.max_side),
         maps.FeatureLimits(settings.max_keypoints, settings.max_side),
     )
-    return _out(record, sessions, localizer, engine)
+    return _out(record, sessions, localizers, engine)
 
 
 @router.get(
@@ -87,13 +90,13 @@ def create_map(
 )
 def list_maps(
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    localizers: LocalizersDep,
     engine: EngineConfigDep,
     offset: Offset = 0,
     limit: Limit = 100,
 ) -> MapPage:
     records, total = maps.list_maps(sessions, offset, limit)
-    items = [_out(r, sessions, localizer, engine) for r in records]
+    items = [_out(r, sessions, localizers, engine) for r in records]
     return MapPage(items=items, total=total, offset=offset, limit=limit)
 
 
@@ -104,13 +107,13 @@ def list_maps(
     responses=problem_responses(401, 404),
 )
 def get_map(
-    map_id: str, sessions: SessionsDep, localizer: LocalizerDep, engine: EngineConfigDep
+    map_id: str, sessions: SessionsDep, localizers: LocalizersDep, engine: EngineConfigDep
 ) -> MapOut:
     """``feature_models`` says what the map's references were described by and whether this
     server can serve them (``servable``; else the models it lacks);
     ``references_without_original`` counts the images added before originals were kept."""
     record = maps.get_map(sessions, map_id)
-    return _out(record, sessions, localizer, engine)
+    return _out(record, sessions, localizers, engine)
 
 
 @router.patch(
@@ -123,36 +126,45 @@ def update_map(
     map_id: str,
     body: MapPatch,
     sessions: SessionsDep,
-    localizer: LocalizerDep,
+    localizers: LocalizersDep,
     settings: SettingsDep,
     engine: EngineConfigDep,
     reextractor: ReextractorDep,
+    evaluator: EvaluatorDep,
 ) -> MapOut:
-    """Changes the map's description, default estimator or feature options. New feature
-    options (within ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing
-    the map's references anew from their originals in the background: the answer shows
+    """Changes the map's description, default estimator or features. A new feature
+    configuration (one the server serves, else 422) or options (within
+    ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing the map's
+    references anew from their originals in the background: the answer shows
     ``features.state`` re-extracting with its progress, localize keeps answering with the
     current descriptions, and the map switches to the new ones at once when every reference
     is described (references whose original cannot be read keep their old description and
     are no longer searched). 409 when the map holds references added before originals were
-    kept."""
+    kept. ``features.preset`` ``auto`` makes the map follow its self-evaluation (it keeps
+    its configuration until an evaluation recommends another); a name stops following."""
     fields = body.model_fields_set
-    maps.get_map(sessions, map_id)  # 404 before anything changes
+    record = maps.get_map(sessions, map_id)  # 404 before anything changes
+    auto = None
     if "features" in fields and body.features is not None:
         options = body.features
-        if options.preset not in (None, engine.features):
-            raise InvalidInputError(
-                f"features.preset: this server describes every map with {engine.features} "
-                f"(SLLOC_FEATURES), not {options.preset}"
-            )
         maps.FeatureLimits(settings.max_keypoints, settings.max_side).check(
             options.max_keypoints, options.max_side
         )
+        auto = options.preset == AUTO if options.preset is not None else None
+        preset = record.feature_preset if options.preset in (None, AUTO) else options.preset
+        if preset is not None and preset not in localizers.choices:
+            raise InvalidInputError(f"features.preset: {localizers.refusal(preset)}")
         change_feature_options(
-            sessions, localizer, map_id, options.max_keypoints, options.max_side, reextractor
+            sessions,
+            localizers,
+            map_id,
+            maps.FeatureChoice(preset, options.max_keypoints, options.max_side),
+            reextractor,
         )
-    maps.update_map(sessions, map_id, body.description, body.default_estimator, fields)
-    return _out(maps.get_map(sessions, map_id), sessions, localizer, engine)
+    maps.update_map(sessions, map_id, body.description, body.default_estimator, fields, auto)
+    if auto:
+        evaluator.evaluate_if_due(map_id)
+    return _out(maps.get_map(sessions, map_id), sessions, localizers, engine)
 
 
 @router.delete(
@@ -177,10 +189,10 @@ def delete_map(
     responses=problem_responses(401, 403, 404, 409),
 )
 def reindex(
-    map_id: str, sessions: SessionsDep, localizer: LocalizerDep, engine: EngineConfigDep
+    map_id: str, sessions: SessionsDep, localizers: LocalizersDep, engine: EngineConfigDep
 ) -> ReindexOut:
     """Train a new VLAD retrieval vocabulary from the map's stored local descriptors and
     re-encode every reference with it (no image is re-read). Maps train one automatically
     at 16 references and again each time they have grown fourfold; this forces it."""
-    reindexed = reindex_map(sessions, localizer, map_id, engine.vlad)
+    reindexed = reindex_map(sessions, localizers, map_id, engine.vlad)
     return ReindexOut.from_reindexed(reindexed)

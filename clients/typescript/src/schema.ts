@@ -37,8 +37,9 @@ export interface paths {
         put?: never;
         /**
          * Create Map
-         * @description ``features`` must be honourable by the service's extractor and within the service's
-         *     limits (``SLLOC_MAX_KEYPOINTS``, ``SLLOC_MAX_SIDE``), else 422.
+         * @description ``features`` must name a configuration the server serves (or ``auto``, the default),
+         *     be honourable by its extractor and within the service's limits (``SLLOC_MAX_KEYPOINTS``,
+         *     ``SLLOC_MAX_SIDE``), else 422.
          */
         post: operations["create_map"];
         delete?: never;
@@ -72,14 +73,16 @@ export interface paths {
         head?: never;
         /**
          * Update Map
-         * @description Changes the map's description, default estimator or feature options. New feature
-         *     options (within ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing
-         *     the map's references anew from their originals in the background: the answer shows
+         * @description Changes the map's description, default estimator or features. A new feature
+         *     configuration (one the server serves, else 422) or options (within
+         *     ``SLLOC_MAX_KEYPOINTS`` and ``SLLOC_MAX_SIDE``, else 422) start describing the map's
+         *     references anew from their originals in the background: the answer shows
          *     ``features.state`` re-extracting with its progress, localize keeps answering with the
          *     current descriptions, and the map switches to the new ones at once when every reference
          *     is described (references whose original cannot be read keep their old description and
          *     are no longer searched). 409 when the map holds references added before originals were
-         *     kept.
+         *     kept. ``features.preset`` ``auto`` makes the map follow its self-evaluation (it keeps
+         *     its configuration until an evaluation recommends another); a name stops following.
          */
         patch: operations["update_map"];
         trace?: never;
@@ -709,11 +712,8 @@ export interface components {
          * @enum {string}
          */
         FailureReason: "no_references" | "too_few_matches" | "degenerate_geometry" | "no_consensus" | "missing_depth" | "time_budget_exceeded" | "focal_unobservable" | "gravity_mismatch" | "inconsistent_frames" | "low_confidence";
-        /**
-         * FeatureOptions
-         * @description Per-map local-feature options; null keeps the service's default.
-         */
-        FeatureOptions: {
+        /** FeatureCreate */
+        FeatureCreate: {
             /**
              * Max Keypoints
              * @description Keypoint budget per image (ALIKED: at most 2048)
@@ -724,6 +724,12 @@ export interface components {
              * @description Longer image side features are extracted at (px)
              */
             max_side?: number | null;
+            /**
+             * Preset
+             * @description The feature configuration: `auto` (the server's, SLLOC_FEATURES, until the map's self-evaluation recommends one of those the server serves) or one of them by name (the server's and SLLOC_EVALUATION_FEATURES'; another is refused, 422)
+             * @default auto
+             */
+            preset?: string;
         };
         /** FeaturePatch */
         FeaturePatch: {
@@ -739,7 +745,7 @@ export interface components {
             max_side?: number | null;
             /**
              * Preset
-             * @description The feature configuration; a server describes every map with its own (SLLOC_FEATURES, shown as features.preset): another one is refused (422)
+             * @description The feature configuration: `auto` (follow the map's self-evaluation), or one the server serves by name (its own, SLLOC_FEATURES, and those of SLLOC_EVALUATION_FEATURES; another is refused, 422); null keeps the map's
              */
             preset?: string | null;
         };
@@ -1347,8 +1353,8 @@ export interface components {
             default_estimator?: components["schemas"]["EstimatorName"];
             /** Description */
             description?: string | null;
-            /** @description Keypoint budget and image size for this map's references and queries */
-            features?: components["schemas"]["FeatureOptions"];
+            /** @description Feature configuration, keypoint budget and image size for this map's references and queries */
+            features?: components["schemas"]["FeatureCreate"];
             /** Name */
             name: string;
         };
@@ -1401,10 +1407,16 @@ export interface components {
         };
         /**
          * MapFeaturesOut
-         * @description The options the map serves with, the server's feature configuration and, while the
-         *     references are described anew, the options they are described for and how far.
+         * @description The feature configuration and options the map serves with, whether it follows its
+         *     self-evaluation and, while the references are described anew, what they are described
+         *     for and how far.
          */
         MapFeaturesOut: {
+            /**
+             * Auto
+             * @description The map takes the configuration its self-evaluation recommends, evaluated on its own as it grows (docs: self-evaluation)
+             */
+            auto: boolean;
             /**
              * Max Keypoints
              * @description Keypoint budget per image (ALIKED: at most 2048)
@@ -1415,20 +1427,20 @@ export interface components {
              * @description Longer image side features are extracted at (px)
              */
             max_side?: number | null;
-            /** @description The options the references are being described for */
-            pending?: components["schemas"]["FeatureOptions"] | null;
+            /** @description What the references are being described for */
+            pending?: components["schemas"]["PendingFeaturesOut"] | null;
             /**
              * Preset
-             * @description The server's feature configuration (SLLOC_FEATURES), whose extractor describes the map's queries and references
+             * @description The feature configuration whose extractor describes the map's queries and references: the server's (SLLOC_FEATURES) until the map chooses another
              */
             preset: string;
             progress?: components["schemas"]["FeatureProgressOut"] | null;
             /**
              * State
-             * @description re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once
+             * @description evaluating: a self-evaluation of the map is queued or running; re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once
              * @enum {string}
              */
-            state: "ready" | "re-extracting";
+            state: "ready" | "evaluating" | "re-extracting";
         };
         /** MapOut */
         MapOut: {
@@ -1474,13 +1486,18 @@ export interface components {
             default_estimator?: components["schemas"]["EstimatorName"] | null;
             /** Description */
             description?: string | null;
-            /** @description New keypoint budget and image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; the options it serves cancel a re-description in progress. 409 when references were added before originals were kept */
+            /** @description New feature configuration, keypoint budget or image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; what it serves cancels a re-description in progress. 409 when references were added before originals were kept */
             features?: components["schemas"]["FeaturePatch"] | null;
         };
         /** ModelsOut */
         ModelsOut: {
             /** Estimators */
             estimators: components["schemas"]["EstimatorName"][];
+            /**
+             * Feature Configurations
+             * @description The feature configurations maps may be served with: the server's (SLLOC_FEATURES) first, then those of SLLOC_EVALUATION_FEATURES whose models are built
+             */
+            feature_configurations: string[];
             /** Features */
             features: string;
             /** Global Descriptor */
@@ -1502,6 +1519,24 @@ export interface components {
              * @enum {string}
              */
             pose_of?: "upload" | "camera";
+        };
+        /** PendingFeaturesOut */
+        PendingFeaturesOut: {
+            /**
+             * Max Keypoints
+             * @description Keypoint budget per image (ALIKED: at most 2048)
+             */
+            max_keypoints?: number | null;
+            /**
+             * Max Side
+             * @description Longer image side features are extracted at (px)
+             */
+            max_side?: number | null;
+            /**
+             * Preset
+             * @description The feature configuration they are described with
+             */
+            preset: string;
         };
         /** Percentiles */
         Percentiles: {

@@ -16,7 +16,10 @@ const slloc = new Client(url);
 
 const health = await slloc.health();
 assert.ok(["ok", "degraded"].includes(health.status));
-const map = await slloc.createMap({ name: "typescript-client" });
+// the server's own configuration by name: the map does not evaluate itself as it grows
+const served = health.models.feature_configurations[0];
+const map = await slloc.createMap({ name: "typescript-client", features: { preset: served } });
+assert.equal(map.features.auto, false);
 const metas = (await readdir(join(demo, "references"))).filter((f) => f.endsWith(".json")).sort();
 for (const meta of metas) {
   const metadata = JSON.parse(await readFile(join(demo, "references", meta), "utf8"));
@@ -50,7 +53,6 @@ assert.equal(notFound.status, 404);
 assert.ok(notFound.requestId);
 
 // a self-evaluation with the server's configuration, two references held out
-const served = (await slloc.getMap(map.id)).features.preset;
 const started = await slloc.startEvaluation(map.id, { configurations: [served], sample_size: 2 });
 assert.equal(started.state, "queued");
 let evaluation = started;

@@ -18,7 +18,8 @@ from slloc_client.models import (
     CameraSchema,
     EvaluationOut,
     EvaluationPage,
-    FeatureOptions,
+    FeatureCreate,
+    FeaturePatch,
     FrameIn,
     GeoPoseReq,
     GeoPoseResp,
@@ -52,7 +53,9 @@ def _q(segment: str) -> str:
 
 
 def _map_fields(
-    description: str | None, default_estimator: str | None, features: FeatureOptions | Json | None
+    description: str | None,
+    default_estimator: str | None,
+    features: FeatureCreate | FeaturePatch | Json | None,
 ) -> dict[str, Any]:
     """A map's optional fields that were given, as JSON."""
     fields: dict[str, Any] = {"description": description, "default_estimator": default_estimator}
@@ -167,9 +170,11 @@ class Client:
         *,
         description: str | None = None,
         default_estimator: str | None = None,
-        features: FeatureOptions | Json | None = None,
+        features: FeatureCreate | Json | None = None,
     ) -> MapOut:
-        """A new map (admin); 409 ``map-name-taken`` when the name is in use."""
+        """A new map (admin); 409 ``map-name-taken`` when the name is in use. ``features``
+        preset ``auto`` (the default): the map takes the configuration its self-evaluation
+        recommends."""
         body = {"name": name, **_map_fields(description, default_estimator, features)}
         return self._send(MapOut, "POST", "/v1/maps", json=body)
 
@@ -179,7 +184,7 @@ class Client:
         *,
         description: str | None = None,
         default_estimator: str | None = None,
-        features: FeatureOptions | Json | None = None,
+        features: FeaturePatch | Json | None = None,
     ) -> MapOut:
         """Changes the fields given (admin). New ``features`` describe the map's references
         again from their originals in the background: ``features.state`` is

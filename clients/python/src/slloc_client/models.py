@@ -244,15 +244,17 @@ class EvaluationResult(BaseModel):
     served: str = Field(description="The server's feature configuration at the time")
 
 
-class FeatureOptions(BaseModel):
-    """Per-map local-feature options; null keeps the service's default."""
-
+class FeatureCreate(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     max_keypoints: int | None = Field(
         default=None, description="Keypoint budget per image (ALIKED: at most 2048)"
     )
     max_side: int | None = Field(
         default=None, description="Longer image side features are extracted at (px)"
+    )
+    preset: str = Field(
+        default="auto",
+        description="The feature configuration: `auto` (the server's, SLLOC_FEATURES, until the map's self-evaluation recommends one of those the server serves) or one of them by name (the server's and SLLOC_EVALUATION_FEATURES'; another is refused, 422)",
     )
 
 
@@ -266,7 +268,7 @@ class FeaturePatch(BaseModel):
     )
     preset: str | None = Field(
         default=None,
-        description="The feature configuration; a server describes every map with its own (SLLOC_FEATURES, shown as features.preset): another one is refused (422)",
+        description="The feature configuration: `auto` (follow the map's self-evaluation), or one the server serves by name (its own, SLLOC_FEATURES, and those of SLLOC_EVALUATION_FEATURES; another is refused, 422); null keeps the map's",
     )
 
 
@@ -663,9 +665,9 @@ class MapCreate(BaseModel):
         default="auto", description="Estimator used when a localize request names none"
     )
     description: str | None = Field(default=None)
-    features: FeatureOptions | None = Field(
+    features: FeatureCreate | None = Field(
         default=None,
-        description="Keypoint budget and image size for this map's references and queries",
+        description="Feature configuration, keypoint budget and image size for this map's references and queries",
     )
     name: str
 
@@ -697,26 +699,30 @@ class MapFeatureModelsOut(BaseModel):
 
 
 class MapFeaturesOut(BaseModel):
-    """The options the map serves with, the server's feature configuration and, while the
-    references are described anew, the options they are described for and how far.
+    """The feature configuration and options the map serves with, whether it follows its
+    self-evaluation and, while the references are described anew, what they are described
+    for and how far.
     """
 
     model_config = ConfigDict(extra="allow", populate_by_name=True)
+    auto: bool = Field(
+        description="The map takes the configuration its self-evaluation recommends, evaluated on its own as it grows (docs: self-evaluation)"
+    )
     max_keypoints: int | None = Field(
         default=None, description="Keypoint budget per image (ALIKED: at most 2048)"
     )
     max_side: int | None = Field(
         default=None, description="Longer image side features are extracted at (px)"
     )
-    pending: FeatureOptions | None = Field(
-        default=None, description="The options the references are being described for"
+    pending: PendingFeaturesOut | None = Field(
+        default=None, description="What the references are being described for"
     )
     preset: str = Field(
-        description="The server's feature configuration (SLLOC_FEATURES), whose extractor describes the map's queries and references"
+        description="The feature configuration whose extractor describes the map's queries and references: the server's (SLLOC_FEATURES) until the map chooses another"
     )
     progress: FeatureProgressOut | None = Field(default=None)
-    state: Literal["ready", "re-extracting"] = Field(
-        description="re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once"
+    state: Literal["ready", "evaluating", "re-extracting"] = Field(
+        description="evaluating: a self-evaluation of the map is queued or running; re-extracting: the references are being described anew from their originals for `pending`; the map answers with its current descriptions until every one is, then switches at once"
     )
 
 
@@ -753,13 +759,16 @@ class MapPatch(BaseModel):
     description: str | None = Field(default=None)
     features: FeaturePatch | None = Field(
         default=None,
-        description="New keypoint budget and image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; the options it serves cancel a re-description in progress. 409 when references were added before originals were kept",
+        description="New feature configuration, keypoint budget or image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; what it serves cancels a re-description in progress. 409 when references were added before originals were kept",
     )
 
 
 class ModelsOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     estimators: list[EstimatorName]
+    feature_configurations: list[str] = Field(
+        description="The feature configurations maps may be served with: the server's (SLLOC_FEATURES) first, then those of SLLOC_EVALUATION_FEATURES whose models are built"
+    )
     features: str
     global_descriptor: str
     matcher: str
@@ -775,6 +784,17 @@ class OutputIn(BaseModel):
         default="upload",
         description="Whose world_from_cam: the uploaded image's camera, or the camera of `camera` before camera_adaptation's turn (the frame of ARKit's camera.transform and ARCore's Camera.getPose, which give landscape sensor intrinsics)",
     )
+
+
+class PendingFeaturesOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    max_keypoints: int | None = Field(
+        default=None, description="Keypoint budget per image (ALIKED: at most 2048)"
+    )
+    max_side: int | None = Field(
+        default=None, description="Longer image side features are extracted at (px)"
+    )
+    preset: str = Field(description="The feature configuration they are described with")
 
 
 class Percentiles(BaseModel):
