@@ -167,7 +167,7 @@ def test_a_map_whose_configuration_is_not_served_says_so(
 ) -> None:
     """A server restarted without the configuration a map chose: the map, health and
     localize name it and the setting that serves it, never ``no_references``."""
-    map_id = _map(client, reference_views[:3], preset="sift")
+    map_id = _map(client, reference_views[:8], preset="sift")
     sessions = client.app.state.sessions  # type: ignore[attr-defined]
     with sessions.begin() as session:
         session.execute(update(Map).where(Map.id == map_id).values(feature_preset="aliked"))
@@ -186,8 +186,17 @@ def test_a_map_whose_configuration_is_not_served_says_so(
     )
     assert refused.status_code == 409
     assert "SLLOC_EVALUATION_FEATURES" in refused.json()["detail"]
-    added = upload_view(client, map_id, reference_views[5])
+    added = upload_view(client, map_id, reference_views[9])
     assert added.status_code == 409  # type: ignore[attr-defined]
     client.app.state.unservable_survey = None  # type: ignore[attr-defined]
     health = client.get("/v1/health").json()
     assert health["status"] == "degraded" and health["unservable_map_count"] == 1
+    # following the evaluation again: served with the server's configuration until evaluated
+    # (its references, described by sift, need no new description)
+    auto = client.patch(f"/v1/maps/{map_id}", json={"features": {"preset": "auto"}})
+    assert auto.status_code == 200, auto.text
+    after = auto.json()  # and evaluated, being large enough
+    assert (after["features"]["preset"], after["features"]["state"]) == ("sift", "evaluating")
+    assert after["features"]["auto"] and after["feature_models"]["servable"]
+    _settled(client, map_id)
+    assert _position_error_m(client, map_id, query_views[0]) < 0.05

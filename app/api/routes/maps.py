@@ -152,6 +152,8 @@ def update_map(
         )
         auto = options.preset == AUTO if options.preset is not None else None
         preset = record.feature_preset if options.preset in (None, AUTO) else options.preset
+        if auto and preset not in (None, *localizers.choices):
+            preset = None  # a configuration no longer served: the server's until evaluated
         if preset is not None and preset not in localizers.choices:
             raise InvalidInputError(f"features.preset: {localizers.refusal(preset)}")
         change_feature_options(
