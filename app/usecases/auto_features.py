@@ -4,7 +4,9 @@ own when they have changed enough.
 
 The rule: a map is evaluated once it has ``min_references`` references with their originals,
 then again after adds and deletes numbering at least ``MIN_CHANGES`` or ``CHANGE_FRACTION`` of
-the references it had when last evaluated, whichever is more. Until its first evaluation a map
+the references it had when last evaluated, whichever is more; when those changes left its
+size within ``CHANGE_FRACTION`` of what it was (references replaced rather than added), not
+before ``CHURN_INTERVAL_S`` since its last evaluation started. Until its first evaluation a map
 is served with the server's configuration (``SLLOC_FEATURES``). When an evaluation recommends
 another configuration, the map's references are described anew with it from their originals
 (``app/usecases/reextraction``), and the map switches once they all are.
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from datetime import UTC, datetime
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -31,6 +34,8 @@ logger = logging.getLogger(__name__)
 # references it had at its last evaluation, whichever is more
 MIN_CHANGES = 10
 CHANGE_FRACTION = 0.25
+# a map whose references are replaced rather than added is evaluated at most this often (s)
+CHURN_INTERVAL_S = 600.0
 
 
 @dataclass
@@ -55,7 +60,8 @@ class AutoEvaluation:
         if not map_row.features_auto or self.min_references <= 0 or map_row.reextracting:
             return False
         repository = EvaluationRepository(session)
-        if repository.reference_count(map_row.id) < self.min_references:
+        count = repository.reference_count(map_row.id)
+        if count < self.min_references:
             return False
         last = repository.latest(map_row.id)
         if last is None:
@@ -66,7 +72,11 @@ class AutoEvaluation:
         evaluated = (last.result or {}).get("references", 0)
         if not isinstance(then, int) or not isinstance(evaluated, int):
             return True
-        return map_row.revision - then >= max(MIN_CHANGES, CHANGE_FRACTION * evaluated)
+        if map_row.revision - then < max(MIN_CHANGES, CHANGE_FRACTION * evaluated):
+            return False
+        if abs(count - evaluated) >= CHANGE_FRACTION * evaluated:
+            return True  # grown or shrunk
+        return (datetime.now(UTC) - last.created_at).total_seconds() >= CHURN_INTERVAL_S
 
     def finished(self, map_id: str, recommended: str | None) -> None:
         """A map's evaluation finished: a map that follows it takes the configuration it

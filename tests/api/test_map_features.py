@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
-from db.models import Map
+from db.models import Map, MapEvaluation
 from services.components import missing_models
 from tests.conftest import make_client, upload_view
 from tests.polling import wait_until
@@ -142,24 +143,38 @@ def test_a_map_that_follows_its_evaluation_takes_the_configuration_recommended(
     [group] = after["feature_models"]["described_by"]
     assert group["feature_model"].startswith(f"{recommended}-")
     assert _position_error_m(client, map_id, query_views[0]) < 0.05
-    # one more reference is not change enough; ten adds and deletes are
+    # one more reference is not change enough; ten adds and deletes that replace references
+    # are, once ten minutes have passed since the last evaluation started
     assert upload_view(client, map_id, reference_views[AUTO_REFERENCES + 1]).status_code == 201
     _settled(client, map_id)
     assert len(_evaluations(client, map_id)) == 1
     images = client.get(f"/v1/maps/{map_id}/images").json()["items"]
-    for image, view in zip(
-        images[:5], reference_views[AUTO_REFERENCES + 2 : AUTO_REFERENCES + 7], strict=True
-    ):
+    replacements = reference_views[AUTO_REFERENCES + 2 : AUTO_REFERENCES + 7]
+    for image, view in zip(images[:5], replacements, strict=True):
         assert client.delete(f"/v1/maps/{map_id}/images/{image['id']}").status_code == 204
         assert upload_view(client, map_id, view).status_code == 201
     _settled(client, map_id)
+    assert len(_evaluations(client, map_id)) == 1
+    sessions = client.app.state.sessions  # type: ignore[attr-defined]
+    with sessions.begin() as session:
+        session.execute(
+            update(MapEvaluation).values(created_at=datetime.now(UTC) - timedelta(seconds=601))
+        )
+    [image, *_] = client.get(f"/v1/maps/{map_id}/images").json()["items"]
+    assert client.delete(f"/v1/maps/{map_id}/images/{image['id']}").status_code == 204
+    _settled(client, map_id)
     assert len(_evaluations(client, map_id)) == 2
+    # a map that grew by a quarter is evaluated at once
+    for view in reference_views[AUTO_REFERENCES + 7 : AUTO_REFERENCES + 17]:
+        assert upload_view(client, map_id, view).status_code == 201
+    current = _settled(client, map_id)["features"]["preset"]
+    assert len(_evaluations(client, map_id)) == 3
     # naming a configuration stops following; auto follows again (evaluated when due)
-    named = client.patch(f"/v1/maps/{map_id}", json={"features": {"preset": recommended}})
+    named = client.patch(f"/v1/maps/{map_id}", json={"features": {"preset": current}})
     assert named.status_code == 200 and not named.json()["features"]["auto"]
     auto = client.patch(f"/v1/maps/{map_id}", json={"features": {"preset": "auto"}})
     assert auto.status_code == 200 and auto.json()["features"]["auto"]
-    assert auto.json()["features"]["preset"] == recommended
+    assert auto.json()["features"]["preset"] == current
 
 
 def test_a_map_whose_configuration_is_not_served_says_so(
