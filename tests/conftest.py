@@ -12,6 +12,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
@@ -149,6 +150,24 @@ def upload_view(
         files={"image": (view.name, encode_png(view.image), "image/png")},
         data={"metadata": json.dumps(image_metadata(view, name))},
         **kwargs,  # type: ignore[arg-type]
+    )
+
+
+def localize_view(client: TestClient, map_id: str, view: SyntheticView) -> httpx.Response:
+    """POST a synthetic view as a query with its own camera; returns the response."""
+    camera = view.camera
+    params = {
+        "camera": {
+            "model": camera.model,
+            "width": camera.width,
+            "height": camera.height,
+            "params": list(camera.params),
+        }
+    }
+    return client.post(
+        f"/v1/maps/{map_id}/localize",
+        files={"image": ("q.png", encode_png(view.image), "image/png")},
+        data={"params": json.dumps(params)},
     )
 
 

@@ -6,7 +6,6 @@ poses."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -19,9 +18,9 @@ from sqlalchemy import update
 
 from db.models import Map, MapEvaluation
 from services.components import missing_models
-from tests.conftest import make_client, upload_view
+from tests.conftest import localize_view, make_client, upload_view
 from tests.polling import wait_until
-from tools.synthetic.scene import SyntheticView, encode_png
+from tools.synthetic.scene import SyntheticView
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 OTHER = "xfeat"  # served besides the server's sift
@@ -72,20 +71,7 @@ def _settled(client: TestClient, map_id: str) -> dict[str, Any]:
 
 
 def _position_error_m(client: TestClient, map_id: str, view: SyntheticView) -> float:
-    camera = view.camera
-    params = {
-        "camera": {
-            "model": camera.model,
-            "width": camera.width,
-            "height": camera.height,
-            "params": list(camera.params),
-        }
-    }
-    response = client.post(
-        f"/v1/maps/{map_id}/localize",
-        files={"image": ("q.png", encode_png(view.image), "image/png")},
-        data={"params": json.dumps(params)},
-    )
+    response = localize_view(client, map_id, view)
     assert response.status_code == 200, response.text
     answer = response.json()
     assert answer["localized"], answer
@@ -190,15 +176,7 @@ def test_a_map_whose_configuration_is_not_served_says_so(
     assert body["features"]["preset"] == "aliked"
     assert not body["feature_models"]["servable"]
     assert "aliked is not served here" in body["feature_models"]["detail"]
-    view = query_views[0]
-    camera = view.camera
-    params = {"camera": {"model": camera.model, "width": camera.width}}
-    params["camera"] |= {"height": camera.height, "params": list(camera.params)}
-    refused = client.post(
-        f"/v1/maps/{map_id}/localize",
-        files={"image": ("q.png", encode_png(view.image), "image/png")},
-        data={"params": json.dumps(params)},
-    )
+    refused = localize_view(client, map_id, query_views[0])
     assert refused.status_code == 409
     assert "SLLOC_EVALUATION_FEATURES" in refused.json()["detail"]
     added = upload_view(client, map_id, reference_views[9])

@@ -5,7 +5,6 @@ originals refuse the change. SQLite and PostgreSQL, real SIFT descriptions."""
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,9 +16,9 @@ from sqlalchemy import update
 
 from db.models import ReferenceImage
 from db.repositories.reextraction import ReextractionRepository
-from tests.conftest import create_map, make_client, upload_view
+from tests.conftest import create_map, localize_view, make_client, upload_view
 from tests.polling import wait_until
-from tools.synthetic.scene import SyntheticView, encode_png
+from tools.synthetic.scene import SyntheticView
 
 REFERENCES = 12
 NEW_BUDGET = 300  # SIFT's default budget is 2048 keypoints
@@ -44,20 +43,7 @@ def _map_with_references(client: TestClient, views: list[SyntheticView]) -> str:
 
 
 def _localize(client: TestClient, map_id: str, view: SyntheticView) -> dict[str, Any]:
-    camera = view.camera
-    params = {
-        "camera": {
-            "model": camera.model,
-            "width": camera.width,
-            "height": camera.height,
-            "params": list(camera.params),
-        }
-    }
-    response = client.post(
-        f"/v1/maps/{map_id}/localize",
-        files={"image": ("q.png", encode_png(view.image), "image/png")},
-        data={"params": json.dumps(params)},
-    )
+    response = localize_view(client, map_id, view)
     assert response.status_code == 200, response.text
     answer: dict[str, Any] = response.json()
     return answer
