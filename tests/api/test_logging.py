@@ -11,8 +11,9 @@ import sys
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api.deps import get_localizer
+from app.api.deps import get_localizers
 from app.logs import JsonFormatter, TextFormatter
+from services.components import Localizers
 from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView
@@ -83,12 +84,12 @@ def test_middleware_answers_carry_the_request_id(database_url: str, localizer: L
 def test_a_500_carries_the_request_id_and_logs_it(
     database_url: str, localizer: Localizer, caplog: pytest.LogCaptureFixture
 ) -> None:
-    def broken() -> Localizer:
+    def broken() -> Localizers:
         raise RuntimeError("boom")
 
     caplog.set_level(logging.INFO)
     with make_client(database_url, localizer, raise_server_exceptions=False) as c:
-        c.app.dependency_overrides[get_localizer] = broken  # type: ignore[attr-defined]
+        c.app.dependency_overrides[get_localizers] = broken  # type: ignore[attr-defined]
         response = c.get("/v1/health", headers={"X-Request-ID": "r500"})
     assert response.status_code == 500
     assert response.headers["X-Request-ID"] == "r500"

@@ -11,7 +11,8 @@ import anyio
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api.deps import get_localizer
+from app.api.deps import get_localizers
+from services.components import Localizers
 from services.localization.localizer import Localizer
 from tests.conftest import create_map, make_client
 
@@ -81,11 +82,11 @@ def test_405_names_the_allowed_methods(client: TestClient) -> None:
 
 
 def test_500_says_connection_close(database_url: str, localizer: Localizer) -> None:
-    def broken() -> Localizer:
+    def broken() -> Localizers:
         raise RuntimeError("boom")
 
     with make_client(database_url, localizer, raise_server_exceptions=False) as c:
-        c.app.dependency_overrides[get_localizer] = broken  # type: ignore[attr-defined]
+        c.app.dependency_overrides[get_localizers] = broken  # type: ignore[attr-defined]
         response = c.get("/v1/health")
     assert response.status_code == 500
     assert response.headers["content-type"] == PROBLEM
