@@ -15,13 +15,22 @@ from services.estimators.registry import DEFAULT_ESTIMATOR
 
 
 class FeatureOptions(BaseModel):
-    """Per-map local-feature options; null keeps the service's default."""
+    """Per-map local-feature options; null keeps the service's default. JSON integers only:
+    a string ("1024") or a boolean is refused."""
 
     max_keypoints: int | None = Field(
-        None, ge=1, le=20_000, description="Keypoint budget per image (ALIKED: at most 2048)"
+        None,
+        ge=1,
+        le=20_000,
+        strict=True,
+        description="Keypoint budget per image (ALIKED: at most 2048)",
     )
     max_side: int | None = Field(
-        None, ge=64, le=8192, description="Longer image side features are extracted at (px)"
+        None,
+        ge=64,
+        le=8192,
+        strict=True,
+        description="Longer image side features are extracted at (px)",
     )
 
 

@@ -461,7 +461,9 @@ async function loadMaps() {
       const button = document.createElement("button");
       button.type = "button";
       button.dataset.mapId = map.id;
-      button.textContent = `${map.name} (${map.image_count} images)`;
+      // its feature configuration, and whether it follows its self-evaluation
+      const features = `${map.features.preset}${map.features.auto ? ", auto" : ""}`;
+      button.textContent = `${map.name} (${map.image_count} images, ${features})`;
       button.setAttribute("aria-pressed", "false");
       button.addEventListener("click", () => selectMap(map, button));
       const item = document.createElement("li");

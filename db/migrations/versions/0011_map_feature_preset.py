@@ -1,7 +1,9 @@
-"""Maps choose their feature configuration: the one their references are described with
-(null: the server's, ``SLLOC_FEATURES``), the one they are being re-described with, and
-whether the map follows its self-evaluation's recommendation (``features: auto``). Maps made
-before keep the server's configuration and do not follow.
+"""Maps choose their feature configuration.
+
+The one their references are described with (null: the server's, ``SLLOC_FEATURES``), the one
+they are being re-described with, and whether the map follows its self-evaluation's
+recommendation (``features: auto``). Maps made before keep the server's configuration and do
+not follow.
 
 Revision ID: 0011
 Revises: 0010
