@@ -14,8 +14,9 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
 
 from app.admission import Admission
+from app.api.deps import localize_context
 from app.api.openapi import install_openapi
-from app.api.routes import evaluations, geo, gpp, health, images, localize, maps
+from app.api.routes import captures, evaluations, geo, gpp, health, images, localize, maps
 from app.ar_page import install_ar_page
 from app.auth import ApiKeyGate
 from app.blob_sweep import StartupSweep
@@ -28,6 +29,7 @@ from app.metrics import router as metrics_router
 from app.request_context import RequestContext
 from app.settings import Settings, get_settings
 from app.usecases.auto_features import AutoEvaluation
+from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
 from app.usecases.images import train_vocabulary_if_due
 from app.usecases.reextraction import Reextractor
@@ -125,6 +127,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             app.state.sessions, localizers, blobs, app.state.admission.slots, auto
         )
         app.state.evaluator.resume()
+        # capture sessions, aligned to their map and added (then the map may train its
+        # vocabulary and be evaluated, as after a switch); those a restart interrupted resume
+        app.state.capture_runner = CaptureRunner(localize_context(app.state), blobs, switched)
+        app.state.capture_runner.resume()
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
@@ -134,6 +140,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.draining = True  # /readyz answers 503 from now on
         app.state.reextractor.shutdown()
         app.state.evaluator.shutdown()
+        app.state.capture_runner.shutdown()
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()
@@ -153,7 +160,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes, memory=memory)
     # outside the body limit: a missing or unknown key is answered before anything reads the
     # body
-    routers = [m.router for m in (maps, images, evaluations, geo, localize, gpp, health)]
+    routers = [m.router for m in (maps, images, captures, evaluations, geo, localize, gpp, health)]
     routes = [route for router in routers for route in router.routes]
     app.add_middleware(ApiKeyGate, routes=routes)
     # outside the key gate: a browser's preflight carries no key (SLLOC_CORS_ORIGINS)

@@ -143,6 +143,13 @@ class Settings(BaseSettings):
     max_frames: int = Field(
         5, ge=1, le=32, description="Most frames (image parts) one localize request may carry"
     )
+    max_session_frames: int = Field(
+        1000,
+        ge=1,
+        le=100_000,
+        description="Most frames one capture session may hold (each waits in the blob store "
+        "until the session is added)",
+    )
     auto_migrate: bool = Field(
         True,
         description="Upgrade the schema to head at start-up (`slloc db upgrade` does it by "

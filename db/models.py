@@ -1,4 +1,5 @@
-"""Tables: maps, their posed reference images, and each image's stored feature arrays."""
+"""Tables: maps, their posed reference images, each image's stored feature arrays, and the
+capture sessions that extend maps."""
 
 from __future__ import annotations
 
@@ -202,3 +203,63 @@ class MapEvaluation(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class CaptureSession(Base):
+    """A capture uploaded to extend a map (``app/usecases/captures.py``): its frames wait in
+    ``capture_frames`` until the session is aligned to the map and each is added as a
+    reference, or refused. ``result`` holds the alignment and the decision."""
+
+    __tablename__ = "capture_sessions"
+    __table_args__ = (UniqueConstraint("map_id", "name", name="uq_capture_sessions_map_id_name"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
+    map_id: Mapped[str] = mapped_column(ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    # the session's poses are in metres (else its scale is estimated)
+    metric: Mapped[bool] = mapped_column(default=True)
+    # open, queued, aligning, adding, added, refused, failed
+    state: Mapped[str] = mapped_column(String(16))
+    frame_count: Mapped[int] = mapped_column(Integer, default=0)
+    # frames checked and added so far, of ``total``
+    done: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int] = mapped_column(Integer, default=0)
+    result: Mapped[dict[str, object] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class CaptureFrame(Base):
+    """A frame of a capture session not yet added to its map: its camera, its pose in the
+    session (``cam_from_session``, COLMAP camera axes) and its originals in the blob store,
+    under the keys the reference it becomes keeps (its id is the reference's)."""
+
+    __tablename__ = "capture_frames"
+    __table_args__ = (
+        UniqueConstraint("session_id", "name", name="uq_capture_frames_session_name"),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=_new_id)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("capture_sessions.id", ondelete="CASCADE"), index=True
+    )
+    # the capture order (upload order)
+    position: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(255))
+    camera_model: Mapped[str] = mapped_column(String(32))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    camera_params: Mapped[list[float]] = mapped_column(JSON)
+    qw: Mapped[float] = mapped_column(Float)
+    qx: Mapped[float] = mapped_column(Float)
+    qy: Mapped[float] = mapped_column(Float)
+    qz: Mapped[float] = mapped_column(Float)
+    tx: Mapped[float] = mapped_column(Float)
+    ty: Mapped[float] = mapped_column(Float)
+    tz: Mapped[float] = mapped_column(Float)
+    original_key: Mapped[str] = mapped_column(String(255))
+    original_sha256: Mapped[str] = mapped_column(String(64))
+    depth_key: Mapped[str | None] = mapped_column(String(255))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)

@@ -6,6 +6,9 @@ The rule: **no row without its blobs, no blob without its row** (beyond a grace 
   (:func:`original_key`, :func:`depth_key`), then commits the row that names them; when the
   row does not commit, the add deletes the blobs it wrote.
 * A delete commits the row's deletion first, then deletes the blobs.
+* A capture session's frame is a row of its own (``capture_frames``) whose blobs are written
+  under the keys of the reference it becomes; the reference row is inserted and the frame's
+  deleted in one transaction, so the blobs always have exactly one row.
 * A process killed between the two steps leaves only blobs without a row, never a row
   without its blob; :func:`reconcile` (run at start-up and by ``slloc blobs sweep``) removes
   those older than a grace period, which must exceed the longest time between an add's
@@ -26,7 +29,7 @@ from sqlalchemy import or_, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.blobs import BlobInfo, BlobNotFoundError, BlobStore, FileBlobStore
-from db.models import ReferenceImage
+from db.models import CaptureFrame, ReferenceImage
 
 logger = logging.getLogger(__name__)
 
@@ -214,13 +217,21 @@ def reconcile(
 
 
 def _keys_of_rows(sessions: sessionmaker[Session], image_ids: set[str]) -> set[str]:
-    """The blob keys the rows of ``image_ids`` name."""
+    """The blob keys the rows of ``image_ids`` name: references, and the frames of capture
+    sessions waiting to become references under the same ids."""
     if not image_ids:
         return set()
     with sessions() as session:
-        rows = session.execute(
-            select(ReferenceImage.original_key, ReferenceImage.depth_key).where(
-                ReferenceImage.id.in_(image_ids)
-            )
-        ).all()
+        rows = [
+            *session.execute(
+                select(ReferenceImage.original_key, ReferenceImage.depth_key).where(
+                    ReferenceImage.id.in_(image_ids)
+                )
+            ),
+            *session.execute(
+                select(CaptureFrame.original_key, CaptureFrame.depth_key).where(
+                    CaptureFrame.id.in_(image_ids)
+                )
+            ),
+        ]
     return {key for row in rows for key in row if key is not None}

@@ -12,7 +12,7 @@ from sqlalchemy import ColumnElement, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
-from db.models import FeatureArray, Map, ReferenceImage
+from db.models import CaptureFrame, FeatureArray, Map, ReferenceImage
 from db.vocabulary import VLAD_KIND
 from services.errors import InvalidInputError
 from services.features.base import LocalFeatures
@@ -27,11 +27,12 @@ from services.retrieval.contracts import RetrievalIndex, VocabularyState, empty_
 logger = logging.getLogger(__name__)
 
 
-def camera_of(row: ReferenceImage) -> Camera:
+def camera_of(row: ReferenceImage | CaptureFrame) -> Camera:
     return Camera(row.camera_model, row.width, row.height, tuple(row.camera_params))
 
 
-def pose_of(row: ReferenceImage) -> Rigid3d:
+def pose_of(row: ReferenceImage | CaptureFrame) -> Rigid3d:
+    """A reference's ``cam_from_world``, a capture frame's ``cam_from_session``."""
     return Rigid3d.from_quaternion(
         np.array([row.qw, row.qx, row.qy, row.qz]), np.array([row.tx, row.ty, row.tz])
     )

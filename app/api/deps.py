@@ -7,12 +7,14 @@ from typing import Annotated, Any, TypeVar
 from fastapi import Depends, Query, Request, UploadFile
 from pydantic import BaseModel, ValidationError
 from sqlalchemy.orm import Session, sessionmaker
+from starlette.datastructures import State
 
 from app.admission import Admission
 from app.auth import RoleCheck
 from app.errors import ProblemError, invalid, too_large
 from app.metrics import ServiceMetrics
 from app.settings import Settings
+from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
 from app.usecases.localize import LocalizeContext
 from app.usecases.reextraction import Reextractor
@@ -66,7 +68,11 @@ async def get_admission(request: Request) -> Admission:
 
 async def get_localize_context(request: Request) -> LocalizeContext:
     """The database, engine, limits, caches and worker slots every localize shares."""
-    state = request.app.state
+    return localize_context(request.app.state)
+
+
+def localize_context(state: State) -> LocalizeContext:
+    """The localize context of the app whose state is ``state`` (set up by its lifespan)."""
     settings: Settings = state.settings
     engine: EngineConfig = state.engine_config
     return LocalizeContext(
@@ -89,6 +95,12 @@ async def get_evaluator(request: Request) -> Evaluator:
     """Runs maps' self-evaluations in the background."""
     evaluator: Evaluator = request.app.state.evaluator
     return evaluator
+
+
+async def get_capture_runner(request: Request) -> CaptureRunner:
+    """Aligns submitted capture sessions and adds their frames in the background."""
+    runner: CaptureRunner = request.app.state.capture_runner
+    return runner
 
 
 async def get_reextractor(request: Request) -> Reextractor:
@@ -119,6 +131,7 @@ MetricsDep = Annotated[ServiceMetrics, Depends(get_metrics)]
 BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
 ReextractorDep = Annotated[Reextractor, Depends(get_reextractor)]
 EvaluatorDep = Annotated[Evaluator, Depends(get_evaluator)]
+CaptureRunnerDep = Annotated[CaptureRunner, Depends(get_capture_runner)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

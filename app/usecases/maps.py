@@ -13,6 +13,7 @@ from app.usecases.errors import NameTakenError, NotFoundError
 from db.blobs import BlobStore
 from db.models import Map
 from db.originals import remove_blobs
+from db.repositories.captures import CaptureRepository
 from db.repositories.evaluations import EvaluationRepository
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
@@ -192,14 +193,16 @@ def delete_map(
     blobs: BlobStore | None = None,
 ) -> None:
     """Delete a map with its images and their features (and their entries in
-    ``features_cache``); then, with ``blobs``, its images' originals (after the deletion
-    committed, as ``delete_image`` does).
+    ``features_cache``) and its capture sessions; then, with ``blobs``, the originals of its
+    images and of its sessions' waiting frames (after the deletion committed, as
+    ``delete_image`` does).
 
     Raises:
         NotFoundError: no such map.
     """
     with sessions.begin() as session:
         keys = ImageRepository(session).blob_keys(map_id)
+        keys += CaptureRepository(session).blob_keys(map_id)
         if not MapRepository(session).delete(map_id):
             raise NotFoundError("map", map_id)
     if features_cache is not None:

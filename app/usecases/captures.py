@@ -1,0 +1,545 @@
+"""Capture sessions: a capture (frames with their poses in the device's own frame) aligned to
+a map and added to it as references, or refused with the reason.
+
+A session is created ``open``; its frames are uploaded one by one (each image and depth kept in
+the blob store under the keys of the reference it will become); once submitted it is
+``queued``, then a background job ``aligning`` it localizes a spread of its frames against the
+map and estimates ``map_from_session`` (``services.capture.alignment``). When the alignment is
+well determined, the job is ``adding``: every frame is described and stored as a reference
+with its pose mapped into the map, one transaction per frame that inserts the reference and
+removes the waiting frame (so the frame's blobs always have exactly one row); then ``added``.
+Otherwise the session ends ``refused`` and its frames are removed: nothing is added.
+
+On an empty map the session defines the map's frame (``bootstrap``): every frame is added with
+its session pose; the session must be metric.
+
+A restart resumes what it interrupted: a session ``queued`` or ``aligning`` is aligned again
+from its start (nothing was added yet); one ``adding`` adds the frames left. A session that
+fails while adding is rolled back: the references it added are deleted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError, SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.usecases.errors import ConflictError, NameTakenError, NotFoundError
+from app.usecases.localize import LocalizeContext, LocalizeRequest, localize
+from app.usecases.maps import require_map
+from app.usecases.served_features import map_localizer
+from db.blobs import BlobStore
+from db.models import CaptureFrame, CaptureSession, ReferenceImage
+from db.originals import StoredOriginals, remove_blobs, write_originals
+from db.repositories.captures import ACTIVE, CaptureRepository
+from db.repositories.images import ImageRepository
+from db.store import camera_of, pose_of
+from services.capture.alignment import (
+    Alignment,
+    CheckedFrame,
+    Similarity,
+    align,
+    check_indices,
+    path_length,
+)
+from services.components import Localizers
+from services.errors import InvalidInputError
+from services.geometry.camera import Camera, default_camera
+from services.geometry.rigid import Rigid3d
+from services.imaging.decode import check_pixel_limit, decode_image_reduced
+from services.localization.localizer import Localizer
+from services.localization.stages import check_camera_matches, decode_depth_for
+from services.retrieval.training import BackgroundTrainer
+
+logger = logging.getLogger(__name__)
+
+# frames of a session localized against the map to align it
+CHECKED_FRAMES = 12
+# references retrieved for each checked frame
+CHECK_TOP_K = 10
+
+
+@dataclass(frozen=True)
+class NewFrame:
+    """An uploaded frame: its name in the session (None: its position, ``00000``…), its
+    camera (None: the default camera for the image size) and its ``cam_from_session``
+    (COLMAP camera axes)."""
+
+    name: str | None
+    camera: Camera | None
+    cam_from_session: Rigid3d
+
+
+def create_session(
+    sessions: sessionmaker[Session], map_id: str, name: str | None, metric: bool
+) -> CaptureSession:
+    """A new ``open`` session of the map (``name`` None: one made from the time).
+
+    Raises:
+        NotFoundError: unknown map.
+        NameTakenError: the map has a session of that name.
+    """
+    name = name or f"session-{uuid.uuid4().hex[:8]}"
+    try:
+        with sessions.begin() as session:
+            require_map(session, map_id)
+            repository = CaptureRepository(session)
+            if repository.name_exists(map_id, name):
+                raise NameTakenError(f"map already has a capture session named {name!r}")
+            row = repository.create(map_id, name, metric)
+            session.expunge(row)
+            return row
+    except IntegrityError as exc:  # created meanwhile by another request
+        raise NameTakenError(f"map already has a capture session named {name!r}") from exc
+
+
+def add_frame(
+    sessions: sessionmaker[Session],
+    localizers: Localizers,
+    blobs: BlobStore,
+    map_id: str,
+    session_id: str,
+    frame: NewFrame,
+    image_bytes: bytes,
+    depth_bytes: bytes | None,
+    max_frames: int,
+) -> CaptureFrame:
+    """Store one frame of an open session: its image (decoded here, so that a frame the job
+    could not describe is refused now) and depth in the blob store, then its row.
+
+    Raises:
+        NotFoundError: unknown map or session.
+        ConflictError: the session is no longer open, holds ``max_frames`` frames, or has a
+            frame of that name.
+        ImageTooLargeError: the image's header claims more than the pixel limit.
+        InvalidInputError: the image, depth or camera is unusable.
+        BlobStoreError: the blob store cannot be reached or refuses the write.
+    """
+    served = localizers.served
+    check_pixel_limit(image_bytes, served.max_pixels)
+    image = decode_image_reduced(image_bytes, served.max_pixels, served.extractor.max_side)
+    camera = frame.camera or default_camera(image.width, image.height)
+    check_camera_matches(camera, image)
+    decode_depth_for(depth_bytes, camera, served.max_pixels)
+    with sessions() as session:
+        _check_open(_require_session(session, map_id, session_id), max_frames)
+    frame_id = str(uuid.uuid4())
+    originals = write_originals(blobs, map_id, frame_id, image_bytes, depth_bytes)
+    try:
+        with sessions.begin() as session:
+            repository = CaptureRepository(session)
+            locked = repository.lock(session_id)
+            if locked is None or locked.map_id != map_id:
+                raise NotFoundError("capture session", session_id)
+            _check_open(locked, max_frames)
+            name = frame.name or f"{locked.frame_count:05d}"
+            if repository.frame_name_exists(session_id, name):
+                raise NameTakenError(f"the session already has a frame named {name!r}")
+            stored = repository.add_frame(
+                locked, frame_id, name, camera, frame.cam_from_session, originals
+            )
+            session.expunge(stored)
+            return stored
+    except BaseException:
+        remove_blobs(blobs, originals.keys)
+        raise
+
+
+def submit_session(
+    sessions: sessionmaker[Session], map_id: str, session_id: str, runner: CaptureRunner | None
+) -> CaptureSession:
+    """Closes an open session and queues its alignment.
+
+    Raises:
+        NotFoundError: unknown map or session.
+        ConflictError: the session is not open, or has no frame.
+        InvalidInputError: a session of unknown scale sent to an empty map (it would define
+            the map's frame without metres).
+    """
+    with sessions.begin() as session:
+        repository = CaptureRepository(session)
+        row = repository.lock(session_id)
+        if row is None or row.map_id != map_id:
+            require_map(session, map_id)
+            raise NotFoundError("capture session", session_id)
+        if row.state != "open":
+            raise ConflictError(f"the capture session is {row.state}, not open")
+        if row.frame_count == 0:
+            raise ConflictError("the capture session has no frame: upload its frames first")
+        if not row.metric and _reference_count(session, map_id) == 0:
+            raise InvalidInputError(
+                "metric: the map is empty, so this session would define its frame; a session "
+                "of unknown scale cannot (its map would not be in metres)"
+            )
+        repository.set_state(session_id, "queued", ("open",))
+        session.flush()
+        session.refresh(row)
+        session.expunge(row)
+    if runner is not None:
+        runner.schedule(session_id)
+    return row
+
+
+def get_session(sessions: sessionmaker[Session], map_id: str, session_id: str) -> CaptureSession:
+    """Raises: NotFoundError: unknown map or session."""
+    with sessions() as session:
+        row = _require_session(session, map_id, session_id)
+        session.expunge(row)
+        return row
+
+
+def list_sessions(
+    sessions: sessionmaker[Session], map_id: str, offset: int, limit: int
+) -> tuple[list[CaptureSession], int]:
+    """The map's capture sessions, newest first. Raises: NotFoundError: unknown map."""
+    with sessions() as session:
+        require_map(session, map_id)
+        rows, total = CaptureRepository(session).page(map_id, offset, limit)
+        session.expunge_all()
+        return rows, total
+
+
+def delete_session(
+    sessions: sessionmaker[Session], blobs: BlobStore, map_id: str, session_id: str
+) -> None:
+    """Deletes a session and its frames not added (then their blobs). One being aligned
+    stops; the references a session added stay (delete them as images).
+
+    Raises:
+        NotFoundError: unknown map or session.
+        ConflictError: the session's frames are being added (wait for it to end).
+    """
+    with sessions.begin() as session:
+        repository = CaptureRepository(session)
+        row = repository.lock(session_id)
+        if row is None or row.map_id != map_id:
+            require_map(session, map_id)
+            raise NotFoundError("capture session", session_id)
+        if row.state == "adding":
+            raise ConflictError(
+                "the capture session's frames are being added to the map: delete it once it "
+                "has ended"
+            )
+        keys = repository.blob_keys(map_id, session_id)
+        session.delete(row)
+    remove_blobs(blobs, keys)
+
+
+def _require_session(session: Session, map_id: str, session_id: str) -> CaptureSession:
+    row = CaptureRepository(session).get(map_id, session_id)
+    if row is None:
+        require_map(session, map_id)
+        raise NotFoundError("capture session", session_id)
+    return row
+
+
+def _check_open(row: CaptureSession, max_frames: int) -> None:
+    if row.state != "open":
+        raise ConflictError(f"the capture session is {row.state}: it takes no more frames")
+    if row.frame_count >= max_frames:
+        raise ConflictError(
+            f"the capture session holds {max_frames} frames, the most one may "
+            "(SLLOC_MAX_SESSION_FRAMES): submit it and send the rest as another session"
+        )
+
+
+def _reference_count(session: Session, map_id: str) -> int:
+    return int(session.scalar(select(func.count()).where(ReferenceImage.map_id == map_id)) or 0)
+
+
+class SessionStoppedError(Exception):
+    """The session was deleted, or the server is stopping."""
+
+
+def similarity_json(similarity: Similarity) -> dict[str, Any]:
+    return {
+        "rotation": [float(v) for v in Rigid3d(similarity.rotation, np.zeros(3)).quaternion],
+        "translation": [float(v) for v in similarity.translation],
+        "scale": float(similarity.scale),
+    }
+
+
+def similarity_of(stored: dict[str, Any]) -> Similarity:
+    rigid = Rigid3d.from_quaternion(np.array(stored["rotation"]), np.array(stored["translation"]))
+    return Similarity(rigid.rotation, rigid.translation, float(stored["scale"]))
+
+
+class CaptureRunner:
+    """Aligns and adds the submitted sessions, one at a time, on a background thread at the
+    lowest CPU priority."""
+
+    def __init__(
+        self,
+        context: LocalizeContext,
+        blobs: BlobStore,
+        on_added: Callable[[str, Localizer], None] | None = None,
+    ) -> None:
+        """``context``: how the checked frames are localized (the localize requests'
+        engine, slots and caches); ``on_added``: called with the map's id once a session's
+        frames are added, and the localizer that described them (its vocabulary and
+        self-evaluation may be due)."""
+        self.context = context
+        self.sessions = context.sessions
+        self.localizers: Localizers = context.localizers
+        self.blobs = blobs
+        self.on_added = on_added
+        self.worker = BackgroundTrainer("capture sessions")
+        self.finished: dict[str, int] = {}  # sessions ended since start-up, by state
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+
+    def resume(self) -> None:
+        """Schedules the sessions a restart interrupted (read in the background)."""
+        self.worker.schedule("resume", self._resume)
+
+    def _resume(self) -> None:
+        try:
+            with self.sessions() as session:
+                unfinished = CaptureRepository(session).unfinished()
+        except SQLAlchemyError as exc:
+            logger.warning("capture sessions not resumed, the database is unreachable: %s", exc)
+            return
+        for session_id in unfinished:
+            self.schedule(session_id)
+
+    def schedule(self, session_id: str) -> None:
+        self.worker.schedule(session_id, lambda: self.run(session_id))
+
+    def run(self, session_id: str) -> None:
+        """Runs the session to its end: ``added``, ``refused``, ``failed`` (rolled back), or
+        nothing when it was deleted meanwhile."""
+        try:
+            self._run(session_id)
+        except (SessionStoppedError, NotFoundError):
+            logger.info("capture session %s stopped", session_id)
+        except Exception as exc:  # a background job: whatever stops it ends it, never stuck
+            logger.exception("capture session %s failed", session_id)
+            self._roll_back(session_id, str(exc) or type(exc).__name__)
+
+    def _run(self, session_id: str) -> None:
+        with self.sessions() as session:
+            row = session.get(CaptureSession, session_id)
+            if row is None or row.state not in ACTIVE:
+                return
+            state, map_id = row.state, row.map_id
+        if state == "adding" or self._align(session_id, map_id):
+            self._add(session_id, map_id)
+
+    def _align(self, session_id: str, map_id: str) -> bool:
+        """Aligns the session; True when its frames are to be added (the session is then
+        ``adding`` with its alignment stored), False when it was refused."""
+        with self.sessions.begin() as session:
+            row = session.get(CaptureSession, session_id)
+            if row is None:
+                raise SessionStoppedError
+            require_map(session, map_id)
+            frames = CaptureRepository(session).frames(session_id)
+            metric, name = row.metric, row.name
+            empty = _reference_count(session, map_id) == 0
+            poses = [pose_of(frame) for frame in frames]
+            checked = [] if empty else check_indices(len(frames), CHECKED_FRAMES)
+            CaptureRepository(session).set_state(
+                session_id, "aligning", ACTIVE, done=0, total=len(checked) + len(frames)
+            )
+        path_m = path_length(poses)
+        ids = [frame.id for frame in frames]
+        if empty:
+            logger.info("capture session %s (%r) bootstraps map %s", session_id, name, map_id)
+            result: dict[str, Any] = {
+                "mode": "bootstrap",
+                "map_from_session": similarity_json(Similarity.identity()),
+                "path_length_m": path_m,
+                "checked": [],
+                "frame_ids": ids,
+            }
+            return self._decided(session_id, map_id, result, refused=False)
+        localized = []
+        for done, index in enumerate(checked, start=1):
+            frame = frames[index]
+            image = self.blobs.get(frame.original_key)
+            answer = localize(
+                self.context,
+                map_id,
+                LocalizeRequest(camera=camera_of(frame), top_k=CHECK_TOP_K),
+                image,
+            )
+            localized.append(
+                CheckedFrame(
+                    index,
+                    poses[index],
+                    answer.cam_from_world if answer.localized else None,
+                    answer.confidence,
+                )
+            )
+            self._progress(session_id, done)
+        alignment = align(localized, path_m, metric)
+        result = _alignment_json(alignment, localized, frames, path_m) | {"frame_ids": ids}
+        logger.info(
+            "capture session %s (%r) of map %s: %s",
+            session_id,
+            name,
+            map_id,
+            alignment.reason or f"aligned on {alignment.agreeing} of {len(localized)} frames",
+        )
+        return self._decided(session_id, map_id, result, refused=alignment.reason is not None)
+
+    def _decided(self, session_id: str, map_id: str, result: dict[str, Any], refused: bool) -> bool:
+        if refused:
+            with self.sessions.begin() as session:
+                repository = CaptureRepository(session)
+                keys = repository.blob_keys(map_id, session_id)
+                if not repository.set_state(session_id, "refused", ACTIVE, result=result):
+                    raise SessionStoppedError
+                repository.delete_frames(session_id)
+            remove_blobs(self.blobs, keys)
+            self._count("refused")
+            return False
+        with self.sessions.begin() as session:
+            if not CaptureRepository(session).set_state(
+                session_id, "adding", ACTIVE, result=result
+            ):
+                raise SessionStoppedError
+        return True
+
+    def _add(self, session_id: str, map_id: str) -> None:
+        with self.sessions() as session:
+            row = session.get(CaptureSession, session_id)
+            if row is None or row.result is None:
+                raise SessionStoppedError
+            similarity = similarity_of(dict(row.result)["map_from_session"])  # type: ignore[arg-type]
+            prefix, done = row.name, row.done
+            localizer = map_localizer(self.localizers, require_map(session, map_id))
+            frames = CaptureRepository(session).frames(session_id)
+            session.expunge_all()
+        added = 0
+        for frame in frames:
+            if self._stopping.is_set():
+                raise SessionStoppedError  # resumed at the next start
+            image = self.blobs.get(frame.original_key)
+            depth = self.blobs.get(frame.depth_key) if frame.depth_key else None
+            camera = camera_of(frame)
+            with self.context.slots:
+                data = localizer.describe_reference(image, camera, depth)
+            pose = similarity.cam_from_map(pose_of(frame))
+            originals = StoredOriginals(frame.original_key, frame.original_sha256, frame.depth_key)
+            with self.sessions.begin() as session:
+                repository = ImageRepository(session)
+                name = f"{prefix}/{frame.name}"
+                if repository.name_exists(map_id, name):
+                    name = f"{name}~{frame.id[:8]}"
+                repository.add(
+                    map_id, name, camera, pose, data, image_id=frame.id, originals=originals
+                )
+                waiting = session.get(CaptureFrame, frame.id)
+                if waiting is not None:
+                    session.delete(waiting)
+                row = session.get(CaptureSession, session_id)
+                if row is None:
+                    raise SessionStoppedError
+                row.done += 1
+            added += 1
+        with self.sessions.begin() as session:
+            row = session.get(CaptureSession, session_id)
+            if row is None:
+                raise SessionStoppedError
+            result = dict(row.result or {})
+            result["added"] = int(row.frame_count)
+            CaptureRepository(session).set_state(session_id, "added", ("adding",), result=result)
+        self._count("added")
+        logger.info(
+            "capture session %s: %d frames added to map %s (%d before a restart)",
+            session_id,
+            added,
+            map_id,
+            done,
+        )
+        if self.on_added is not None:
+            self.on_added(map_id, localizer)
+
+    def _roll_back(self, session_id: str, error: str) -> None:
+        """Ends a failed session ``failed``: the references it added deleted, its frames and
+        their blobs removed."""
+        try:
+            with self.sessions.begin() as session:
+                row = session.get(CaptureSession, session_id)
+                if row is None:
+                    return
+                map_id = row.map_id
+                ids = [str(i) for i in (row.result or {}).get("frame_ids", [])]  # type: ignore[attr-defined]
+                repository = CaptureRepository(session)
+                keys = repository.blob_keys(map_id, session_id)
+                images = ImageRepository(session)
+                for image_id in ids:
+                    keys += images.blob_keys(map_id, image_id)
+                    images.delete(map_id, image_id)
+                repository.delete_frames(session_id)
+                repository.set_state(session_id, "failed", ACTIVE, error=error)
+        except SQLAlchemyError as exc:
+            logger.warning("capture session %s: its failure was not stored: %s", session_id, exc)
+            return
+        if self.context.features_cache is not None:
+            self.context.features_cache.discard(map_id, ids)
+        remove_blobs(self.blobs, keys)
+        self._count("failed")
+
+    def _progress(self, session_id: str, done: int) -> None:
+        if self._stopping.is_set():
+            raise SessionStoppedError
+        with self.sessions.begin() as session:
+            row = session.get(CaptureSession, session_id)
+            if row is None or row.state != "aligning":
+                raise SessionStoppedError
+            row.done = done
+
+    def _count(self, state: str) -> None:
+        with self._lock:
+            self.finished[state] = self.finished.get(state, 0) + 1
+
+    def shutdown(self) -> None:
+        self._stopping.set()
+        self.worker.shutdown()
+
+
+def _alignment_json(
+    alignment: Alignment, checked: list[CheckedFrame], frames: list[CaptureFrame], path_m: float
+) -> dict[str, Any]:
+    residuals = {r.index: r for r in alignment.residuals}
+    rows = []
+    for frame in checked:
+        residual = residuals.get(frame.index)
+        rows.append(
+            {
+                "frame": frames[frame.index].name,
+                "localized": frame.cam_from_map is not None,
+                "confidence": round(float(frame.confidence), 4),
+                "position_error_m": residual.position_m if residual else None,
+                "rotation_error_deg": residual.rotation_deg if residual else None,
+                "agrees": residual.agrees if residual else False,
+            }
+        )
+    return {
+        "mode": "aligned",
+        "map_from_session": (
+            similarity_json(alignment.map_from_session)
+            if alignment.map_from_session is not None
+            else None
+        ),
+        "reason": alignment.reason,
+        "path_length_m": path_m,
+        "tolerance_m": alignment.tolerance_m,
+        "confident": alignment.confident,
+        "agreeing": alignment.agreeing,
+        "rms_position_m": alignment.rms_position_m,
+        "rms_rotation_deg": alignment.rms_rotation_deg,
+        "position_stderr_m": alignment.position_stderr_m,
+        "rotation_stderr_deg": alignment.rotation_stderr_deg,
+        "checked": rows,
+    }

@@ -1,0 +1,1 @@
+"""Capture sessions: a phone or robot capture aligned to a map and added to it."""

@@ -1,0 +1,248 @@
+"""Capture sessions extend a map: frames with poses in the device's own frame are aligned to
+the map and added, refused with the reason (adding nothing), or start an empty map. SQLite and
+PostgreSQL, real SIFT on rendered views whose poses are exact, sessions expressed in frames
+that the test moves, turns and scales."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
+from tests.conftest import localize_view, make_client, upload_view
+from tests.polling import wait_until
+from tools.synthetic.scene import SyntheticView, encode_png
+
+# the session's frame in the map's: turned 40° about an oblique axis and moved
+TURN = quaternion_to_matrix(np.array([np.cos(0.35), 0.3, np.sin(0.35) * 0.8, 0.2]))
+WORLD_FROM_SESSION = Rigid3d(TURN, np.array([1.5, -0.4, 2.0]))
+
+
+@pytest.fixture
+def client(database_url: str, localizer: Any, tmp_path: Path) -> Any:
+    with make_client(database_url, localizer, data_dir=tmp_path / "data") as c:
+        yield c
+
+
+def _session_pose(view: SyntheticView, scale: float = 1.0) -> dict[str, object]:
+    """The view's ``cam_from_session`` for a session whose frame is ``WORLD_FROM_SESSION``
+    and whose unit is ``scale`` metres."""
+    cam_from_session = view.cam_from_world.compose(WORLD_FROM_SESSION)
+    return {
+        "rotation": [float(v) for v in cam_from_session.quaternion],
+        "translation": [float(v) / scale for v in cam_from_session.translation],
+    }
+
+
+def _map(client: TestClient, views: list[SyntheticView]) -> str:
+    created = client.post("/v1/maps", json={"name": "scene", "features": {"preset": "sift"}})
+    assert created.status_code == 201, created.text
+    map_id = str(created.json()["id"])
+    for view in views:
+        assert upload_view(client, map_id, view).status_code == 201
+    return map_id
+
+
+def _frame(
+    client: TestClient,
+    map_id: str,
+    session_id: str,
+    view: SyntheticView,
+    width: int | None = None,
+    **pose: object,
+) -> Any:
+    camera = view.camera
+    metadata = {
+        "name": view.name,
+        "camera": {
+            "model": camera.model,
+            "width": width or camera.width,
+            "height": camera.height,
+            "params": list(camera.params),
+        },
+        **(pose or {"cam_from_session": _session_pose(view)}),
+    }
+    return client.post(
+        f"/v1/maps/{map_id}/sessions/{session_id}/frames",
+        files={"image": (view.name, encode_png(view.image), "image/png")},
+        data={"metadata": json.dumps(metadata)},
+    )
+
+
+def _capture(
+    client: TestClient,
+    map_id: str,
+    views: list[SyntheticView],
+    metric: bool = True,
+    scale: float = 1.0,
+    name: str = "walk",
+) -> dict[str, Any]:
+    """Uploads the views as a session, submits it and returns it once decided."""
+    created = client.post(f"/v1/maps/{map_id}/sessions", json={"name": name, "metric": metric})
+    assert created.status_code == 201, created.text
+    session_id = created.json()["id"]
+    assert created.headers["location"] == f"/v1/maps/{map_id}/sessions/{session_id}"
+    for view in views:
+        response = _frame(
+            client, map_id, session_id, view, cam_from_session=_session_pose(view, scale)
+        )
+        assert response.status_code == 201, response.text
+    submitted = client.post(f"/v1/maps/{map_id}/sessions/{session_id}/submit")
+    assert submitted.status_code == 202, submitted.text
+    assert submitted.json()["state"] == "queued" and submitted.json()["frames"] == len(views)
+
+    def decided() -> bool:
+        client.app.state.capture_runner.worker.wait(120.0)  # type: ignore[attr-defined]
+        state = client.get(f"/v1/maps/{map_id}/sessions/{session_id}").json()["state"]
+        return state in ("added", "refused", "failed")
+
+    assert wait_until(decided, timeout_s=240.0)
+    answer: dict[str, Any] = client.get(f"/v1/maps/{map_id}/sessions/{session_id}").json()
+    return answer
+
+
+def _images(client: TestClient, map_id: str) -> dict[str, dict[str, Any]]:
+    items = client.get(f"/v1/maps/{map_id}/images", params={"limit": 1000}).json()["items"]
+    return {item["name"]: item for item in items}
+
+
+def _pose_errors(
+    image: dict[str, Any], view: SyntheticView, world_from_map: Rigid3d
+) -> tuple[float, float]:
+    pose = image["cam_from_world"]
+    cam_from_map = Rigid3d.from_quaternion(
+        np.array(pose["rotation"]), np.array(pose["translation"])
+    )
+    truth = view.cam_from_world.compose(world_from_map)
+    return (
+        float(np.linalg.norm(cam_from_map.center - truth.center)),
+        rotation_error_deg(cam_from_map.rotation, truth.rotation),
+    )
+
+
+@pytest.mark.parametrize("metric", [True, False])
+def test_a_session_is_aligned_and_its_frames_added(
+    client: TestClient,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+    metric: bool,
+) -> None:
+    map_id = _map(client, reference_views[:12])
+    session_views = query_views[:8]
+    # a metric session, or one in a unit of half a metre whose scale is estimated
+    scale = 1.0 if metric else 0.5
+    session = _capture(client, map_id, session_views, metric=metric, scale=scale)
+    assert session["state"] == "added", session
+    alignment = session["alignment"]
+    assert alignment["mode"] == "aligned" and alignment["reason"] is None
+    assert alignment["agreeing"] >= 3 and alignment["added"] == len(session_views)
+    assert alignment["map_from_session"]["scale"] == pytest.approx(scale, rel=0.01)
+    assert alignment["rms_position_m"] < 0.02
+    assert len(alignment["checked"]) == len(session_views)
+    assert session["progress"] == {"done": 2 * len(session_views), "total": 2 * len(session_views)}
+    images = _images(client, map_id)
+    assert len(images) == 12 + len(session_views)
+    for view in session_views:
+        image = images[f"walk/{view.name}"]
+        position, rotation = _pose_errors(image, view, Rigid3d.identity())
+        assert position < 0.02 and rotation < 0.5, (view.name, position, rotation)
+        assert image["has_original"]
+        original = client.get(f"/v1/maps/{map_id}/images/{image['id']}/original")
+        assert original.content == encode_png(view.image)
+    # the frames serve as references: a query localizes against the grown map
+    answer = localize_view(client, map_id, query_views[9]).json()
+    assert answer["localized"], answer
+
+
+def test_a_session_that_does_not_fit_is_refused_and_adds_nothing(
+    client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    map_id = _map(client, reference_views[:12])
+    # said to be metric while its unit is a third of a metre: no rigid transform fits it
+    session = _capture(client, map_id, query_views[:8], metric=True, scale=1 / 3)
+    assert session["state"] == "refused", session
+    alignment = session["alignment"]
+    assert alignment["map_from_session"] is None
+    assert "disagree" in alignment["reason"] and "not in metres" in alignment["reason"]
+    assert any(not row["agrees"] for row in alignment["checked"])
+    assert len(_images(client, map_id)) == 12
+    # its frames' blobs are gone: only the references' remain
+    blobs = client.app.state.blobs  # type: ignore[attr-defined]
+    assert sum(1 for _ in blobs.list("originals/")) == 12
+
+
+def test_an_empty_map_is_bootstrapped_from_one_session(
+    client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    created = client.post("/v1/maps", json={"name": "new", "features": {"preset": "sift"}})
+    map_id = created.json()["id"]
+    session = _capture(client, map_id, reference_views[:12])
+    assert session["state"] == "added", session
+    assert session["alignment"]["mode"] == "bootstrap"
+    assert session["alignment"]["map_from_session"]["matrix"] == np.eye(4).tolist()
+    images = _images(client, map_id)
+    assert len(images) == 12
+    # the map's frame is the session's: a query localizes where the session would put it
+    view = query_views[0]
+    answer = localize_view(client, map_id, view).json()
+    assert answer["localized"], answer
+    truth = view.cam_from_world.compose(WORLD_FROM_SESSION)
+    assert np.linalg.norm(np.array(answer["camera_center"]) - truth.center) < 0.05
+
+
+def test_session_requests_are_checked(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    created = client.post("/v1/maps", json={"name": "m", "features": {"preset": "sift"}})
+    map_id = created.json()["id"]
+    base = f"/v1/maps/{map_id}/sessions"
+    # a session of unknown scale cannot define an empty map's frame
+    unknown = client.post(base, json={"name": "loose", "metric": False}).json()["id"]
+    assert _frame(client, map_id, unknown, reference_views[0]).status_code == 201
+    refused = client.post(f"{base}/{unknown}/submit")
+    assert refused.status_code == 422 and "unknown scale" in refused.json()["detail"]
+    # names are unique in the map; an empty session cannot be submitted
+    session_id = client.post(base, json={"name": "walk"}).json()["id"]
+    assert client.post(base, json={"name": "walk"}).status_code == 409
+    empty = client.post(f"{base}/{session_id}/submit")
+    assert empty.status_code == 409 and "no frame" in empty.json()["detail"]
+    # one pose per frame, in one of the two forms
+    both = _frame(
+        client,
+        map_id,
+        session_id,
+        reference_views[0],
+        cam_from_session=_session_pose(reference_views[0]),
+        session_pose={"position": [0, 0, 0], "orientation": [1, 0, 0, 0]},
+    )
+    assert both.status_code == 422 and "either session_pose or cam_from_session" in both.text
+    # the camera must fit the image
+    view = reference_views[0]
+    wrong = _frame(client, map_id, session_id, view, width=view.camera.width + 2)
+    assert wrong.status_code == 422 and "camera is" in wrong.json()["detail"]
+    assert client.get(f"{base}/{session_id}").json()["frames"] == 0
+    # an AR session pose (ARKit's camera.transform) is taken as the localize endpoint takes it
+    ar = _frame(
+        client,
+        map_id,
+        session_id,
+        reference_views[1],
+        session_pose={"position": [0.1, 0.2, 0.3], "orientation": [1, 0, 0, 0]},
+    )
+    assert ar.status_code == 201, ar.text
+    assert _frame(client, map_id, session_id, reference_views[1]).status_code == 409  # name
+    assert client.post(f"{base}/{session_id}/submit").status_code == 202
+    late = _frame(client, map_id, session_id, reference_views[2])
+    assert late.status_code == 409 and "takes no more frames" in late.json()["detail"]
+    unknown_session = client.get(f"{base}/00000000-0000-0000-0000-000000000000")
+    assert unknown_session.status_code == 404
+    # deleting the open session removes its waiting frame's blobs
+    assert client.delete(f"{base}/{unknown}").status_code == 204
+    assert client.get(f"{base}/{unknown}").status_code == 404
+    listed = client.get(base).json()
+    assert listed["total"] == 1 and listed["items"][0]["name"] == "walk"

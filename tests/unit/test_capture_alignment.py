@@ -1,0 +1,181 @@
+"""Aligning a capture session to a map on synthetic trajectories with exact ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+
+from services.capture.alignment import (
+    CheckedFrame,
+    Similarity,
+    align,
+    check_indices,
+    path_length,
+    tolerance_m,
+)
+from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
+
+
+def _rotation(rng: np.random.Generator, degrees: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    half = np.radians(degrees) / 2
+    return quaternion_to_matrix(np.array([np.cos(half), *(np.sin(half) * axis)]))
+
+
+def _session(rng: np.random.Generator, count: int = 40, step_m: float = 0.1) -> list[Rigid3d]:
+    """A walk of ``count`` cameras, each looking ahead with some wobble."""
+    poses = []
+    center = np.zeros(3)
+    for i in range(count):
+        center = center + np.array([step_m, 0.02 * np.sin(i / 3), 0.01 * np.cos(i / 5)])
+        rotation = _rotation(rng, 10.0)
+        poses.append(Rigid3d(rotation, -rotation @ center))
+    return poses
+
+
+def _truth(rng: np.random.Generator, scale: float = 1.0) -> Similarity:
+    return Similarity(_rotation(rng, 70.0), rng.normal(size=3) * 5, scale)
+
+
+def _checked(
+    session: list[Rigid3d],
+    truth: Similarity,
+    rng: np.random.Generator,
+    noise_m: float = 0.005,
+    noise_deg: float = 0.2,
+) -> list[CheckedFrame]:
+    frames = []
+    for index in check_indices(len(session), 12):
+        exact = truth.cam_from_map(session[index])
+        rotation = _rotation(rng, noise_deg) @ exact.rotation
+        center = exact.center + rng.normal(size=3) * noise_m / np.sqrt(3)
+        frames.append(
+            CheckedFrame(index, session[index], Rigid3d(rotation, -rotation @ center), 0.9)
+        )
+    return frames
+
+
+def _error(estimate: Similarity, truth: Similarity, session: list[Rigid3d]) -> float:
+    return max(
+        float(np.linalg.norm(estimate.cam_from_map(p).center - truth.cam_from_map(p).center))
+        for p in session
+    )
+
+
+def test_check_indices_spread_over_the_session_ends_included() -> None:
+    assert check_indices(5, 12) == [0, 1, 2, 3, 4]
+    picked = check_indices(250, 12)
+    assert picked[0] == 0 and picked[-1] == 249 and len(picked) == 12
+    assert np.all(np.diff(picked) >= 20)
+
+
+@pytest.mark.parametrize("metric", [True, False])
+def test_alignment_recovers_the_transform(metric: bool) -> None:
+    rng = np.random.default_rng(3)
+    session = _session(rng)
+    truth = _truth(rng, 1.0 if metric else 0.37)
+    frames = _checked(session, truth, rng)
+    alignment = align(frames, path_length(session), metric)
+    assert alignment.reason is None and alignment.map_from_session is not None
+    assert alignment.agreeing == len(frames)
+    # 12 frames of 5 mm noise: the whole path within 1 cm, the scale within half a per cent
+    assert _error(alignment.map_from_session, truth, session) < 0.01
+    assert rotation_error_deg(alignment.map_from_session.rotation, truth.rotation) < 0.2
+    assert alignment.map_from_session.scale == pytest.approx(truth.scale, rel=5e-3)
+    assert alignment.rms_position_m is not None and 0.001 < alignment.rms_position_m < 0.01
+
+
+def test_similarity_agrees_with_pycolmap_on_exact_centres() -> None:
+    rng = np.random.default_rng(4)
+    session = _session(rng)
+    truth = _truth(rng, 2.5)
+    frames = _checked(session, truth, rng, noise_m=0.0, noise_deg=0.0)
+    ours = align(frames, path_length(session), metric=False).map_from_session
+    assert ours is not None
+    src = np.array([f.cam_from_session.center for f in frames])
+    dst = np.array([f.cam_from_map.center for f in frames if f.cam_from_map is not None])
+    theirs = pycolmap.estimate_sim3d(src, dst)
+    assert theirs is not None
+    np.testing.assert_allclose(ours.scale, theirs.scale, rtol=1e-9)
+    np.testing.assert_allclose(ours.rotation, theirs.rotation.matrix(), atol=1e-9)
+    np.testing.assert_allclose(ours.translation, theirs.translation, atol=1e-9)
+
+
+def test_wrong_localizations_are_outvoted() -> None:
+    rng = np.random.default_rng(5)
+    session = _session(rng)
+    truth = _truth(rng)
+    frames = _checked(session, truth, rng)
+    for k in (2, 7):  # two confident answers metres off
+        bad = frames[k].cam_from_map
+        assert bad is not None
+        frames[k] = CheckedFrame(
+            frames[k].index,
+            frames[k].cam_from_session,
+            Rigid3d(bad.rotation, bad.translation + 3.0),
+            0.9,
+        )
+    alignment = align(frames, path_length(session), metric=True)
+    assert alignment.map_from_session is not None
+    assert alignment.agreeing == len(frames) - 2
+    assert sorted(r.index for r in alignment.residuals if not r.agrees) == [
+        frames[2].index,
+        frames[7].index,
+    ]
+    assert _error(alignment.map_from_session, truth, session) < 0.01
+
+
+def test_drift_beyond_the_bound_is_refused() -> None:
+    rng = np.random.default_rng(6)
+    session = _session(rng)
+    truth = _truth(rng)
+    length = path_length(session)
+    # the tracking drifts by 10 % of the distance travelled, ten times the bound
+    drifted = []
+    travelled = 0.0
+    for i, pose in enumerate(session):
+        if i:
+            travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
+        center = pose.center + np.array([0.0, 0.1 * travelled, 0.0])
+        drifted.append(Rigid3d(pose.rotation, -pose.rotation @ center))
+    frames = [
+        CheckedFrame(f.index, drifted[f.index], f.cam_from_map, f.confidence)
+        for f in _checked(session, truth, rng)
+    ]
+    alignment = align(frames, length, metric=True)
+    assert alignment.map_from_session is None
+    assert alignment.reason is not None and "drifted" in alignment.reason
+    assert tolerance_m(length) == pytest.approx(0.05)
+
+
+def test_a_metric_session_at_the_wrong_scale_is_refused() -> None:
+    rng = np.random.default_rng(7)
+    session = _session(rng)
+    truth = _truth(rng, 1.5)  # the session is in other units than the map
+    frames = _checked(session, truth, rng)
+    assert align(frames, path_length(session), metric=True).map_from_session is None
+    assert align(frames, path_length(session), metric=False).map_from_session is not None
+
+
+def test_too_few_confident_frames_are_refused() -> None:
+    rng = np.random.default_rng(8)
+    session = _session(rng)
+    frames = _checked(session, _truth(rng), rng)
+    weak = [
+        CheckedFrame(f.index, f.cam_from_session, f.cam_from_map if k < 2 else None, 0.9)
+        for k, f in enumerate(frames)
+    ]
+    alignment = align(weak, path_length(session), metric=True)
+    assert alignment.map_from_session is None and alignment.confident == 2
+    assert alignment.reason is not None and "too few frames" in alignment.reason
+
+
+def test_an_unknown_scale_needs_a_long_enough_path() -> None:
+    rng = np.random.default_rng(9)
+    session = _session(rng, count=40, step_m=0.005)  # 20 cm in all
+    frames = _checked(session, _truth(rng, 0.8), rng)
+    alignment = align(frames, path_length(session), metric=False)
+    assert alignment.map_from_session is None
+    assert alignment.reason is not None and "scale is not determined" in alignment.reason
