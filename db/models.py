@@ -262,4 +262,7 @@ class CaptureFrame(Base):
     original_key: Mapped[str] = mapped_column(String(255))
     original_sha256: Mapped[str] = mapped_column(String(64))
     depth_key: Mapped[str | None] = mapped_column(String(255))
+    # its pose in the map once the session is aligned (``cam_from_map``: [qw, qx, qy, qz, tx,
+    # ty, tz]); None before
+    placed: Mapped[list[float] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)

@@ -127,6 +127,11 @@ class CheckedFrameOut(BaseModel):
     agrees: bool = Field(description="Within the tolerance and 2°: it took part in the fit")
 
 
+class DriftCorrectionOut(BaseModel):
+    median: float
+    max: float
+
+
 class CaptureAlignmentOut(BaseModel):
     mode: Literal["aligned", "bootstrap"] = Field(
         description="bootstrap: the map was empty and the session defined its frame"
@@ -150,6 +155,11 @@ class CaptureAlignmentOut(BaseModel):
     )
     rotation_stderr_deg: float | None = None
     checked: list[CheckedFrameOut]
+    drift_correction_m: DriftCorrectionOut | None = Field(
+        None,
+        description="How far the agreeing frames' centres were moved onto where the map "
+        "localized them; the frames between two of them are corrected by interpolation",
+    )
     added: int | None = Field(None, description="Frames added as references")
 
 

@@ -47,9 +47,11 @@ from services.capture.alignment import (
     CheckedFrame,
     Similarity,
     align,
+    check_count,
     check_indices,
     path_length,
 )
+from services.capture.drift import corrected_poses
 from services.components import Localizers
 from services.errors import InvalidInputError
 from services.geometry.camera import Camera, default_camera
@@ -61,8 +63,6 @@ from services.retrieval.training import BackgroundTrainer
 
 logger = logging.getLogger(__name__)
 
-# frames of a session localized against the map to align it
-CHECKED_FRAMES = 12
 # references retrieved for each checked frame
 CHECK_TOP_K = 10
 
@@ -345,7 +345,7 @@ class CaptureRunner:
             metric, name = row.metric, row.name
             empty = _reference_count(session, map_id) == 0
             poses = [pose_of(frame) for frame in frames]
-            checked = [] if empty else check_indices(len(frames), CHECKED_FRAMES)
+            checked = [] if empty else check_indices(len(frames), check_count(len(frames)))
             CaptureRepository(session).set_state(
                 session_id, "aligning", ACTIVE, done=0, total=len(checked) + len(frames)
             )
@@ -360,7 +360,7 @@ class CaptureRunner:
                 "checked": [],
                 "frame_ids": ids,
             }
-            return self._decided(session_id, map_id, result, refused=False)
+            return self._decided(session_id, map_id, result, dict(zip(ids, poses, strict=True)))
         localized = []
         for done, index in enumerate(checked, start=1):
             frame = frames[index]
@@ -382,6 +382,20 @@ class CaptureRunner:
             self._progress(session_id, done)
         alignment = align(localized, path_m, metric)
         result = _alignment_json(alignment, localized, frames, path_m) | {"frame_ids": ids}
+        placed: dict[str, Rigid3d] | None = None
+        if alignment.map_from_session is not None:
+            agreeing = {r.index for r in alignment.residuals if r.agrees}
+            anchors = {
+                f.index: f.cam_from_map
+                for f in localized
+                if f.index in agreeing and f.cam_from_map is not None
+            }
+            corrected, shifts = corrected_poses(alignment.map_from_session, poses, anchors)
+            placed = dict(zip(ids, corrected, strict=True))
+            result["drift_correction_m"] = {
+                "median": float(np.median(shifts)),
+                "max": float(shifts.max()),
+            }
         logger.info(
             "capture session %s (%r) of map %s: %s",
             session_id,
@@ -389,10 +403,18 @@ class CaptureRunner:
             map_id,
             alignment.reason or f"aligned on {alignment.agreeing} of {len(localized)} frames",
         )
-        return self._decided(session_id, map_id, result, refused=alignment.reason is not None)
+        return self._decided(session_id, map_id, result, placed)
 
-    def _decided(self, session_id: str, map_id: str, result: dict[str, Any], refused: bool) -> bool:
-        if refused:
+    def _decided(
+        self,
+        session_id: str,
+        map_id: str,
+        result: dict[str, Any],
+        placed: dict[str, Rigid3d] | None,
+    ) -> bool:
+        """Stores the decision: with ``placed`` (each frame's pose in the map, by frame id)
+        the session goes on ``adding``; without, it is ``refused`` and its frames removed."""
+        if placed is None:
             with self.sessions.begin() as session:
                 repository = CaptureRepository(session)
                 keys = repository.blob_keys(map_id, session_id)
@@ -407,6 +429,9 @@ class CaptureRunner:
                 session_id, "adding", ACTIVE, result=result
             ):
                 raise SessionStoppedError
+            for frame in CaptureRepository(session).frames(session_id):
+                pose = placed[frame.id]
+                frame.placed = [*map(float, pose.quaternion), *map(float, pose.translation)]
         return True
 
     def _add(self, session_id: str, map_id: str) -> None:
@@ -414,7 +439,6 @@ class CaptureRunner:
             row = session.get(CaptureSession, session_id)
             if row is None or row.result is None:
                 raise SessionStoppedError
-            similarity = similarity_of(dict(row.result)["map_from_session"])  # type: ignore[arg-type]
             prefix, done = row.name, row.done
             localizer = map_localizer(self.localizers, require_map(session, map_id))
             frames = CaptureRepository(session).frames(session_id)
@@ -428,7 +452,9 @@ class CaptureRunner:
             camera = camera_of(frame)
             with self.context.slots:
                 data = localizer.describe_reference(image, camera, depth)
-            pose = similarity.cam_from_map(pose_of(frame))
+            if frame.placed is None:
+                raise ValueError(f"frame {frame.name!r} of an aligned session has no pose")
+            pose = Rigid3d.from_quaternion(np.array(frame.placed[:4]), np.array(frame.placed[4:]))
             originals = StoredOriginals(frame.original_key, frame.original_sha256, frame.depth_key)
             with self.sessions.begin() as session:
                 repository = ImageRepository(session)

@@ -5,9 +5,11 @@ Each checked frame ``i`` carries its pose in the session (``cam_from_session``, 
 tracking) and, when it was localized, its pose in the map (``cam_from_map``) with the answer's
 confidence. One frame alone determines a rigid ``map_from_session`` (rotation and
 translation); two determine a similarity (the scale from the distance between their centres).
-The estimate is robust: every hypothesis from one frame (rigid) or one pair (similarity) is
-scored by the frames that agree with it, the best is refined on those frames (chordal mean of
-the rotations, least squares for scale and translation) and the agreement measured again.
+The frames checked are spread evenly over the session in capture order (one in
+``CHECK_EVERY``, within [``MIN_CHECKED``, ``MAX_CHECKED``]). The estimate is robust: every
+hypothesis from one frame (rigid) or one pair (similarity) is scored by the frames that agree
+with it, the best is refined on those frames (least squares over their orientations and
+centres) and the agreement measured again.
 
 The rule (:func:`decide`), with ``tolerance = max(MIN_TOLERANCE_M, DRIFT_FRACTION × the
 session's path length)``:
@@ -42,6 +44,13 @@ MIN_TOLERANCE_M = 0.05
 DRIFT_FRACTION = 0.01
 MAX_ROTATION_DEG = 2.0
 MIN_SPAN_TOLERANCES = 10.0
+# a localized frame's typical errors, which weigh its orientation against its centre in the fit
+ROTATION_SIGMA_RAD = float(np.radians(0.5))
+POSITION_SIGMA_M = 0.02
+# frames localized against the map: one in CHECK_EVERY, within [MIN_CHECKED, MAX_CHECKED]
+CHECK_EVERY = 10
+MIN_CHECKED = 12
+MAX_CHECKED = 50
 # pair hypotheses tried for a similarity (every pair up to this many frames)
 _MAX_PAIRS = 400
 _REFINEMENTS = 3
@@ -119,6 +128,12 @@ def path_length(cam_from_session: list[Rigid3d]) -> float:
 def tolerance_m(path_m: float) -> float:
     """How far an agreeing frame may lie from where the alignment puts it."""
     return max(MIN_TOLERANCE_M, DRIFT_FRACTION * path_m)
+
+
+def check_count(count: int) -> int:
+    """How many of a session's ``count`` frames are localized against the map: one in
+    ``CHECK_EVERY``, at least ``MIN_CHECKED`` and at most ``MAX_CHECKED``."""
+    return min(max(-(-count // CHECK_EVERY), MIN_CHECKED), MAX_CHECKED)
 
 
 def check_indices(count: int, wanted: int) -> list[int]:
@@ -241,9 +256,10 @@ def _hypotheses(
     return out
 
 
-def _mean_rotation(rotations: FloatArray) -> FloatArray:
-    """The chordal L2 mean: the rotation nearest the sum of the matrices."""
-    u, _, vt = np.linalg.svd(rotations.sum(axis=0))
+def _nearest_rotation(matrix: FloatArray) -> FloatArray:
+    """The rotation nearest ``matrix`` in the Frobenius norm (a sum of rotations: their
+    chordal mean)."""
+    u, _, vt = np.linalg.svd(matrix)
     d = np.sign(np.linalg.det(u @ vt))
     mean: FloatArray = u @ np.diag([1.0, 1.0, d]) @ vt
     return mean
@@ -252,17 +268,31 @@ def _mean_rotation(rotations: FloatArray) -> FloatArray:
 def _fit(
     rotations: FloatArray, session_centers: FloatArray, map_centers: FloatArray, metric: bool
 ) -> Similarity:
-    rotation = _mean_rotation(rotations)
-    turned = session_centers @ rotation.T
-    scale = 1.0
+    """Least squares over the frames' rotations and centres: the rotation nearest the sum of
+    the frames' rotations and the centres' cross-covariance, each weighted by the inverse
+    variance of a localized frame's error (``ROTATION_SIGMA_RAD``, ``POSITION_SIGMA_M``: a
+    long session's rotation is held mostly by its centres, a short one's by its frames'
+    orientations), then the scale and translation of the centres."""
+    a = session_centers - session_centers.mean(axis=0)
+    b = map_centers - map_centers.mean(axis=0)
+    by_rotations = rotations.sum(axis=0) / ROTATION_SIGMA_RAD**2
+    rotation = _nearest_rotation(by_rotations)
+    scale = 1.0 if metric else _scale(a, b, rotation)
+    rotation = _nearest_rotation(by_rotations + scale * (b.T @ a) / POSITION_SIGMA_M**2)
     if not metric:
-        a = turned - turned.mean(axis=0)
-        b = map_centers - map_centers.mean(axis=0)
-        denominator = float((a * a).sum())
-        if denominator > 0:
-            scale = max(float((a * b).sum()) / denominator, 1e-12)
-    translation = map_centers.mean(axis=0) - scale * turned.mean(axis=0)
+        scale = _scale(a, b, rotation)
+    translation = map_centers.mean(axis=0) - scale * rotation @ session_centers.mean(axis=0)
     return Similarity(rotation, translation, scale)
+
+
+def _scale(session_offsets: FloatArray, map_offsets: FloatArray, rotation: FloatArray) -> float:
+    """The least-squares scale of centred session centres turned by ``rotation`` onto the
+    centred map centres (1 where the session's centres coincide)."""
+    turned = session_offsets @ rotation.T
+    denominator = float((turned * turned).sum())
+    if denominator <= 0:
+        return 1.0
+    return max(float((turned * map_offsets).sum()) / denominator, 1e-12)
 
 
 def _residuals(

@@ -143,6 +143,8 @@ def test_a_session_is_aligned_and_its_frames_added(
     assert alignment["agreeing"] >= 3 and alignment["added"] == len(session_views)
     assert alignment["map_from_session"]["scale"] == pytest.approx(scale, rel=0.01)
     assert alignment["rms_position_m"] < 0.02
+    # exact session poses: the frames that anchor the drift correction barely move
+    assert alignment["drift_correction_m"]["max"] < 0.02
     assert len(alignment["checked"]) == len(session_views)
     assert session["progress"] == {"done": 2 * len(session_views), "total": 2 * len(session_views)}
     images = _images(client, map_id)

@@ -1,4 +1,5 @@
-"""Aligning a capture session to a map on synthetic trajectories with exact ground truth."""
+"""Aligning a capture session to a map, and correcting its drift, on synthetic trajectories with
+exact ground truth."""
 
 from __future__ import annotations
 
@@ -14,7 +15,13 @@ from services.capture.alignment import (
     path_length,
     tolerance_m,
 )
-from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
+from services.capture.drift import corrected_poses, slerp
+from services.geometry.rigid import (
+    Rigid3d,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+    rotation_error_deg,
+)
 
 
 def _rotation(rng: np.random.Generator, degrees: float) -> np.ndarray:
@@ -179,3 +186,71 @@ def test_an_unknown_scale_needs_a_long_enough_path() -> None:
     alignment = align(frames, path_length(session), metric=False)
     assert alignment.map_from_session is None
     assert alignment.reason is not None and "scale is not determined" in alignment.reason
+
+
+def test_drift_between_anchors_is_corrected() -> None:
+    rng = np.random.default_rng(10)
+    session = _session(rng, count=60)
+    truth = _truth(rng)
+    length = path_length(session)
+    # the tracking drifts as it goes: after s metres, its frame has turned 0.2° per metre
+    # about the vertical through the start and moved 1 % of s sideways
+    drifted = []
+    travelled = 0.0
+    for i, pose in enumerate(session):
+        if i:
+            travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
+        yaw = np.radians(0.2 * travelled)
+        turn = np.array(
+            [[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]]
+        )
+        start = session[0].center
+        center = turn @ (pose.center - start) + start + np.array([0.0, 0.01 * travelled, 0.0])
+        rotation = pose.rotation @ turn.T
+        drifted.append(Rigid3d(rotation, -rotation @ center))
+    frames = [
+        CheckedFrame(f.index, drifted[f.index], f.cam_from_map, f.confidence)
+        for f in _checked(session, truth, rng, noise_m=0.002, noise_deg=0.05)
+    ]
+    alignment = align(frames, length, metric=True)
+    assert alignment.map_from_session is not None
+    anchors = {
+        r.index: f.cam_from_map
+        for r, f in zip(alignment.residuals, frames, strict=True)
+        if r.agrees and f.cam_from_map is not None
+    }
+    placed, shifts = corrected_poses(alignment.map_from_session, drifted, anchors)
+    rigid = [alignment.map_from_session.cam_from_map(p) for p in drifted]
+    exact = [truth.cam_from_map(p) for p in session]
+
+    def worst(poses: list[Rigid3d]) -> tuple[float, float]:
+        return (
+            max(
+                float(np.linalg.norm(p.center - e.center))
+                for p, e in zip(poses, exact, strict=True)
+            ),
+            max(
+                rotation_error_deg(p.rotation, e.rotation)
+                for p, e in zip(poses, exact, strict=True)
+            ),
+        )
+
+    # one transform leaves centimetres and degrees; corrected, every frame is within the
+    # anchors' noise plus what drifts between two of them
+    assert worst(rigid)[0] > 0.02 and worst(rigid)[1] > 0.4
+    assert worst(placed)[0] < 0.006 and worst(placed)[1] < 0.15
+    assert len(shifts) == len(anchors) and shifts.max() > 0.01
+    # at an anchor the answer is the anchor's own pose
+    k = min(anchors)
+    np.testing.assert_allclose(placed[k].center, anchors[k].center, atol=1e-9)
+
+
+def test_slerp_meets_its_ends_and_halves_the_angle() -> None:
+    rng = np.random.default_rng(11)
+    a, b = _rotation(rng, 30.0), _rotation(rng, 30.0)
+    qa, qb = matrix_to_quaternion(a), matrix_to_quaternion(b)
+    np.testing.assert_allclose(quaternion_to_matrix(slerp(qa, qb, 0.0)), a, atol=1e-12)
+    np.testing.assert_allclose(quaternion_to_matrix(slerp(qa, -qb, 1.0)), b, atol=1e-12)
+    half = quaternion_to_matrix(slerp(qa, qb, 0.5))
+    assert rotation_error_deg(half, a) == pytest.approx(rotation_error_deg(a, b) / 2, abs=1e-9)
+    assert rotation_error_deg(half, b) == pytest.approx(rotation_error_deg(a, b) / 2, abs=1e-9)

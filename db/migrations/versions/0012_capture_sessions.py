@@ -64,6 +64,7 @@ def upgrade() -> None:
         sa.Column("original_key", sa.String(255), nullable=False),
         sa.Column("original_sha256", sa.String(64), nullable=False),
         sa.Column("depth_key", sa.String(255)),
+        sa.Column("placed", sa.JSON()),
         sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
         sa.UniqueConstraint("session_id", "name", name="uq_capture_frames_session_name"),
     )
