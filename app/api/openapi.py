@@ -9,11 +9,16 @@ from fastapi import FastAPI
 from pydantic import BaseModel
 
 from app.errors import document_problems
+from app.schemas.captures import CaptureFrameMetadata
 from app.schemas.images import ImageMetadata
 from app.schemas.localize import LocalizeParamsIn
 
 # models sent as JSON strings in multipart form fields (see ``app.api.deps.json_form_schema``)
-JSON_FORM_MODELS: tuple[type[BaseModel], ...] = (ImageMetadata, LocalizeParamsIn)
+JSON_FORM_MODELS: tuple[type[BaseModel], ...] = (
+    ImageMetadata,
+    LocalizeParamsIn,
+    CaptureFrameMetadata,
+)
 
 
 def install_openapi(app: FastAPI) -> None:

@@ -348,10 +348,124 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/v1/maps/{map_id}/sessions": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /** List Sessions */
+        get: operations["list_capture_sessions"];
+        put?: never;
+        /**
+         * Create Session
+         * @description Opens a capture session of the map: upload its frames in capture order
+         *     (``POST …/frames``), then submit it (``POST …/submit``). The service localizes a spread
+         *     of its frames against the map, estimates ``map_from_session`` and, when the alignment is
+         *     well determined, adds every frame as a reference with its pose mapped into the map; a
+         *     session that cannot be aligned is refused with its reason and adds nothing. On an empty
+         *     map the session defines the map's frame.
+         */
+        post: operations["create_capture_session"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/v1/maps/{map_id}/sessions/{session_id}": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Session
+         * @description The session's state, progress and, once decided, its alignment: ``map_from_session``,
+         *     the checked frames' residuals and the reason of a refusal.
+         */
+        get: operations["get_capture_session"];
+        put?: never;
+        post?: never;
+        /**
+         * Delete Session
+         * @description Deletes the session with its frames not added (an alignment in progress stops); the
+         *     references an added session made stay. 409 while its frames are being added.
+         */
+        delete: operations["delete_capture_session"];
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/v1/maps/{map_id}/sessions/{session_id}/frames": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        get?: never;
+        put?: never;
+        /**
+         * Add Frame
+         * @description Uploads the next frame of an open session (409 once it is submitted, or when it holds
+         *     ``SLLOC_MAX_SESSION_FRAMES`` frames). The image is decoded and checked against its
+         *     camera now; its bytes wait in the blob store until the session is added or refused.
+         */
+        post: operations["add_capture_frame"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/v1/maps/{map_id}/sessions/{session_id}/submit": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        get?: never;
+        put?: never;
+        /**
+         * Submit Session
+         * @description Closes the session and queues its alignment in the background; poll the session for
+         *     its progress and decision (``added`` or ``refused``).
+         */
+        post: operations["submit_capture_session"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
 }
 export type webhooks = Record<string, never>;
 export interface components {
     schemas: {
+        /** Body_add_capture_frame */
+        Body_add_capture_frame: {
+            /**
+             * Depth
+             * @description Optional depth: 16-bit PNG in millimetres or .npy float32 metres
+             */
+            depth?: string | null;
+            /**
+             * Image
+             * Format: binary
+             * @description JPEG or PNG
+             */
+            image: string;
+            /**
+             * Metadata
+             * @description JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP)}
+             */
+            metadata: string;
+        };
         /** Body_add_image */
         Body_add_image: {
             /**
@@ -482,6 +596,212 @@ export interface components {
             /** Width */
             width: number;
         } & (unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown & unknown);
+        /** CaptureAlignmentOut */
+        CaptureAlignmentOut: {
+            /**
+             * Added
+             * @description Frames added as references
+             */
+            added?: number | null;
+            /**
+             * Agreeing
+             * @description Of those, the frames within the tolerance
+             */
+            agreeing?: number | null;
+            /** Checked */
+            checked: components["schemas"]["CheckedFrameOut"][];
+            /**
+             * Confident
+             * @description Checked frames localized with confidence ≥ 0.5
+             */
+            confident?: number | null;
+            /** @description How far the agreeing frames' centres were moved onto where the map localized them; the frames between two of them are corrected by interpolation */
+            drift_correction_m?: components["schemas"]["DriftCorrectionOut"] | null;
+            /** @description null when the session was refused */
+            map_from_session: components["schemas"]["SessionTransformOut"] | null;
+            /**
+             * Mode
+             * @description bootstrap: the map was empty and the session defined its frame
+             * @enum {string}
+             */
+            mode: "aligned" | "bootstrap";
+            /**
+             * Path Length M
+             * @description Length of the session's path (session units)
+             */
+            path_length_m: number;
+            /**
+             * Position Stderr M
+             * @description Standard error of the alignment's position (RMS / √(n − 1))
+             */
+            position_stderr_m?: number | null;
+            /**
+             * Reason
+             * @description Why the session was refused
+             */
+            reason?: string | null;
+            /**
+             * Rms Position M
+             * @description RMS of the agreeing frames' errors
+             */
+            rms_position_m?: number | null;
+            /** Rms Rotation Deg */
+            rms_rotation_deg?: number | null;
+            /** Rotation Stderr Deg */
+            rotation_stderr_deg?: number | null;
+            /**
+             * Tolerance M
+             * @description max(5 cm, 1 % of the path): how far an agreeing frame may lie
+             */
+            tolerance_m?: number | null;
+        };
+        /**
+         * CaptureFrameMetadata
+         * @description The ``metadata`` form field of a frame upload (a JSON string): its pose in the
+         *     session, as an AR framework reports it (``session_pose``) or as COLMAP writes it
+         *     (``cam_from_session``).
+         */
+        CaptureFrameMetadata: {
+            /**
+             * @description x_cam = R · x_session + t, COLMAP camera axes (x right, y down)
+             * @default null
+             */
+            cam_from_session?: components["schemas"]["PoseSchema"] | null;
+            /**
+             * @description Its intrinsics; default: the default camera for the image size
+             * @default null
+             */
+            camera?: components["schemas"]["CameraSchema"] | null;
+            /**
+             * Name
+             * @description Unique in the session; default: 00000, …
+             * @default null
+             */
+            name?: string | null;
+            /**
+             * @description session_from_camera with OpenGL camera axes (ARKit camera.transform, ARCore Pose, WebXR), as the localize endpoint takes it
+             * @default null
+             */
+            session_pose?: components["schemas"]["SessionPoseSchema"] | null;
+        };
+        /** CaptureFrameOut */
+        CaptureFrameOut: {
+            camera: components["schemas"]["CameraSchema"];
+            /**
+             * Created At
+             * Format: date-time
+             */
+            created_at: string;
+            /**
+             * Id
+             * @description The id of the reference it becomes once added
+             */
+            id: string;
+            /** Name */
+            name: string;
+            /**
+             * Position
+             * @description Its place in the capture order (upload order)
+             */
+            position: number;
+        };
+        /** CaptureProgress */
+        CaptureProgress: {
+            /**
+             * Done
+             * @description Frames checked, then frames added
+             */
+            done: number;
+            /** Total */
+            total: number;
+        };
+        /** CaptureSessionCreate */
+        CaptureSessionCreate: {
+            /**
+             * Metric
+             * @description The frames' poses are in metres (ARKit, ARCore, a metric SLAM): the session is aligned rigidly. false: its scale is estimated (a similarity; a session of unknown scale cannot start an empty map)
+             * @default true
+             */
+            metric?: boolean;
+            /**
+             * Name
+             * @description Unique in the map; the references its frames become are named <session name>/<frame name>. Default: session-<8 hex digits>
+             */
+            name?: string | null;
+        };
+        /** CaptureSessionOut */
+        CaptureSessionOut: {
+            /** @description Set once the session is aligned or refused */
+            alignment: components["schemas"]["CaptureAlignmentOut"] | null;
+            /**
+             * Created At
+             * Format: date-time
+             */
+            created_at: string;
+            /** Error */
+            error: string | null;
+            /** Finished At */
+            finished_at: string | null;
+            /**
+             * Frames
+             * @description Frames uploaded
+             */
+            frames: number;
+            /** Id */
+            id: string;
+            /** Map Id */
+            map_id: string;
+            /** Metric */
+            metric: boolean;
+            /** Name */
+            name: string;
+            progress: components["schemas"]["CaptureProgress"];
+            /** Started At */
+            started_at: string | null;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "open" | "queued" | "aligning" | "adding" | "added" | "refused" | "failed";
+        };
+        /** CaptureSessionPage */
+        CaptureSessionPage: {
+            /**
+             * Items
+             * @description Newest first
+             */
+            items: components["schemas"]["CaptureSessionOut"][];
+            /** Limit */
+            limit: number;
+            /** Offset */
+            offset: number;
+            /** Total */
+            total: number;
+        };
+        /**
+         * CheckedFrameOut
+         * @description A frame localized against the map to align the session.
+         */
+        CheckedFrameOut: {
+            /**
+             * Agrees
+             * @description Within the tolerance and 2°: it took part in the fit
+             */
+            agrees: boolean;
+            /** Confidence */
+            confidence: number;
+            /** Frame */
+            frame: string;
+            /** Localized */
+            localized: boolean;
+            /**
+             * Position Error M
+             * @description Distance between where the alignment and the map put it (confident frames only)
+             */
+            position_error_m: number | null;
+            /** Rotation Error Deg */
+            rotation_error_deg: number | null;
+        };
         /** ConfidenceCheck */
         ConfidenceCheck: {
             /**
@@ -572,6 +892,13 @@ export interface components {
              * @description From a held-out reference to the nearest reference it was localized against (map units): compare with how far your queries are from the map
              */
             median: number | null;
+        };
+        /** DriftCorrectionOut */
+        DriftCorrectionOut: {
+            /** Max */
+            max: number;
+            /** Median */
+            median: number;
         };
         /** EnuFromMapSchema */
         EnuFromMapSchema: {
@@ -1869,6 +2196,29 @@ export interface components {
              * @default null
              */
             position?: number[] | null;
+        };
+        /**
+         * SessionTransformOut
+         * @description ``map_from_session``: x_map = scale · R(rotation) · x_session + translation.
+         */
+        SessionTransformOut: {
+            /**
+             * Matrix
+             * @description 4×4 homogeneous transform, row-major
+             */
+            matrix: number[][];
+            /**
+             * Rotation
+             * @description unit quaternion [w, x, y, z]
+             */
+            rotation: number[];
+            /**
+             * Scale
+             * @description 1 for a metric session
+             */
+            scale: number;
+            /** Translation */
+            translation: number[];
         };
         /** Timings */
         Timings: {
@@ -3371,6 +3721,450 @@ export interface operations {
                 };
                 content: {
                     "application/json": components["schemas"]["ReindexOut"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    list_capture_sessions: {
+        parameters: {
+            query?: {
+                /** @description Items to skip */
+                offset?: number;
+                /** @description Items per page */
+                limit?: number;
+            };
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CaptureSessionPage"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    create_capture_session: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody: {
+            content: {
+                "application/json": components["schemas"]["CaptureSessionCreate"];
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            201: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CaptureSessionOut"];
+                };
+            };
+            /** @description Malformed body: JSON that is not UTF-8, or multipart without a boundary */
+            400: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Upload or image too large */
+            413: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    get_capture_session: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                session_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CaptureSessionOut"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    delete_capture_session: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                session_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            204: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    add_capture_frame: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                session_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody: {
+            content: {
+                "multipart/form-data": components["schemas"]["Body_add_capture_frame"];
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            201: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CaptureFrameOut"];
+                };
+            };
+            /** @description Malformed body: JSON that is not UTF-8, or multipart without a boundary */
+            400: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description The API key's role may not do this */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Name already taken; or, on a localize, the map's references need feature models this server lacks (type feature-models-missing) */
+            409: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Upload or image too large */
+            413: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Busy (too many requests in progress or waiting), the database unreachable, or the blob store unreachable or refusing writes: retry after Retry-After seconds */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    submit_capture_session: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                map_id: string;
+                session_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            202: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CaptureSessionOut"];
                 };
             };
             /** @description Missing or unknown API key */

@@ -36,6 +36,17 @@ FailureReason = Literal[
 """Why a query was not localized. Values are API strings."""
 
 
+class BodyAddCaptureFrame(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    depth: bytes | None = Field(
+        default=None, description="Optional depth: 16-bit PNG in millimetres or .npy float32 metres"
+    )
+    image: bytes = Field(description="JPEG or PNG")
+    metadata: str = Field(
+        description='JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP)}'
+    )
+
+
 class BodyAddImage(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     depth: bytes | None = Field(
@@ -126,6 +137,128 @@ class CameraSchema(BaseModel):
     width: int
 
 
+class CaptureAlignmentOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    added: int | None = Field(default=None, description="Frames added as references")
+    agreeing: int | None = Field(
+        default=None, description="Of those, the frames within the tolerance"
+    )
+    checked: list[CheckedFrameOut]
+    confident: int | None = Field(
+        default=None, description="Checked frames localized with confidence ≥ 0.5"
+    )
+    drift_correction_m: DriftCorrectionOut | None = Field(
+        default=None,
+        description="How far the agreeing frames' centres were moved onto where the map localized them; the frames between two of them are corrected by interpolation",
+    )
+    map_from_session: SessionTransformOut | None = Field(
+        description="null when the session was refused"
+    )
+    mode: Literal["aligned", "bootstrap"] = Field(
+        description="bootstrap: the map was empty and the session defined its frame"
+    )
+    path_length_m: float = Field(description="Length of the session's path (session units)")
+    position_stderr_m: float | None = Field(
+        default=None, description="Standard error of the alignment's position (RMS / √(n − 1))"
+    )
+    reason: str | None = Field(default=None, description="Why the session was refused")
+    rms_position_m: float | None = Field(
+        default=None, description="RMS of the agreeing frames' errors"
+    )
+    rms_rotation_deg: float | None = Field(default=None)
+    rotation_stderr_deg: float | None = Field(default=None)
+    tolerance_m: float | None = Field(
+        default=None, description="max(5 cm, 1 % of the path): how far an agreeing frame may lie"
+    )
+
+
+class CaptureFrameMetadata(BaseModel):
+    """The ``metadata`` form field of a frame upload (a JSON string): its pose in the
+    session, as an AR framework reports it (``session_pose``) or as COLMAP writes it
+    (``cam_from_session``).
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    cam_from_session: PoseSchema | None = Field(
+        default=None, description="x_cam = R · x_session + t, COLMAP camera axes (x right, y down)"
+    )
+    camera: CameraSchema | None = Field(
+        default=None, description="Its intrinsics; default: the default camera for the image size"
+    )
+    name: str | None = Field(default=None, description="Unique in the session; default: 00000, …")
+    session_pose: SessionPoseSchema | None = Field(
+        default=None,
+        description="session_from_camera with OpenGL camera axes (ARKit camera.transform, ARCore Pose, WebXR), as the localize endpoint takes it",
+    )
+
+
+class CaptureFrameOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    camera: CameraSchema
+    created_at: datetime
+    id: str = Field(description="The id of the reference it becomes once added")
+    name: str
+    position: int = Field(description="Its place in the capture order (upload order)")
+
+
+class CaptureProgress(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    done: int = Field(description="Frames checked, then frames added")
+    total: int
+
+
+class CaptureSessionCreate(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    metric: bool = Field(
+        default=True,
+        description="The frames' poses are in metres (ARKit, ARCore, a metric SLAM): the session is aligned rigidly. false: its scale is estimated (a similarity; a session of unknown scale cannot start an empty map)",
+    )
+    name: str | None = Field(
+        default=None,
+        description="Unique in the map; the references its frames become are named <session name>/<frame name>. Default: session-<8 hex digits>",
+    )
+
+
+class CaptureSessionOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    alignment: CaptureAlignmentOut | None = Field(
+        description="Set once the session is aligned or refused"
+    )
+    created_at: datetime
+    error: str | None
+    finished_at: datetime | None
+    frames: int = Field(description="Frames uploaded")
+    id: str
+    map_id: str
+    metric: bool
+    name: str
+    progress: CaptureProgress
+    started_at: datetime | None
+    state: Literal["open", "queued", "aligning", "adding", "added", "refused", "failed"]
+
+
+class CaptureSessionPage(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    items: list[CaptureSessionOut] = Field(description="Newest first")
+    limit: int
+    offset: int
+    total: int
+
+
+class CheckedFrameOut(BaseModel):
+    """A frame localized against the map to align the session."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    agrees: bool = Field(description="Within the tolerance and 2°: it took part in the fit")
+    confidence: float
+    frame: str
+    localized: bool
+    position_error_m: float | None = Field(
+        description="Distance between where the alignment and the map put it (confident frames only)"
+    )
+    rotation_error_deg: float | None
+
+
 class ConfidenceCheck(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     confident: int = Field(description="Answers above the threshold")
@@ -170,6 +303,12 @@ class Distance(BaseModel):
     median: float | None = Field(
         description="From a held-out reference to the nearest reference it was localized against (map units): compare with how far your queries are from the map"
     )
+
+
+class DriftCorrectionOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    max: float
+    median: float
 
 
 class EnuFromMapSchema(BaseModel):
@@ -988,6 +1127,16 @@ class SessionPoseSchema(BaseModel):
     position: list[float] | None = Field(
         default=None, description="camera centre in the session, metres"
     )
+
+
+class SessionTransformOut(BaseModel):
+    """``map_from_session``: x_map = scale · R(rotation) · x_session + translation."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    matrix: list[list[float]] = Field(description="4×4 homogeneous transform, row-major")
+    rotation: list[float] = Field(description="unit quaternion [w, x, y, z]")
+    scale: float = Field(description="1 for a metric session")
+    translation: list[float]
 
 
 class Timings(BaseModel):
