@@ -49,6 +49,7 @@ from services.capture.alignment import (
     align,
     check_count,
     check_indices,
+    densify,
     path_length,
 )
 from services.capture.drift import corrected_poses
@@ -361,25 +362,25 @@ class CaptureRunner:
                 "frame_ids": ids,
             }
             return self._decided(session_id, map_id, result, dict(zip(ids, poses, strict=True)))
-        localized = []
-        for done, index in enumerate(checked, start=1):
-            frame = frames[index]
-            image = self.blobs.get(frame.original_key)
-            answer = localize(
-                self.context,
-                map_id,
-                LocalizeRequest(camera=camera_of(frame), top_k=CHECK_TOP_K),
-                image,
-            )
-            localized.append(
-                CheckedFrame(
-                    index,
-                    poses[index],
-                    answer.cam_from_world if answer.localized else None,
-                    answer.confidence,
-                )
-            )
-            self._progress(session_id, done)
+        localized = [
+            self._check(session_id, map_id, frames[i], i, n) for n, i in enumerate(checked)
+        ]
+        # a session that overlaps the map over a short stretch (it extends the map): the
+        # frames around those the map localized are checked too
+        found = [f.index for f in localized if f.cam_from_map is not None]
+        more = densify(checked, found, len(frames))
+        if more:
+            with self.sessions.begin() as session:
+                row = session.get(CaptureSession, session_id)
+                if row is None:
+                    raise SessionStoppedError
+                row.total += len(more)
+            offset = len(localized)
+            localized += [
+                self._check(session_id, map_id, frames[i], i, offset + n)
+                for n, i in enumerate(more)
+            ]
+            localized.sort(key=lambda f: f.index)
         alignment = align(localized, path_m, metric)
         result = _alignment_json(alignment, localized, frames, path_m) | {"frame_ids": ids}
         placed: dict[str, Rigid3d] | None = None
@@ -405,6 +406,24 @@ class CaptureRunner:
         )
         return self._decided(session_id, map_id, result, placed)
 
+    def _check(
+        self, session_id: str, map_id: str, frame: CaptureFrame, index: int, done: int
+    ) -> CheckedFrame:
+        """The frame localized against the map as a query with its own camera."""
+        answer = localize(
+            self.context,
+            map_id,
+            LocalizeRequest(camera=camera_of(frame), top_k=CHECK_TOP_K),
+            self.blobs.get(frame.original_key),
+        )
+        self._progress(session_id, done + 1)
+        return CheckedFrame(
+            index,
+            pose_of(frame),
+            answer.cam_from_world if answer.localized else None,
+            answer.confidence,
+        )
+
     def _decided(
         self,
         session_id: str,
@@ -418,7 +437,11 @@ class CaptureRunner:
             with self.sessions.begin() as session:
                 repository = CaptureRepository(session)
                 keys = repository.blob_keys(map_id, session_id)
-                if not repository.set_state(session_id, "refused", ACTIVE, result=result):
+                # its progress ends where the checks did: no frame is added
+                done = CaptureSession.done
+                if not repository.set_state(
+                    session_id, "refused", ACTIVE, result=result, total=done
+                ):
                     raise SessionStoppedError
                 repository.delete_frames(session_id)
             remove_blobs(self.blobs, keys)

@@ -51,6 +51,9 @@ POSITION_SIGMA_M = 0.02
 CHECK_EVERY = 10
 MIN_CHECKED = 12
 MAX_CHECKED = 50
+# fewer frames localized than this: the frames around them are checked too, every DENSE_STEP-th
+DENSE_BELOW = 6
+DENSE_STEP = 2
 # pair hypotheses tried for a similarity (every pair up to this many frames)
 _MAX_PAIRS = 400
 _REFINEMENTS = 3
@@ -144,6 +147,25 @@ def check_indices(count: int, wanted: int) -> list[int]:
     return sorted({round(float(v)) for v in np.linspace(0, count - 1, wanted)})
 
 
+def densify(checked: list[int], localized: list[int], count: int) -> list[int]:
+    """More frames to check when few of the ``checked`` were ``localized`` (fewer than
+    ``DENSE_BELOW``, at least one): every ``DENSE_STEP``-th frame between each localized frame
+    and its checked neighbours, not checked yet, at most ``MAX_CHECKED`` in all. A session that
+    extends the map overlaps it over a short stretch only."""
+    if not localized or len(localized) >= DENSE_BELOW:
+        return []
+    ordered = sorted(checked)
+    wanted: list[int] = []
+    for index in localized:
+        k = ordered.index(index)
+        low = ordered[k - 1] if k > 0 else 0
+        high = ordered[k + 1] if k + 1 < len(ordered) else count - 1
+        wanted += range(low, high + 1, DENSE_STEP)
+    taken = set(checked)
+    more = sorted({i for i in wanted if i not in taken})
+    return more[: max(MAX_CHECKED - len(checked), 0)]
+
+
 def align(frames: list[CheckedFrame], path_m: float, metric: bool) -> Alignment:
     """``map_from_session`` from the checked frames by the module's rule. ``metric``: the
     session's poses are in metres (rigid); otherwise its scale is estimated (similarity)."""
@@ -189,8 +211,9 @@ def align(frames: list[CheckedFrame], path_m: float, metric: bool) -> Alignment:
     )
     position = np.array([r.position_m for r in residuals if r.agrees])
     rotation = np.array([r.rotation_deg for r in residuals if r.agrees])
-    rms_p = float(np.sqrt(np.mean(position**2))) if len(position) else None
-    rms_r = float(np.sqrt(np.mean(rotation**2))) if len(rotation) else None
+    # one frame fits any transform exactly: its residual says nothing
+    rms_p = float(np.sqrt(np.mean(position**2))) if len(position) > 1 else None
+    rms_r = float(np.sqrt(np.mean(rotation**2))) if len(rotation) > 1 else None
     dof = max(len(position) - 1, 1)
     return Alignment(
         similarity if reason is None else None,

@@ -12,6 +12,7 @@ from services.capture.alignment import (
     Similarity,
     align,
     check_indices,
+    densify,
     path_length,
     tolerance_m,
 )
@@ -201,9 +202,7 @@ def test_drift_between_anchors_is_corrected() -> None:
         if i:
             travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
         yaw = np.radians(0.2 * travelled)
-        turn = np.array(
-            [[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]]
-        )
+        turn = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
         start = session[0].center
         center = turn @ (pose.center - start) + start + np.array([0.0, 0.01 * travelled, 0.0])
         rotation = pose.rotation @ turn.T
@@ -254,3 +253,12 @@ def test_slerp_meets_its_ends_and_halves_the_angle() -> None:
     half = quaternion_to_matrix(slerp(qa, qb, 0.5))
     assert rotation_error_deg(half, a) == pytest.approx(rotation_error_deg(a, b) / 2, abs=1e-9)
     assert rotation_error_deg(half, b) == pytest.approx(rotation_error_deg(a, b) / 2, abs=1e-9)
+
+
+def test_a_session_that_overlaps_the_map_briefly_is_checked_densely_there() -> None:
+    checked = check_indices(75, 12)
+    # only the first checked frame was localized: the frames up to the next checked one
+    more = densify(checked, [0], 75)
+    assert more == [i for i in range(2, checked[1], 2)]
+    assert densify(checked, [], 75) == [] and densify(checked, checked[:6], 75) == []
+    assert len(densify(check_indices(600, 50), [0], 600)) == 0  # at most 50 in all
