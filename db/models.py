@@ -218,6 +218,8 @@ class CaptureSession(Base):
     name: Mapped[str] = mapped_column(String(255))
     # the session's poses are in metres (else its scale is estimated)
     metric: Mapped[bool] = mapped_column(default=True)
+    # every frame is added (else only those that add a view, services/capture/spacing.py)
+    keep_all: Mapped[bool] = mapped_column(default=False)
     # open, queued, aligning, adding, added, refused, failed
     state: Mapped[str] = mapped_column(String(16))
     frame_count: Mapped[int] = mapped_column(Integer, default=0)

@@ -1,6 +1,6 @@
 """The ``slloc`` command: serve, import, db upgrade, blobs check|sweep, synth, models build,
-features, openapi, eval, bench, self-evaluate (``serve`` and ``db upgrade`` are the app's:
-``app/cli.py``)."""
+features, openapi, eval, bench, self-evaluate, session push|show (``serve`` and ``db upgrade``
+are the app's: ``app/cli.py``)."""
 
 from __future__ import annotations
 
@@ -131,6 +131,16 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
 
+    from tools.session_push import add_session_arguments
+
+    add_session_arguments(
+        sub.add_parser(
+            "session",
+            help="push an import CSV's frames as a capture session of a map on a running "
+            "server, or show a session's decision",
+        )
+    )
+
     args = parser.parse_args(argv)
     if args.command in SERVER_COMMANDS:
         return run_server_command(args)
@@ -170,6 +180,16 @@ def main(argv: list[str] | None = None) -> int:
         from tools.evaluation.self_evaluate import self_evaluate_main
 
         return self_evaluate_main(args)
+    if args.command == "session":
+        if _missing_modules("httpx"):
+            print(
+                "slloc session needs httpx (the optional evaluation tools): pip install '.[eval]'",
+                file=sys.stderr,
+            )
+            return 2
+        from tools.session_push import session_main
+
+        return session_main(args)
     if args.command == "calibrate":
         from tools.evaluation.calibrate import calibrate_main
 

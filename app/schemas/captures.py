@@ -37,6 +37,13 @@ class CaptureSessionCreate(BaseModel):
         "session is aligned rigidly. false: its scale is estimated (a similarity; a session "
         "of unknown scale cannot start an empty map)",
     )
+    keep_all: bool = Field(
+        False,
+        description="Add every frame. false: a frame is added only where it adds a view, "
+        "i.e. no reference or frame kept before it lies within the map's spacing (the median "
+        "distance between neighbouring references) looking within 15° of its direction; "
+        "a session that starts an empty map adds every frame",
+    )
 
 
 class CaptureFrameMetadata(BaseModel):
@@ -161,6 +168,12 @@ class CaptureAlignmentOut(BaseModel):
         "localized them; the frames between two of them are corrected by interpolation",
     )
     added: int | None = Field(None, description="Frames added as references")
+    skipped: int | None = Field(
+        None, description="Frames not added: their views were in the map already (keep_all)"
+    )
+    spacing_m: float | None = Field(
+        None, description="The map's spacing that decided which frames add a view"
+    )
 
 
 class CaptureProgress(BaseModel):
@@ -173,6 +186,7 @@ class CaptureSessionOut(BaseModel):
     map_id: str
     name: str
     metric: bool
+    keep_all: bool
     state: Literal["open", "queued", "aligning", "adding", "added", "refused", "failed"]
     frames: int = Field(description="Frames uploaded")
     progress: CaptureProgress
@@ -204,6 +218,7 @@ class CaptureSessionOut(BaseModel):
             map_id=row.map_id,
             name=row.name,
             metric=row.metric,
+            keep_all=row.keep_all,
             state=row.state,
             frames=row.frame_count,
             progress=CaptureProgress(done=row.done, total=row.total),

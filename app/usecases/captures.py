@@ -53,6 +53,7 @@ from services.capture.alignment import (
     path_length,
 )
 from services.capture.drift import corrected_poses
+from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
 from services.geometry.camera import Camera, default_camera
@@ -80,9 +81,14 @@ class NewFrame:
 
 
 def create_session(
-    sessions: sessionmaker[Session], map_id: str, name: str | None, metric: bool
+    sessions: sessionmaker[Session],
+    map_id: str,
+    name: str | None,
+    metric: bool,
+    keep_all: bool = False,
 ) -> CaptureSession:
-    """A new ``open`` session of the map (``name`` None: one made from the time).
+    """A new ``open`` session of the map (``name`` None: a random one). ``keep_all``: every
+    frame is added, not only those that add a view (``services.capture.spacing``).
 
     Raises:
         NotFoundError: unknown map.
@@ -95,7 +101,7 @@ def create_session(
             repository = CaptureRepository(session)
             if repository.name_exists(map_id, name):
                 raise NameTakenError(f"map already has a capture session named {name!r}")
-            row = repository.create(map_id, name, metric)
+            row = repository.create(map_id, name, metric, keep_all)
             session.expunge(row)
             return row
     except IntegrityError as exc:  # created meanwhile by another request
@@ -343,7 +349,7 @@ class CaptureRunner:
                 raise SessionStoppedError
             require_map(session, map_id)
             frames = CaptureRepository(session).frames(session_id)
-            metric, name = row.metric, row.name
+            metric, name, keep_all = row.metric, row.name, row.keep_all
             empty = _reference_count(session, map_id) == 0
             poses = [pose_of(frame) for frame in frames]
             checked = [] if empty else check_indices(len(frames), check_count(len(frames)))
@@ -392,7 +398,15 @@ class CaptureRunner:
                 if f.index in agreeing and f.cam_from_map is not None
             }
             corrected, shifts = corrected_poses(alignment.map_from_session, poses, anchors)
-            placed = dict(zip(ids, corrected, strict=True))
+            kept = list(range(len(frames)))
+            if not keep_all:
+                references = self._reference_poses(map_id)
+                spacing = map_spacing(np.array([p.center for p in references]))
+                if spacing is not None:
+                    kept = new_views(corrected, references, spacing)
+                    result["spacing_m"] = spacing
+            placed = {ids[i]: corrected[i] for i in kept}
+            result["skipped"] = len(frames) - len(kept)
             result["drift_correction_m"] = {
                 "median": float(np.median(shifts)),
                 "max": float(shifts.max()),
@@ -405,6 +419,21 @@ class CaptureRunner:
             alignment.reason or f"aligned on {alignment.agreeing} of {len(localized)} frames",
         )
         return self._decided(session_id, map_id, result, placed)
+
+    def _reference_poses(self, map_id: str) -> list[Rigid3d]:
+        with self.sessions() as session:
+            rows = session.execute(
+                select(
+                    ReferenceImage.qw,
+                    ReferenceImage.qx,
+                    ReferenceImage.qy,
+                    ReferenceImage.qz,
+                    ReferenceImage.tx,
+                    ReferenceImage.ty,
+                    ReferenceImage.tz,
+                ).where(ReferenceImage.map_id == map_id)
+            ).all()
+        return [Rigid3d.from_quaternion(np.array(r[:4]), np.array(r[4:])) for r in rows]
 
     def _check(
         self, session_id: str, map_id: str, frame: CaptureFrame, index: int, done: int
@@ -447,14 +476,21 @@ class CaptureRunner:
             remove_blobs(self.blobs, keys)
             self._count("refused")
             return False
+        skipped: list[str] = []
         with self.sessions.begin() as session:
-            if not CaptureRepository(session).set_state(
-                session_id, "adding", ACTIVE, result=result
+            repository = CaptureRepository(session)
+            if not repository.set_state(
+                session_id, "adding", ACTIVE, result=result, total=CaptureSession.done + len(placed)
             ):
                 raise SessionStoppedError
-            for frame in CaptureRepository(session).frames(session_id):
-                pose = placed[frame.id]
-                frame.placed = [*map(float, pose.quaternion), *map(float, pose.translation)]
+            for frame in repository.frames(session_id):
+                pose = placed.get(frame.id)
+                if pose is None:  # its view is in the map already
+                    skipped += [k for k in (frame.original_key, frame.depth_key) if k]
+                    session.delete(frame)
+                else:
+                    frame.placed = [*map(float, pose.quaternion), *map(float, pose.translation)]
+        remove_blobs(self.blobs, skipped)
         return True
 
     def _add(self, session_id: str, map_id: str) -> None:
@@ -499,8 +535,8 @@ class CaptureRunner:
             row = session.get(CaptureSession, session_id)
             if row is None:
                 raise SessionStoppedError
-            result = dict(row.result or {})
-            result["added"] = int(row.frame_count)
+            result: dict[str, Any] = dict(row.result or {})
+            result["added"] = row.frame_count - int(result.get("skipped") or 0)
             CaptureRepository(session).set_state(session_id, "added", ("adding",), result=result)
         self._count("added")
         logger.info(

@@ -3,7 +3,8 @@
 // maps), and localizes a query image through the API, drawing its frustum (or, for a
 // low-confidence answer, the candidate pose dashed), its GeoPose and its inlier matches.
 // When the map has a finished self-evaluation, its held-out references are coloured by their
-// held-out position error and a side panel shows what it measured.
+// held-out position error and a side panel shows what it measured; another lists the map's
+// capture sessions (admin key only) with their alignment.
 // Poses are cam_from_world (x_cam = R·x_world + t), quaternions [w, x, y, z]; pixel
 // coordinates follow COLMAP (the centre of the top-left pixel is (0.5, 0.5)), which is also the
 // canvas convention, so they are drawn without an offset.
@@ -51,6 +52,8 @@ const state = {
     token: 0, done: null, active: null, configuration: null, heldOut: new Map(),
     markers: new Map(), selected: null, timer: null, refreshes: 0,
   },
+  // the map's capture sessions (newest first) and their refresh timer
+  sessions: { token: 0, map: null, timer: null, refreshes: 0, active: new Set(), grown: false },
 };
 
 // --- API --------------------------------------------------------------------------------
@@ -496,6 +499,7 @@ async function selectMap(map, button) {
   clearResult();
   const geo = loadGeoRegistration(map.id);
   const evaluation = openEvaluation(map); // read while the images load
+  const sessions = openSessions(map);
   try {
     let total = Infinity;
     while (state.images.size < Math.min(total, MAX_IMAGES)) {
@@ -515,6 +519,7 @@ async function selectMap(map, button) {
   showGeoRegistration(state.geo);
   drawReferences();
   showEvaluation(await evaluation, true);
+  showSessions(await sessions);
   $("localize").disabled = false;
   $("map-ready").dataset.ready = "true";
 }
@@ -1074,6 +1079,150 @@ function watchHeldOutPointer(three) {
   });
 }
 
+// --- capture sessions -------------------------------------------------------------------
+
+const SESSIONS_SHOWN = 20; // the newest sessions listed
+const ACTIVE_SESSION = new Set(["queued", "aligning", "adding"]); // refreshed while any is
+const known = (x) => x !== null && x !== undefined;
+const centimetres = (m) => (known(m) ? `${(m * 100).toFixed(1)} cm` : "—");
+
+function element(tag, text, field) {
+  const node = document.createElement(tag);
+  if (known(text)) node.textContent = text;
+  if (field) node.dataset.field = field;
+  return node;
+}
+
+// a new map: forget the last one's sessions and read this one's (they need an admin key)
+function openSessions(map) {
+  const s = state.sessions;
+  clearTimeout(s.timer);
+  Object.assign(s, { token: s.token + 1, timer: null, refreshes: 0, map, active: new Set(),
+    grown: false });
+  $("sessions").dataset.state = "loading";
+  $("sessions-summary").textContent = "Reading the map's capture sessions…";
+  $("sessions-summary").className = "";
+  $("sessions-list").replaceChildren();
+  $("sessions-refresh").hidden = true;
+  return readSessions(map.id, s.token);
+}
+
+async function readSessions(mapId, token) {
+  try {
+    const url = `/v1/maps/${mapId}/sessions?offset=0&limit=${SESSIONS_SHOWN}`;
+    return { token, page: await (await api(url)).json() };
+  } catch (error) {
+    return { token, error };
+  }
+}
+
+function showSessions(answer) {
+  const s = state.sessions;
+  if (answer.token !== s.token) return; // another map was picked meanwhile
+  const panel = $("sessions");
+  const summary = $("sessions-summary");
+  clearTimeout(s.timer);
+  s.timer = null;
+  if (answer.error) { // keep the list shown, if any
+    const forbidden = answer.error.status === 401 || answer.error.status === 403;
+    panel.dataset.state = forbidden ? "forbidden" : "error";
+    summary.textContent = forbidden ? "Capture sessions are shown to an admin key only."
+      : `Capture sessions: ${answer.error.message}`;
+    summary.className = forbidden ? "" : "error";
+    $("sessions-refresh").hidden = forbidden;
+    return;
+  }
+  const { items, total } = answer.page;
+  const active = items.some((session) => ACTIVE_SESSION.has(session.state));
+  // a session seen active, now added: the map has references this page has not drawn
+  s.grown ||= items.some((session) => session.state === "added" && s.active.has(session.id));
+  s.active = new Set(items.filter((x) => ACTIVE_SESSION.has(x.state)).map((x) => x.id));
+  panel.dataset.state = !items.length ? "none" : active ? "active" : "decided";
+  summary.className = "";
+  summary.textContent = !items.length ? "This map has no capture sessions."
+    : total > items.length ? `The newest ${items.length} of ${total} sessions:`
+      : `${total} session${total === 1 ? "" : "s"}, newest first:`;
+  if (active && s.refreshes >= EVALUATION_REFRESHES) summary.append(" (Check again for news.)");
+  if (s.grown) summary.append(" New references were added: pick the map again to draw them.");
+  $("sessions-list").replaceChildren(...items.map(sessionItem));
+  $("sessions-refresh").hidden = !active;
+  // as a running self-evaluation: looked at again a bounded number of times, less and less often
+  if (!active || s.refreshes >= EVALUATION_REFRESHES) return;
+  const [first, most] = EVALUATION_REFRESH_S;
+  const { token } = s;
+  s.timer = setTimeout(() => refreshSessions(token, true),
+    Math.min(first * 1.25 ** s.refreshes, most) * 1000);
+}
+
+async function refreshSessions(token, automatic) {
+  const s = state.sessions;
+  if (token !== s.token || !s.map) return;
+  clearTimeout(s.timer);
+  s.timer = null;
+  s.refreshes = automatic ? s.refreshes + 1 : 0;
+  showSessions(await readSessions(s.map.id, token));
+}
+
+// one session: name, state and frames; its progress while active; once decided, its alignment
+function sessionItem(session) {
+  const item = element("li");
+  item.dataset.sessionId = session.id;
+  item.dataset.state = session.state;
+  const head = element("div");
+  head.append(element("strong", session.name, "name"), ": ",
+    element("span", session.state, "state"),
+    `, ${session.frames} frames${session.metric ? "" : ", scale unknown"}`);
+  if (ACTIVE_SESSION.has(session.state) && session.progress.total) {
+    head.append(element("span", ` (${session.progress.done} / ${session.progress.total})`,
+      "progress"));
+  }
+  item.append(head);
+  if (session.error) {
+    const failed = element("div", session.error, "error");
+    failed.className = "error";
+    item.append(failed);
+  }
+  const a = session.alignment;
+  if (!a) return item;
+  const facts = [["mode", a.mode]];
+  if (a.map_from_session) facts.push(["scale", `scale ${a.map_from_session.scale.toFixed(4)}`]);
+  if (known(a.confident)) {
+    facts.push(["agreeing", `${a.agreeing} of ${a.confident} confident agree`]);
+  }
+  if (known(a.rms_position_m)) facts.push(["rms", `RMS ${centimetres(a.rms_position_m)}`]);
+  if (a.drift_correction_m) {
+    facts.push(["drift", `drift corrected ≤ ${centimetres(a.drift_correction_m.max)}`]);
+  }
+  const line = element("div");
+  facts.forEach(([field, text], k) => line.append(k ? ", " : "", element("span", text, field)));
+  item.append(line);
+  if (a.reason) item.append(element("div", `Refused: ${a.reason}`, "reason"));
+  if (!a.checked.length) return item;
+  const details = element("details");
+  const table = element("table");
+  table.className = "checked";
+  const titles = element("tr");
+  for (const [title, hint] of [["frame", ""], ["loc.", "localized"], ["conf.", "confidence"],
+    ["error", "position, rotation error against the alignment"],
+    ["agrees", "within the tolerance and 2°"]]) {
+    titles.append(Object.assign(element("th", title), { title: hint }));
+  }
+  table.append(titles);
+  for (const c of a.checked) {
+    const row = element("tr");
+    row.dataset.frame = c.frame;
+    const degrees = known(c.rotation_error_deg) ? `${c.rotation_error_deg.toFixed(2)}°` : "—";
+    const error = known(c.position_error_m) ? `${centimetres(c.position_error_m)}, ${degrees}`
+      : "—";
+    for (const text of [c.frame, c.localized ? "yes" : "no", c.confidence.toFixed(2), error,
+      c.agrees ? "yes" : "no"]) row.append(element("td", text));
+    table.append(row);
+  }
+  details.append(element("summary", `${a.checked.length} checked frames`), table);
+  item.append(details);
+  return item;
+}
+
 // --- GeoPose ----------------------------------------------------------------------------
 
 // the heading (degrees clockwise from North) a GeoPose camera looks along: its quaternion
@@ -1233,6 +1382,8 @@ async function main() {
   });
   $("reload-maps").addEventListener("click", loadMaps);
   $("eval-refresh").addEventListener("click", () => refreshEvaluation(state.evaluation.token, false));
+  $("sessions-refresh").addEventListener("click",
+    () => refreshSessions(state.sessions.token, false));
   $("localize-form").addEventListener("submit", localize);
   $("match-prev").addEventListener("click", () => showFigure(state.matches.index - 1));
   $("match-next").addEventListener("click", () => showFigure(state.matches.index + 1));

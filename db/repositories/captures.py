@@ -22,9 +22,16 @@ class CaptureRepository:
     def __init__(self, session: Session) -> None:
         self.session = session
 
-    def create(self, map_id: str, name: str, metric: bool) -> CaptureSession:
+    def create(self, map_id: str, name: str, metric: bool, keep_all: bool) -> CaptureSession:
         row = CaptureSession(
-            map_id=map_id, name=name, metric=metric, state="open", frame_count=0, done=0, total=0
+            map_id=map_id,
+            name=name,
+            metric=metric,
+            keep_all=keep_all,
+            state="open",
+            frame_count=0,
+            done=0,
+            total=0,
         )
         self.session.add(row)
         self.session.flush()

@@ -81,9 +81,11 @@ def _capture(
     metric: bool = True,
     scale: float = 1.0,
     name: str = "walk",
+    keep_all: bool = True,
 ) -> dict[str, Any]:
     """Uploads the views as a session, submits it and returns it once decided."""
-    created = client.post(f"/v1/maps/{map_id}/sessions", json={"name": name, "metric": metric})
+    body = {"name": name, "metric": metric, "keep_all": keep_all}
+    created = client.post(f"/v1/maps/{map_id}/sessions", json=body)
     assert created.status_code == 201, created.text
     session_id = created.json()["id"]
     assert created.headers["location"] == f"/v1/maps/{map_id}/sessions/{session_id}"
@@ -145,7 +147,9 @@ def test_a_session_is_aligned_and_its_frames_added(
     assert alignment["rms_position_m"] < 0.02
     # exact session poses: the frames that anchor the drift correction barely move
     assert alignment["drift_correction_m"]["max"] < 0.02
-    assert len(alignment["checked"]) == len(session_views)
+    assert (
+        alignment["skipped"] == 0
+    )  # keep_all    assert len(alignment["checked"]) == len(session_views)
     assert session["progress"] == {"done": 2 * len(session_views), "total": 2 * len(session_views)}
     images = _images(client, map_id)
     assert len(images) == 12 + len(session_views)
@@ -159,6 +163,26 @@ def test_a_session_is_aligned_and_its_frames_added(
     # the frames serve as references: a query localizes against the grown map
     answer = localize_view(client, map_id, query_views[9]).json()
     assert answer["localized"], answer
+
+
+def test_a_session_adds_only_the_frames_that_add_a_view(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    map_id = _map(client, reference_views[:12])
+    # four of the map's own views again, and two views it lacks
+    again = [*reference_views[:4], *reference_views[12:14]]
+    session = _capture(client, map_id, again, keep_all=False)
+    assert session["state"] == "added", session
+    alignment = session["alignment"]
+    assert alignment["skipped"] == 4 and alignment["added"] == 2
+    assert alignment["spacing_m"] > 0.1
+    assert session["progress"]["done"] == session["progress"]["total"]
+    names = set(_images(client, map_id))
+    assert {f"walk/{v.name}" for v in reference_views[12:14]} <= names
+    assert not any(f"walk/{v.name}" in names for v in reference_views[:4])
+    # the skipped frames' blobs are gone with them
+    blobs = client.app.state.blobs  # type: ignore[attr-defined]
+    assert sum(1 for _ in blobs.list("originals/")) == 14
 
 
 def test_a_session_that_does_not_fit_is_refused_and_adds_nothing(

@@ -54,7 +54,9 @@ def test_kill_9_while_a_session_is_added_resumes_it(
             )
             assert response.status_code == 201, response.text
         # the session's frame is the map's: the frames carry their true poses
-        session_id = http.post(f"/v1/maps/{map_id}/sessions", json={"name": "s"}).json()["id"]
+        session_id = http.post(
+            f"/v1/maps/{map_id}/sessions", json={"name": "s", "keep_all": True}
+        ).json()["id"]
         for view in captured:
             _upload_frame(http, map_id, session_id, view)
         assert http.post(f"/v1/maps/{map_id}/sessions/{session_id}/submit").status_code == 202

@@ -17,6 +17,7 @@ from services.capture.alignment import (
     tolerance_m,
 )
 from services.capture.drift import corrected_poses, slerp
+from services.capture.spacing import map_spacing, new_views
 from services.geometry.rigid import (
     Rigid3d,
     matrix_to_quaternion,
@@ -262,3 +263,19 @@ def test_a_session_that_overlaps_the_map_briefly_is_checked_densely_there() -> N
     assert more == [i for i in range(2, checked[1], 2)]
     assert densify(checked, [], 75) == [] and densify(checked, checked[:6], 75) == []
     assert len(densify(check_indices(600, 50), [0], 600)) == 0  # at most 50 in all
+
+
+def test_frames_are_added_at_the_maps_spacing_where_they_add_a_view() -> None:
+    def camera(x: float, yaw_deg: float = 0.0) -> Rigid3d:
+        yaw = np.radians(yaw_deg)
+        rotation = np.array(
+            [[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]]
+        )
+        return Rigid3d(rotation, -rotation @ np.array([x, 0.0, 0.0]))
+
+    references = [camera(x) for x in np.arange(0.0, 1.0, 0.2)]  # every 20 cm
+    assert map_spacing(np.array([r.center for r in references])) == pytest.approx(0.2)
+    # a capture every 2 cm from 1 m on, then one frame back in the map turned 90°
+    frames = [camera(1.0 + 0.02 * i) for i in range(30)] + [camera(0.4, 90.0)]
+    # at a spacing of 19 cm: 1.0, 1.2 and 1.4 m, and the turned view
+    assert new_views(frames, references, 0.19) == [0, 10, 20, 30]

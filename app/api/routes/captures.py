@@ -56,7 +56,7 @@ def create_session(
     well determined, adds every frame as a reference with its pose mapped into the map; a
     session that cannot be aligned is refused with its reason and adds nothing. On an empty
     map the session defines the map's frame."""
-    row = captures.create_session(sessions, map_id, body.name, body.metric)
+    row = captures.create_session(sessions, map_id, body.name, body.metric, body.keep_all)
     response.headers["Location"] = f"/v1/maps/{map_id}/sessions/{row.id}"
     return CaptureSessionOut.from_row(row)
 

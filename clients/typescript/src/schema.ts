@@ -650,6 +650,16 @@ export interface components {
             /** Rotation Stderr Deg */
             rotation_stderr_deg?: number | null;
             /**
+             * Skipped
+             * @description Frames not added: their views were in the map already (keep_all)
+             */
+            skipped?: number | null;
+            /**
+             * Spacing M
+             * @description The map's spacing that decided which frames add a view
+             */
+            spacing_m?: number | null;
+            /**
              * Tolerance M
              * @description max(5 cm, 1 % of the path): how far an agreeing frame may lie
              */
@@ -718,6 +728,12 @@ export interface components {
         /** CaptureSessionCreate */
         CaptureSessionCreate: {
             /**
+             * Keep All
+             * @description Add every frame. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame
+             * @default false
+             */
+            keep_all?: boolean;
+            /**
              * Metric
              * @description The frames' poses are in metres (ARKit, ARCore, a metric SLAM): the session is aligned rigidly. false: its scale is estimated (a similarity; a session of unknown scale cannot start an empty map)
              * @default true
@@ -749,6 +765,8 @@ export interface components {
             frames: number;
             /** Id */
             id: string;
+            /** Keep All */
+            keep_all: boolean;
             /** Map Id */
             map_id: string;
             /** Metric */

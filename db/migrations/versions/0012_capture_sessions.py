@@ -30,6 +30,7 @@ def upgrade() -> None:
         ),
         sa.Column("name", sa.String(255), nullable=False),
         sa.Column("metric", sa.Boolean(), nullable=False),
+        sa.Column("keep_all", sa.Boolean(), nullable=False),
         sa.Column("state", sa.String(16), nullable=False),
         sa.Column("frame_count", sa.Integer(), nullable=False),
         sa.Column("done", sa.Integer(), nullable=False),

@@ -167,6 +167,12 @@ class CaptureAlignmentOut(BaseModel):
     )
     rms_rotation_deg: float | None = Field(default=None)
     rotation_stderr_deg: float | None = Field(default=None)
+    skipped: int | None = Field(
+        default=None, description="Frames not added: their views were in the map already (keep_all)"
+    )
+    spacing_m: float | None = Field(
+        default=None, description="The map's spacing that decided which frames add a view"
+    )
     tolerance_m: float | None = Field(
         default=None, description="max(5 cm, 1 % of the path): how far an agreeing frame may lie"
     )
@@ -209,6 +215,10 @@ class CaptureProgress(BaseModel):
 
 class CaptureSessionCreate(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
+    keep_all: bool = Field(
+        default=False,
+        description="Add every frame. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame",
+    )
     metric: bool = Field(
         default=True,
         description="The frames' poses are in metres (ARKit, ARCore, a metric SLAM): the session is aligned rigidly. false: its scale is estimated (a similarity; a session of unknown scale cannot start an empty map)",
@@ -229,6 +239,7 @@ class CaptureSessionOut(BaseModel):
     finished_at: datetime | None
     frames: int = Field(description="Frames uploaded")
     id: str
+    keep_all: bool
     map_id: str
     metric: bool
     name: str
