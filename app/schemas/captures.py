@@ -39,10 +39,10 @@ class CaptureSessionCreate(BaseModel):
     )
     keep_all: bool = Field(
         False,
-        description="Add every frame. false: a frame is added only where it adds a view, "
-        "i.e. no reference or frame kept before it lies within the map's spacing (the median "
-        "distance between neighbouring references) looking within 15° of its direction; "
-        "a session that starts an empty map adds every frame",
+        description="Add every frame within the anchors' reach. false: a frame is added only "
+        "where it adds a view, i.e. no reference or frame kept before it lies within the "
+        "map's spacing (the median distance between neighbouring references) looking within "
+        "15° of its direction; a session that starts an empty map adds every frame",
     )
 
 
@@ -152,7 +152,7 @@ class CaptureAlignmentOut(BaseModel):
         None, description="max(5 cm, 1 % of the path): how far an agreeing frame may lie"
     )
     confident: int | None = Field(
-        None, description="Checked frames localized with confidence ≥ 0.5"
+        None, description="Checked frames localized with confidence ≥ 0.8"
     )
     agreeing: int | None = Field(None, description="Of those, the frames within the tolerance")
     rms_position_m: float | None = Field(None, description="RMS of the agreeing frames' errors")
@@ -169,7 +169,14 @@ class CaptureAlignmentOut(BaseModel):
     )
     added: int | None = Field(None, description="Frames added as references")
     skipped: int | None = Field(
-        None, description="Frames not added: their views were in the map already (keep_all)"
+        None,
+        description="Frames not added: beyond the anchors' reach (unanchored), or their "
+        "views were in the map already (unless keep_all)",
+    )
+    unanchored: int | None = Field(
+        None,
+        description="Frames farther than 5 m along the path from every frame the map "
+        "localized: their drift is unmeasured, they are not added",
     )
     spacing_m: float | None = Field(
         None, description="The map's spacing that decided which frames add a view"

@@ -52,7 +52,7 @@ from services.capture.alignment import (
     densify,
     path_length,
 )
-from services.capture.drift import corrected_poses
+from services.capture.drift import REACH_M, anchored, corrected_poses
 from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
@@ -398,15 +398,19 @@ class CaptureRunner:
                 if f.index in agreeing and f.cam_from_map is not None
             }
             corrected, shifts = corrected_poses(alignment.map_from_session, poses, anchors)
-            kept = list(range(len(frames)))
+            # frames beyond an anchor's reach carry drift nothing measured
+            reach = REACH_M / alignment.map_from_session.scale
+            kept = anchored(poses, sorted(anchors), reach)
+            result["unanchored"] = len(frames) - len(kept)
             if not keep_all:
                 references = self._reference_poses(map_id)
                 spacing = map_spacing(np.array([p.center for p in references]))
                 if spacing is not None:
-                    kept = new_views(corrected, references, spacing)
+                    views = new_views([corrected[i] for i in kept], references, spacing)
+                    kept = [kept[j] for j in views]
                     result["spacing_m"] = spacing
             placed = {ids[i]: corrected[i] for i in kept}
-            result["skipped"] = len(frames) - len(kept)
+            result["skipped"] = len(frames) - len(kept)  # unanchored included
             result["drift_correction_m"] = {
                 "median": float(np.median(shifts)),
                 "max": float(shifts.max()),

@@ -37,7 +37,7 @@ import numpy as np
 from services.geometry.rigid import Rigid3d, rotation_error_deg
 from services.types import FloatArray
 
-MIN_CONFIDENCE = 0.5
+MIN_CONFIDENCE = 0.8
 MIN_AGREEING = 3
 MIN_AGREEING_FRACTION = 0.5
 MIN_TOLERANCE_M = 0.05

@@ -7,15 +7,24 @@ its aligned pose needs: a translation of its centre and a rotation about it. A f
 two anchors takes their corrections interpolated by its distance along the session's path
 (linearly for the translation, spherically for the rotation); a frame before the first or past
 the last anchor takes that anchor's. The anchors' own poses become the map's answers for them.
+
+Past the anchors nothing measures the drift: a frame is placed only within ``REACH_M`` of an
+anchor along the path, where a drift of ``DRIFT_FRACTION`` of the distance stays within the
+alignment's least tolerance. A session that leaves the map extends it by that much; the next
+session, checked against the grown map, extends it further.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from services.capture.alignment import Similarity
+from services.capture.alignment import DRIFT_FRACTION, MIN_TOLERANCE_M, Similarity
 from services.geometry.rigid import Rigid3d, matrix_to_quaternion, quaternion_to_matrix
 from services.types import FloatArray
+
+# how far along the path from an anchor a frame is placed (map units): a drift of
+# DRIFT_FRACTION of the distance reaches MIN_TOLERANCE_M there
+REACH_M = MIN_TOLERANCE_M / DRIFT_FRACTION
 
 
 def slerp(q0: FloatArray, q1: FloatArray, t: float) -> FloatArray:
@@ -79,3 +88,14 @@ def corrected_poses(
         rotation = pose.rotation @ world_turn.T
         out.append(Rigid3d(rotation, -rotation @ center))
     return out, np.linalg.norm(shift, axis=1)
+
+
+def anchored(cam_from_session: list[Rigid3d], anchors: list[int], reach: float) -> list[int]:
+    """Indices of the frames within ``reach`` (session units) of an anchor along the path:
+    past it, the drift no anchor measured may exceed what the map tolerates."""
+    if not anchors:
+        return []
+    s = arc_lengths(cam_from_session)
+    s_anchor = np.sort(s[anchors])
+    nearest = np.abs(s[:, None] - s_anchor[None, :]).min(axis=1)
+    return [int(i) for i in np.flatnonzero(nearest <= reach)]

@@ -16,7 +16,7 @@ from services.capture.alignment import (
     path_length,
     tolerance_m,
 )
-from services.capture.drift import corrected_poses, slerp
+from services.capture.drift import anchored, corrected_poses, slerp
 from services.capture.spacing import map_spacing, new_views
 from services.geometry.rigid import (
     Rigid3d,
@@ -279,3 +279,10 @@ def test_frames_are_added_at_the_maps_spacing_where_they_add_a_view() -> None:
     frames = [camera(1.0 + 0.02 * i) for i in range(30)] + [camera(0.4, 90.0)]
     # at a spacing of 19 cm: 1.0, 1.2 and 1.4 m, and the turned view
     assert new_views(frames, references, 0.19) == [0, 10, 20, 30]
+
+
+def test_frames_beyond_the_anchors_reach_are_not_placed() -> None:
+    # a straight 20 m walk, one frame a metre; the map localized frames 2 and 6
+    poses = [Rigid3d(np.eye(3), -np.array([float(x), 0.0, 0.0])) for x in range(21)]
+    assert anchored(poses, [2, 6], 5.0) == list(range(12))
+    assert anchored(poses, [], 5.0) == []

@@ -41,7 +41,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +108,8 @@ class Options:
     depth: bool
     quick: bool
     datasets_dir: Path
+    # a dataset's session rule instead of its scenario's (dataset name -> rule)
+    sessions: dict[str, str] = field(default_factory=dict)
 
 
 def _log(line: str) -> None:
@@ -364,7 +366,7 @@ def measure(name: str, url: str, options: Options) -> dict[str, Any]:
     """Every scenario of one dataset on the server at ``url``."""
     dataset = _open(options, name)
     scenario = (QUICK_SCENARIOS if options.quick else SCENARIOS)[name]
-    session_rule = scenario.session
+    session_rule = options.sessions.get(name, scenario.session)
     if options.session_every > 1 and not options.quick:
         session_rule += f" every:{options.session_every}"
     references = select_images(dataset, scenario.map)
@@ -589,11 +591,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--quick", action="store_true", help="10 map frames, 10 session frames, 5 queries"
     )
+    parser.add_argument(
+        "--session",
+        action="append",
+        default=[],
+        metavar="DATASET=RULE",
+        help='another session rule for a dataset, e.g. "kitti05=range:120-224" (a session '
+        "that overlaps the map)",
+    )
     parser.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
     parser.add_argument("--out", type=Path, default=Path("out/capture-sessions"))
     args = parser.parse_args(argv)
     if args.session_every < 1:
         parser.error("--session-every must be at least 1")
+    sessions = dict(rule.split("=", 1) for rule in args.session if "=" in rule)
+    if len(sessions) != len(args.session) or not set(sessions) <= set(SCENARIOS):
+        parser.error(f"--session takes DATASET=RULE, DATASET one of {', '.join(SCENARIOS)}")
     options = Options(
         preset=args.preset,
         session_every=args.session_every,
@@ -603,6 +616,7 @@ def main(argv: list[str] | None = None) -> int:
         depth=not args.no_depth,
         quick=args.quick,
         datasets_dir=args.datasets_dir,
+        sessions=sessions,
     )
     env = {"SLLOC_AUTO_EVALUATION_REFERENCES": "0", "SLLOC_FEATURES": args.preset}
     results: dict[str, dict[str, Any]] = {}
@@ -625,6 +639,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
         "depth": not args.no_depth,
         "quick": args.quick,
+        "sessions": sessions,
     }
     (args.out / "results.json").write_text(
         json.dumps({"options": meta, "datasets": results}, indent=1)

@@ -612,7 +612,7 @@ export interface components {
             checked: components["schemas"]["CheckedFrameOut"][];
             /**
              * Confident
-             * @description Checked frames localized with confidence ≥ 0.5
+             * @description Checked frames localized with confidence ≥ 0.8
              */
             confident?: number | null;
             /** @description How far the agreeing frames' centres were moved onto where the map localized them; the frames between two of them are corrected by interpolation */
@@ -651,7 +651,7 @@ export interface components {
             rotation_stderr_deg?: number | null;
             /**
              * Skipped
-             * @description Frames not added: their views were in the map already (keep_all)
+             * @description Frames not added: beyond the anchors' reach (unanchored), or their views were in the map already (unless keep_all)
              */
             skipped?: number | null;
             /**
@@ -664,6 +664,11 @@ export interface components {
              * @description max(5 cm, 1 % of the path): how far an agreeing frame may lie
              */
             tolerance_m?: number | null;
+            /**
+             * Unanchored
+             * @description Frames farther than 5 m along the path from every frame the map localized: their drift is unmeasured, they are not added
+             */
+            unanchored?: number | null;
         };
         /**
          * CaptureFrameMetadata
@@ -729,7 +734,7 @@ export interface components {
         CaptureSessionCreate: {
             /**
              * Keep All
-             * @description Add every frame. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame
+             * @description Add every frame within the anchors' reach. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame
              * @default false
              */
             keep_all?: boolean;

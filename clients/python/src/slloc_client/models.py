@@ -145,7 +145,7 @@ class CaptureAlignmentOut(BaseModel):
     )
     checked: list[CheckedFrameOut]
     confident: int | None = Field(
-        default=None, description="Checked frames localized with confidence ≥ 0.5"
+        default=None, description="Checked frames localized with confidence ≥ 0.8"
     )
     drift_correction_m: DriftCorrectionOut | None = Field(
         default=None,
@@ -168,13 +168,18 @@ class CaptureAlignmentOut(BaseModel):
     rms_rotation_deg: float | None = Field(default=None)
     rotation_stderr_deg: float | None = Field(default=None)
     skipped: int | None = Field(
-        default=None, description="Frames not added: their views were in the map already (keep_all)"
+        default=None,
+        description="Frames not added: beyond the anchors' reach (unanchored), or their views were in the map already (unless keep_all)",
     )
     spacing_m: float | None = Field(
         default=None, description="The map's spacing that decided which frames add a view"
     )
     tolerance_m: float | None = Field(
         default=None, description="max(5 cm, 1 % of the path): how far an agreeing frame may lie"
+    )
+    unanchored: int | None = Field(
+        default=None,
+        description="Frames farther than 5 m along the path from every frame the map localized: their drift is unmeasured, they are not added",
     )
 
 
@@ -217,7 +222,7 @@ class CaptureSessionCreate(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     keep_all: bool = Field(
         default=False,
-        description="Add every frame. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame",
+        description="Add every frame within the anchors' reach. false: a frame is added only where it adds a view, i.e. no reference or frame kept before it lies within the map's spacing (the median distance between neighbouring references) looking within 15° of its direction; a session that starts an empty map adds every frame",
     )
     metric: bool = Field(
         default=True,
