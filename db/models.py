@@ -129,6 +129,10 @@ class ReferenceImage(Base):
     original_key: Mapped[str | None] = mapped_column(String(255))
     original_sha256: Mapped[str | None] = mapped_column(String(64))
     depth_key: Mapped[str | None] = mapped_column(String(255))
+    # flagged stale: frames of a capture session that cover it no longer match it
+    # (services/capture/freshness.py); None: not flagged
+    stale_since: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    stale_reason: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     map: Mapped[Map] = relationship(back_populates="images")

@@ -360,6 +360,8 @@ def summary(session: dict[str, Any]) -> str:
             f"drift corrected at the agreeing frames: median {_number(drift['median'], 100)} "
             f"cm, largest {_number(drift['max'], 100)} cm"
         )
+    for stale in alignment.get("stale") or []:
+        lines.append(f"flagged stale: {stale['name']} ({stale['image_id']}): {stale['reason']}")
     if alignment.get("added") is not None:
         skipped = alignment.get("skipped") or 0
         lines.append(

@@ -134,6 +134,12 @@ class CheckedFrameOut(BaseModel):
     agrees: bool = Field(description="Within the tolerance and 2°: it took part in the fit")
 
 
+class StaleReferenceOut(BaseModel):
+    image_id: str
+    name: str
+    reason: str
+
+
 class DriftCorrectionOut(BaseModel):
     median: float
     max: float
@@ -162,6 +168,10 @@ class CaptureAlignmentOut(BaseModel):
     )
     rotation_stderr_deg: float | None = None
     checked: list[CheckedFrameOut]
+    stale: list[StaleReferenceOut] = Field(
+        default_factory=list,
+        description="References the session's frames no longer match, flagged stale",
+    )
     drift_correction_m: DriftCorrectionOut | None = Field(
         None,
         description="How far the agreeing frames' centres were moved onto where the map "

@@ -29,6 +29,11 @@ class ImageMetadata(BaseModel):
         )
 
 
+class StaleOut(BaseModel):
+    since: datetime
+    reason: str
+
+
 class ImageOut(BaseModel):
     id: str
     name: str
@@ -46,6 +51,11 @@ class ImageOut(BaseModel):
     original_sha256: str | None = Field(
         None, description="SHA-256 of the original bytes (hex), when kept"
     )
+    stale: StaleOut | None = Field(
+        None,
+        description="Flagged stale: frames of a capture session that cover it no longer "
+        "match it (the place changed, or the image is not of it); delete it to retire it",
+    )
 
     @classmethod
     def from_stored(cls, image: StoredImage) -> ImageOut:
@@ -60,6 +70,11 @@ class ImageOut(BaseModel):
             gps=GpsSchema.from_fix(image.gps) if image.gps else None,
             has_original=image.has_original,
             original_sha256=image.original_sha256,
+            stale=(
+                StaleOut(since=image.stale_since, reason=image.stale_reason or "")
+                if image.stale_since is not None
+                else None
+            ),
         )
 
 

@@ -25,6 +25,7 @@ import threading
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,13 @@ from services.capture.alignment import (
     path_length,
 )
 from services.capture.drift import REACH_M, anchored, corrected_poses
+from services.capture.freshness import (
+    MIN_EVIDENCE,
+    Vote,
+    agreeing_matches,
+    covering,
+    stale_references,
+)
 from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
@@ -368,8 +376,11 @@ class CaptureRunner:
                 "frame_ids": ids,
             }
             return self._decided(session_id, map_id, result, dict(zip(ids, poses, strict=True)))
+        # each checked frame's best retrieved reference's inliers: how well the place matched
+        evidence: dict[int, int] = {}
         localized = [
-            self._check(session_id, map_id, frames[i], i, n) for n, i in enumerate(checked)
+            self._check(session_id, map_id, frames[i], i, n, evidence)
+            for n, i in enumerate(checked)
         ]
         # a session that overlaps the map over a short stretch (it extends the map): the
         # frames around those the map localized are checked too
@@ -383,7 +394,7 @@ class CaptureRunner:
                 row.total += len(more)
             offset = len(localized)
             localized += [
-                self._check(session_id, map_id, frames[i], i, offset + n)
+                self._check(session_id, map_id, frames[i], i, offset + n, evidence)
                 for n, i in enumerate(more)
             ]
             localized.sort(key=lambda f: f.index)
@@ -403,7 +414,7 @@ class CaptureRunner:
             kept = anchored(poses, sorted(anchors), reach)
             result["unanchored"] = len(frames) - len(kept)
             if not keep_all:
-                references = self._reference_poses(map_id)
+                references = self._reference_ids_and_poses(map_id)[1]
                 spacing = map_spacing(np.array([p.center for p in references]))
                 if spacing is not None:
                     views = new_views([corrected[i] for i in kept], references, spacing)
@@ -411,6 +422,7 @@ class CaptureRunner:
                     result["spacing_m"] = spacing
             placed = {ids[i]: corrected[i] for i in kept}
             result["skipped"] = len(frames) - len(kept)  # unanchored included
+            result["stale"] = self._freshness(map_id, name, frames, anchors, evidence)
             result["drift_correction_m"] = {
                 "median": float(np.median(shifts)),
                 "max": float(shifts.max()),
@@ -424,10 +436,73 @@ class CaptureRunner:
         )
         return self._decided(session_id, map_id, result, placed)
 
-    def _reference_poses(self, map_id: str) -> list[Rigid3d]:
+    def _freshness(
+        self,
+        map_id: str,
+        session_name: str,
+        frames: list[CaptureFrame],
+        anchors: dict[int, Rigid3d],
+        evidence: dict[int, int],
+    ) -> list[dict[str, Any]]:
+        """The votes of the anchors on the references that cover them
+        (``services.capture.freshness``), stored: the references whose votes are all stale
+        are flagged, those with a fresh vote unflagged. The stale ones, as the result lists
+        them."""
+        localizer, _, store = self.context.map_engine(map_id, LocalizeRequest())
+        ids, poses = self._reference_ids_and_poses(map_id)
+        spacing = map_spacing(np.array([p.center for p in poses]))
+        if spacing is None:
+            return []
+        votes: list[Vote] = []
+        for index, cam_from_map in sorted(anchors.items()):
+            near = covering(cam_from_map, poses, spacing)
+            if evidence.get(index, 0) < MIN_EVIDENCE or not near:
+                continue
+            frame = frames[index]
+            camera = camera_of(frame)
+            with self.context.slots:
+                described = localizer.describe_reference(self.blobs.get(frame.original_key), camera)
+                for reference in store.load_references([ids[i] for i in near]):
+                    matches = localizer.matcher.match(described.features, reference.features)
+                    inliers = agreeing_matches(
+                        camera,
+                        cam_from_map,
+                        described.features.keypoints,
+                        reference.camera,
+                        reference.cam_from_world,
+                        reference.features.keypoints,
+                        matches,
+                    )
+                    votes.append(Vote(reference.image_id, frame.name, inliers, evidence[index]))
+        verdicts = stale_references(votes)
+        now = datetime.now(UTC)
+        stale = []
+        with self.sessions.begin() as session:
+            for image_id, theirs in verdicts.items():
+                row = session.get(ReferenceImage, image_id)
+                if row is None:
+                    continue
+                if not theirs:
+                    row.stale_since, row.stale_reason = None, None
+                    continue
+                reason = (
+                    f"capture session {session_name!r}: {len(theirs)} frame(s) that cover it "
+                    f"matched it with at most {max(v.inliers for v in theirs)} inliers where "
+                    f"the references they retrieved had {min(v.expected for v in theirs)} or more"
+                )
+                if row.stale_since is None:
+                    row.stale_since = now
+                row.stale_reason = reason
+                stale.append({"image_id": image_id, "name": row.name, "reason": reason})
+        if stale:
+            logger.info("map %s: %d references flagged stale", map_id, len(stale))
+        return stale
+
+    def _reference_ids_and_poses(self, map_id: str) -> tuple[list[str], list[Rigid3d]]:
         with self.sessions() as session:
             rows = session.execute(
                 select(
+                    ReferenceImage.id,
                     ReferenceImage.qw,
                     ReferenceImage.qx,
                     ReferenceImage.qy,
@@ -437,18 +512,27 @@ class CaptureRunner:
                     ReferenceImage.tz,
                 ).where(ReferenceImage.map_id == map_id)
             ).all()
-        return [Rigid3d.from_quaternion(np.array(r[:4]), np.array(r[4:])) for r in rows]
+        ids = [str(r[0]) for r in rows]
+        return ids, [Rigid3d.from_quaternion(np.array(r[1:5]), np.array(r[5:8])) for r in rows]
 
     def _check(
-        self, session_id: str, map_id: str, frame: CaptureFrame, index: int, done: int
+        self,
+        session_id: str,
+        map_id: str,
+        frame: CaptureFrame,
+        index: int,
+        done: int,
+        evidence: dict[int, int],
     ) -> CheckedFrame:
-        """The frame localized against the map as a query with its own camera."""
+        """The frame localized against the map as a query with its own camera; ``evidence``
+        gets its best retrieved reference's inliers."""
         answer = localize(
             self.context,
             map_id,
             LocalizeRequest(camera=camera_of(frame), top_k=CHECK_TOP_K),
             self.blobs.get(frame.original_key),
         )
+        evidence[index] = max((r.num_inliers for r in answer.retrieved), default=0)
         self._progress(session_id, done + 1)
         return CheckedFrame(
             index,

@@ -61,6 +61,9 @@ class StoredImage:
     # the image's original bytes are in the blob store (False: added before they were kept)
     has_original: bool = False
     original_sha256: str | None = None
+    # flagged stale by a capture session's frames (services/capture/freshness.py)
+    stale_since: datetime | None = None
+    stale_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -176,16 +179,21 @@ def train_vocabulary_if_due(
 
 
 def list_images(
-    sessions: sessionmaker[Session], map_id: str, offset: int, limit: int
+    sessions: sessionmaker[Session],
+    map_id: str,
+    offset: int,
+    limit: int,
+    stale: bool | None = None,
 ) -> tuple[list[StoredImage], int]:
-    """A page of the map's images, oldest first, and the number of its images.
+    """A page of the map's images, oldest first, and their number (``stale``: only those
+    flagged stale, or only those not).
 
     Raises:
         NotFoundError: unknown map.
     """
     with sessions() as session:
         require_map(session, map_id)
-        rows, total = ImageRepository(session).page(map_id, offset, limit)
+        rows, total = ImageRepository(session).page(map_id, offset, limit, stale)
         return [_stored(row) for row in rows], total
 
 
@@ -288,4 +296,6 @@ def _stored(row: ReferenceImage) -> StoredImage:
         gps=gps_of(row),
         has_original=row.original_key is not None,
         original_sha256=row.original_sha256,
+        stale_since=row.stale_since,
+        stale_reason=row.stale_reason,
     )

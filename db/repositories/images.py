@@ -142,8 +142,15 @@ class ImageRepository:
         """The extractors that described the references of every map."""
         return set(self.session.scalars(select(ReferenceImage.feature_model).distinct()).all())
 
-    def page(self, map_id: str, offset: int, limit: int) -> tuple[list[ReferenceImage], int]:
+    def page(
+        self, map_id: str, offset: int, limit: int, stale: bool | None = None
+    ) -> tuple[list[ReferenceImage], int]:
+        """A page of the map's images, oldest first (``stale``: only those flagged stale, or
+        only those not), and how many there are."""
         where = ReferenceImage.map_id == map_id
+        if stale is not None:
+            flagged = ReferenceImage.stale_since.is_not(None)
+            where = where & (flagged if stale else ~flagged)
         total = self.session.scalar(select(func.count()).select_from(ReferenceImage).where(where))
         rows = self.session.scalars(
             select(ReferenceImage)

@@ -1,5 +1,6 @@
 """Capture sessions extend a map: frames with poses in the device's own frame are aligned to
-the map and added, refused with the reason (adding nothing), or start an empty map. SQLite and
+the map and added, refused with the reason (adding nothing), or start an empty map; their
+frames flag the references that no longer match the place. SQLite and
 PostgreSQL, real SIFT on rendered views whose poses are exact, sessions expressed in frames
 that the test moves, turns and scales."""
 
@@ -16,7 +17,7 @@ from fastapi.testclient import TestClient
 from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
 from tests.conftest import localize_view, make_client, upload_view
 from tests.polling import wait_until
-from tools.synthetic.scene import SyntheticView, encode_png
+from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 # the session's frame in the map's: turned 40° about an oblique axis and moved
 TURN = quaternion_to_matrix(np.array([np.cos(0.35), 0.3, np.sin(0.35) * 0.8, 0.2]))
@@ -272,3 +273,32 @@ def test_session_requests_are_checked(
     assert client.get(f"{base}/{unknown}").status_code == 404
     listed = client.get(base).json()
     assert listed["total"] == 1 and listed["items"][0]["name"] == "walk"
+
+
+def test_a_reference_whose_image_shows_another_place_is_flagged_stale(
+    client: TestClient, scene: SyntheticScene, reference_views: list[SyntheticView]
+) -> None:
+    views = reference_views[:12]
+    swapped = views[3]
+    elsewhere = SyntheticScene(seed=7)  # another room, seen from the same pose
+    image, _ = elsewhere.render(swapped.cam_from_world)
+    map_id = _map(client, [v for v in views if v is not swapped])
+    impostor = SyntheticView(swapped.name, swapped.camera, swapped.cam_from_world, image, None)
+    assert upload_view(client, map_id, impostor).status_code == 201
+    # the place as it is now: each reference's view again, from 5 cm to its right
+    frames = []
+    for view in views:
+        moved = Rigid3d(
+            view.cam_from_world.rotation, view.cam_from_world.translation - [0.05, 0, 0]
+        )
+        rendered, _ = scene.render(moved)
+        frames.append(SyntheticView(f"now-{view.name}", view.camera, moved, rendered, None))
+    session = _capture(client, map_id, frames, keep_all=False)
+    assert session["state"] == "added", session
+    assert [s["name"] for s in session["alignment"]["stale"]] == [swapped.name]
+    flagged = client.get(f"/v1/maps/{map_id}/images", params={"stale": True}).json()
+    assert [item["name"] for item in flagged["items"]] == [swapped.name]
+    assert "capture session 'walk'" in flagged["items"][0]["stale"]["reason"]
+    others = client.get(f"/v1/maps/{map_id}/images", params={"stale": False}).json()
+    assert others["total"] == len(_images(client, map_id)) - 1
+    assert all(item["stale"] is None for item in others["items"])

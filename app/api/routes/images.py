@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 
 from app.api.deps import (
     AdminKey,
@@ -99,8 +99,15 @@ def list_images(
     sessions: SessionsDep,
     offset: Offset = 0,
     limit: Limit = 100,
+    stale: Annotated[
+        bool | None,
+        Query(
+            description="true: only the images flagged stale (a capture session's frames "
+            "that cover them no longer match them); false: only the others"
+        ),
+    ] = None,
 ) -> ImagePage:
-    stored, total = images.list_images(sessions, map_id, offset, limit)
+    stored, total = images.list_images(sessions, map_id, offset, limit, stale)
     items = [ImageOut.from_stored(image) for image in stored]
     return ImagePage(items=items, total=total, offset=offset, limit=limit)
 

@@ -660,6 +660,11 @@ export interface components {
              */
             spacing_m?: number | null;
             /**
+             * Stale
+             * @description References the session's frames no longer match, flagged stale
+             */
+            stale?: components["schemas"]["StaleReferenceOut"][];
+            /**
              * Tolerance M
              * @description max(5 cm, 1 % of the path): how far an agreeing frame may lie
              */
@@ -1522,6 +1527,8 @@ export interface components {
              * @description SHA-256 of the original bytes (hex), when kept
              */
             original_sha256?: string | null;
+            /** @description Flagged stale: frames of a capture session that cover it no longer match it (the place changed, or the image is not of it); delete it to retire it */
+            stale?: components["schemas"]["StaleOut"] | null;
         };
         /** ImagePage */
         ImagePage: {
@@ -2242,6 +2249,25 @@ export interface components {
             scale: number;
             /** Translation */
             translation: number[];
+        };
+        /** StaleOut */
+        StaleOut: {
+            /** Reason */
+            reason: string;
+            /**
+             * Since
+             * Format: date-time
+             */
+            since: string;
+        };
+        /** StaleReferenceOut */
+        StaleReferenceOut: {
+            /** Image Id */
+            image_id: string;
+            /** Name */
+            name: string;
+            /** Reason */
+            reason: string;
         };
         /** Timings */
         Timings: {
@@ -3275,6 +3301,8 @@ export interface operations {
                 offset?: number;
                 /** @description Items per page */
                 limit?: number;
+                /** @description true: only the images flagged stale (a capture session's frames that cover them no longer match them); false: only the others */
+                stale?: boolean | null;
             };
             header?: never;
             path: {

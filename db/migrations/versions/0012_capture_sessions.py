@@ -1,4 +1,5 @@
-"""Capture sessions that extend maps, and their frames waiting to be added.
+"""Capture sessions that extend maps, their frames waiting to be added, and the stale flag
+their frames set on references that no longer match.
 
 Revision ID: 0012
 Revises: 0011
@@ -18,6 +19,9 @@ POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx", "ty", "tz")
 
 
 def upgrade() -> None:
+    # plain ALTER TABLE ADD COLUMN on both backends (no table rebuild: see 0009)
+    op.add_column("reference_images", sa.Column("stale_since", sa.DateTime(timezone=True)))
+    op.add_column("reference_images", sa.Column("stale_reason", sa.Text()))
     op.create_table(
         "capture_sessions",
         sa.Column("id", sa.String(36), primary_key=True),
@@ -74,3 +78,9 @@ def upgrade() -> None:
 def downgrade() -> None:
     op.drop_table("capture_frames")
     op.drop_table("capture_sessions")
+    sqlite = op.get_bind().dialect.name == "sqlite"
+    for name in ("stale_reason", "stale_since"):
+        if sqlite:
+            op.execute(f"ALTER TABLE reference_images DROP COLUMN {name}")
+        else:
+            op.drop_column("reference_images", name)

@@ -174,6 +174,9 @@ class CaptureAlignmentOut(BaseModel):
     spacing_m: float | None = Field(
         default=None, description="The map's spacing that decided which frames add a view"
     )
+    stale: list[StaleReferenceOut] | None = Field(
+        default=None, description="References the session's frames no longer match, flagged stale"
+    )
     tolerance_m: float | None = Field(
         default=None, description="max(5 cm, 1 % of the path): how far an agreeing frame may lie"
     )
@@ -690,6 +693,10 @@ class ImageOut(BaseModel):
     original_sha256: str | None = Field(
         default=None, description="SHA-256 of the original bytes (hex), when kept"
     )
+    stale: StaleOut | None = Field(
+        default=None,
+        description="Flagged stale: frames of a capture session that cover it no longer match it (the place changed, or the image is not of it); delete it to retire it",
+    )
 
 
 class ImagePage(BaseModel):
@@ -1153,6 +1160,19 @@ class SessionTransformOut(BaseModel):
     rotation: list[float] = Field(description="unit quaternion [w, x, y, z]")
     scale: float = Field(description="1 for a metric session")
     translation: list[float]
+
+
+class StaleOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    reason: str
+    since: datetime
+
+
+class StaleReferenceOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    image_id: str
+    name: str
+    reason: str
 
 
 class Timings(BaseModel):
