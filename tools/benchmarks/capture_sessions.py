@@ -20,6 +20,9 @@ Scenarios (dataset positions, split rules of ``tools/evaluation/split.py``):
   but declared metric (expected refused); (c) the same declared of unknown scale (expected
   added with a scale ≈ 2), on a second map built like the first so that it does not meet the
   frames of the redkitchen session (added to the first map after (b)).
+- Stale references: a map of the dataset whose two references the session (redkitchen
+  500–749, kitti05 120–224, which overlap their maps) covers best show frames of the other
+  dataset, resized, poses kept; the session's stale flags against them.
 - Bootstrap: an empty map takes redkitchen 0–499 every 5th as a session (relative poses with
   drift), then localizes 500–999 every 10th against the ground truth expressed in the
   session's frame.
@@ -41,10 +44,11 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 
@@ -91,6 +95,10 @@ QUICK_SCENARIOS = {
     ),
     "kitti05": Scenario("range:0-149 every:15", "range:150-224 every:8", "range:225-299 every:15"),
 }
+# stale references: this many of the references the session covers best show another place;
+# the session of each dataset that overlaps its map
+STALE_SWAPS = 2
+STALE_SESSIONS = {"redkitchen": "range:500-749", "kitti05": "range:120-224"}
 # negative (a): frames of another place, pushed to the redkitchen map
 OTHER_PLACE = ("kitti05", "range:150-174", "range:150-159")
 # bootstrap: the session that starts an empty map, and the queries localized in it
@@ -110,6 +118,8 @@ class Options:
     datasets_dir: Path
     # a dataset's session rule instead of its scenario's (dataset name -> rule)
     sessions: dict[str, str] = field(default_factory=dict)
+    # where the swapped references' images are written
+    scratch: Path = Path("out/capture-sessions")
 
 
 def _log(line: str) -> None:
@@ -444,7 +454,79 @@ def measure(name: str, url: str, options: Options) -> dict[str, Any]:
             sessions["bootstrap"] = result["bootstrap"].pop("session")
         result["sessions"] = sessions
         result["added"] = added
+        result["stale"] = stale_scenario(http, url, name, options, options.scratch)
     return result
+
+
+def swapped_references(
+    references: list[PosedImage],
+    session: list[PosedImage],
+    others: list[PosedImage],
+    folder: Path,
+) -> list[PosedImage]:
+    """``references`` with the ``STALE_SWAPS`` the session covers best (nearest to one of its
+    frames, looking within 30° of it) showing images of ``others`` instead (resized to their
+    cameras), poses and names kept."""
+    centers = np.array([i.cam_from_world.center for i in session])
+    axes = np.array([i.cam_from_world.rotation[2] for i in session])
+    closeness = []
+    for image in references:
+        distance = np.linalg.norm(centers - image.cam_from_world.center, axis=1)
+        facing = axes @ image.cam_from_world.rotation[2] >= np.cos(np.radians(30.0))
+        closeness.append(float(distance[facing].min()) if facing.any() else np.inf)
+    swap = set(np.argsort(closeness)[:STALE_SWAPS].tolist())
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for k, image in enumerate(references):
+        if k not in swap:
+            out.append(image)
+            continue
+        source = others[len(out) % len(others)].image_path
+        other = cv2.imread(str(source), cv2.IMREAD_COLOR)
+        if other is None:
+            raise ValueError(f"{source}: not an image OpenCV reads")
+        size = (image.camera.width, image.camera.height)
+        path = folder / f"swapped-{k}.png"
+        cv2.imwrite(str(path), cv2.resize(other, size, interpolation=cv2.INTER_AREA))
+        out.append(replace(image, image_path=path, depth_path=None))
+    return out
+
+
+def stale_scenario(
+    http: httpx.Client, url: str, name: str, options: Options, out: Path
+) -> dict[str, Any]:
+    """A map whose references the session covers best show another place: which references
+    the session flags stale, against those swapped."""
+    dataset = _open(options, name)
+    scenario = (QUICK_SCENARIOS if options.quick else SCENARIOS)[name]
+    session_rule = STALE_SESSIONS[name] if not options.quick else scenario.session
+    session_images = select_images(dataset, session_rule)
+    other_name = "kitti05" if name == "redkitchen" else "redkitchen"
+    others = select_images(_open(options, other_name), "range:0-99 every:10")
+    references = swapped_references(
+        select_images(dataset, scenario.map), session_images, others, out / f"{name}-swapped"
+    )
+    swapped = sorted(
+        image.name for image in references if image.image_path.name.startswith("swapped-")
+    )
+    runner = build_map(url, f"{name}-stale", references, options)
+    session = run_session(
+        http, runner.map_id, "stale", session_frames(session_images, options), "added"
+    )
+    flagged = sorted(
+        item["name"]
+        for item in request(
+            http, "GET", f"/v1/maps/{runner.map_id}/images", params={"stale": True, "limit": 1000}
+        ).json()["items"]
+    )
+    return {
+        "session_rule": session_rule,
+        "state": session["state"],
+        "swapped": swapped,
+        "flagged": flagged,
+        "found": len(set(swapped) & set(flagged)),
+        "false_flags": len(set(flagged) - set(swapped)),
+    }
 
 
 def bootstrap(
@@ -555,6 +637,21 @@ def markdown(results: dict[str, dict[str, Any]]) -> str:
                 f"| {_cm(p['p90'])} | {_cm(p['max'])} | {_deg(r['median'])} | {_deg(r['p90'])} "
                 f"| {_deg(r['max'])} | {a['within'] * 100:.0f} |"
             )
+    lines += [
+        "",
+        "### Stale references (references the session covers best, showing another place)",
+        "",
+        "| dataset | session | state | swapped | flagged stale | found | false flags |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, result in results.items():
+        st = result.get("stale")
+        if st:
+            lines.append(
+                f"| {name} | {st['session_rule']} | {st['state']} | {', '.join(st['swapped'])} "
+                f"| {', '.join(st['flagged']) or '–'} | {st['found']} of {len(st['swapped'])} "
+                f"| {st['false_flags']} |"
+            )
     return "\n".join(lines)
 
 
@@ -617,6 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         quick=args.quick,
         datasets_dir=args.datasets_dir,
         sessions=sessions,
+        scratch=args.out,
     )
     env = {"SLLOC_AUTO_EVALUATION_REFERENCES": "0", "SLLOC_FEATURES": args.preset}
     results: dict[str, dict[str, Any]] = {}
