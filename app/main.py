@@ -160,7 +160,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes, memory=memory)
     # outside the body limit: a missing or unknown key is answered before anything reads the
     # body
-    routers = [m.router for m in (maps, images, captures, evaluations, geo, localize, gpp, health)]
+    routers = [
+        *(m.router for m in (maps, images, captures, evaluations, geo, localize, gpp, health)),
+        evaluations.coverage_router,
+    ]
     routes = [route for router in routers for route in router.routes]
     app.add_middleware(ApiKeyGate, routes=routes)
     # outside the key gate: a browser's preflight carries no key (SLLOC_CORS_ORIGINS)

@@ -1,4 +1,5 @@
-"""Self-evaluations of a map: the request, its progress and what it measured."""
+"""Self-evaluations of a map: the request, its progress and what it measured; the map's
+coverage read from them."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from app.schemas.estimators import EstimatorName
+from app.usecases.coverage import MapCoverage
 from app.usecases.evaluations import DEFAULT_SAMPLE, MAX_SAMPLE, EvaluationRequest
 from db.models import MapEvaluation
 
@@ -175,3 +177,66 @@ class EvaluationPage(BaseModel):
     total: int
     offset: int
     limit: int
+
+
+class CoverageCellOut(BaseModel):
+    i: int = Field(description="Index along the plane's u axis")
+    j: int = Field(description="Index along the plane's v axis")
+    center: list[float] = Field(description="The cell's centre in map coordinates")
+    references: int
+    held_out: int = Field(description="Its references held out by the latest self-evaluation")
+    failed: int = Field(
+        description="Of those, not localized or off by more than 25 cm or 5° from their pose"
+    )
+    median_error_m: float | None = Field(description="Of the held-out ones localized")
+    weak: bool
+    why: list[str] = Field(description="Why the cell is weak")
+
+
+class GroundPlaneOut(BaseModel):
+    origin: list[float]
+    u: list[float] = Field(description="Unit axis of the cells' i")
+    v: list[float] = Field(description="Unit axis of the cells' j")
+
+
+class CoverageOut(BaseModel):
+    """The map's references on their ground plane, cell by cell, with its latest
+    self-evaluation: where a query is least likely to be answered well."""
+
+    plane: GroundPlaneOut
+    cell_m: float
+    evaluation_id: str | None = Field(
+        description="The self-evaluation read; null when the map has no finished one (cells "
+        "then say only how many references they hold)"
+    )
+    weak: int = Field(description="Weak cells")
+    cells: list[CoverageCellOut]
+
+    @classmethod
+    def from_coverage(cls, found: MapCoverage) -> CoverageOut:
+        c = found.coverage
+        cells = [
+            CoverageCellOut(
+                i=cell.i,
+                j=cell.j,
+                center=[float(x) for x in cell.center],
+                references=cell.references,
+                held_out=cell.held_out,
+                failed=cell.failed,
+                median_error_m=cell.median_error_m,
+                weak=bool(cell.why_weak),
+                why=cell.why_weak,
+            )
+            for cell in c.cells
+        ]
+        return cls(
+            plane=GroundPlaneOut(
+                origin=[float(x) for x in c.origin],
+                u=[float(x) for x in c.u],
+                v=[float(x) for x in c.v],
+            ),
+            cell_m=c.cell_m,
+            evaluation_id=found.evaluation_id,
+            weak=sum(cell.weak for cell in cells),
+            cells=cells,
+        )

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -89,6 +90,18 @@ def test_a_map_measures_itself(client: TestClient, reference_views: list[Synthet
     [item] = listed["items"]
     assert item["id"] == evaluation["id"]
     assert item["result"]["configurations"]["sift"]["references"] is None
+    # the map's coverage reads it: every held-out reference in its cell, none failed
+    coverage = client.get(f"/v1/maps/{map_id}/coverage").json()
+    assert coverage["evaluation_id"] == evaluation["id"]
+    assert sum(c["references"] for c in coverage["cells"]) == REFERENCES
+    assert sum(c["held_out"] for c in coverage["cells"]) == HELD_OUT
+    assert all(c["failed"] == 0 for c in coverage["cells"])
+    assert all(c["why"] in ([], ["a single reference"]) for c in coverage["cells"])
+    assert coverage["weak"] == sum(c["weak"] for c in coverage["cells"])
+    plane = coverage["plane"]
+    assert abs(float(np.dot(plane["u"], plane["v"]))) < 1e-9
+    tiny = client.get(f"/v1/maps/{map_id}/coverage", params={"cell_m": 1e-6})
+    assert tiny.status_code == 422 and "more than 20000 cells" in tiny.json()["detail"]
     metrics = client.get("/metrics").text
     assert 'slloc_self_evaluations_total{state="done"} 1.0' in metrics
     assert f"slloc_self_evaluation_queries_total {float(HELD_OUT)}" in metrics

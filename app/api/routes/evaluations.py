@@ -1,8 +1,10 @@
-"""Self-evaluations of a map: start, list, read, cancel."""
+"""Self-evaluations of a map: start, list, read, cancel; the map's coverage read from them."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Response
 
 from app.api.deps import (
     AdminKey,
@@ -14,10 +16,11 @@ from app.api.deps import (
     SessionsDep,
 )
 from app.errors import problem_responses
-from app.schemas.evaluations import EvaluationCreate, EvaluationOut, EvaluationPage
-from app.usecases import evaluations
+from app.schemas.evaluations import CoverageOut, EvaluationCreate, EvaluationOut, EvaluationPage
+from app.usecases import coverage, evaluations
 
 router = APIRouter(prefix="/v1/maps/{map_id}/evaluations", tags=["evaluations"])
+coverage_router = APIRouter(prefix="/v1/maps/{map_id}/coverage", tags=["evaluations"])
 
 
 @router.post(
@@ -59,6 +62,33 @@ def list_evaluations(
     rows, total = evaluations.list_evaluations(sessions, map_id, offset, limit)
     items = [EvaluationOut.from_row(row, with_references=False) for row in rows]
     return EvaluationPage(items=items, total=total, offset=offset, limit=limit)
+
+
+@coverage_router.get(
+    "",
+    operation_id="get_map_coverage",
+    dependencies=[ClientKey],
+    responses=problem_responses(401, 404, 422),
+)
+def get_coverage(
+    map_id: str,
+    sessions: SessionsDep,
+    cell_m: Annotated[
+        float | None,
+        Query(
+            gt=0,
+            le=1_000_000,
+            description="Cell size in map units (default: 4 × the map's spacing, the median "
+            "distance between neighbouring references)",
+        ),
+    ] = None,
+) -> CoverageOut:
+    """The map's references on their ground plane (the plane their camera centres spread
+    over), cell by cell, with what its latest finished self-evaluation measured of the
+    references held out in each: a cell is weak when half or more of them failed, or when it
+    holds a single reference. 422 for cells so small that the map would need more than
+    20 000."""
+    return CoverageOut.from_coverage(coverage.map_coverage(sessions, map_id, cell_m))
 
 
 @router.get(

@@ -87,6 +87,30 @@ export interface paths {
         patch: operations["update_map"];
         trace?: never;
     };
+    "/v1/maps/{map_id}/coverage": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Coverage
+         * @description The map's references on their ground plane (the plane their camera centres spread
+         *     over), cell by cell, with what its latest finished self-evaluation measured of the
+         *     references held out in each: a cell is weak when half or more of them failed, or when it
+         *     holds a single reference. 422 for cells so small that the map would need more than
+         *     20 000.
+         */
+        get: operations["get_map_coverage"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/v1/maps/{map_id}/evaluations": {
         parameters: {
             query?: never;
@@ -893,6 +917,70 @@ export interface components {
             references?: components["schemas"]["HeldOutOut"][] | null;
             rotation_error_deg: components["schemas"]["Percentiles"];
         };
+        /** CoverageCellOut */
+        CoverageCellOut: {
+            /**
+             * Center
+             * @description The cell's centre in map coordinates
+             */
+            center: number[];
+            /**
+             * Failed
+             * @description Of those, not localized or off by more than 25 cm or 5° from their pose
+             */
+            failed: number;
+            /**
+             * Held Out
+             * @description Its references held out by the latest self-evaluation
+             */
+            held_out: number;
+            /**
+             * I
+             * @description Index along the plane's u axis
+             */
+            i: number;
+            /**
+             * J
+             * @description Index along the plane's v axis
+             */
+            j: number;
+            /**
+             * Median Error M
+             * @description Of the held-out ones localized
+             */
+            median_error_m: number | null;
+            /** References */
+            references: number;
+            /** Weak */
+            weak: boolean;
+            /**
+             * Why
+             * @description Why the cell is weak
+             */
+            why: string[];
+        };
+        /**
+         * CoverageOut
+         * @description The map's references on their ground plane, cell by cell, with its latest
+         *     self-evaluation: where a query is least likely to be answered well.
+         */
+        CoverageOut: {
+            /** Cell M */
+            cell_m: number;
+            /** Cells */
+            cells: components["schemas"]["CoverageCellOut"][];
+            /**
+             * Evaluation Id
+             * @description The self-evaluation read; null when the map has no finished one (cells then say only how many references they hold)
+             */
+            evaluation_id: string | null;
+            plane: components["schemas"]["GroundPlaneOut"];
+            /**
+             * Weak
+             * @description Weak cells
+             */
+            weak: number;
+        };
         /** DescribedByOut */
         DescribedByOut: {
             /**
@@ -1412,6 +1500,21 @@ export interface components {
              * @default 5
              */
             max_angle_deg?: number;
+        };
+        /** GroundPlaneOut */
+        GroundPlaneOut: {
+            /** Origin */
+            origin: number[];
+            /**
+             * U
+             * @description Unit axis of the cells' i
+             */
+            u: number[];
+            /**
+             * V
+             * @description Unit axis of the cells' j
+             */
+            v: number[];
         };
         /** HealthOut */
         HealthOut: {
@@ -2656,6 +2759,58 @@ export interface operations {
             };
             /** @description Upload or image too large */
             413: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Invalid input */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+        };
+    };
+    get_map_coverage: {
+        parameters: {
+            query?: {
+                /** @description Cell size in map units (default: 4 × the map's spacing, the median distance between neighbouring references) */
+                cell_m?: number | null;
+            };
+            header?: never;
+            path: {
+                map_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CoverageOut"];
+                };
+            };
+            /** @description Missing or unknown API key */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/problem+json": components["schemas"]["Problem"];
+                };
+            };
+            /** @description Map or image not found */
+            404: {
                 headers: {
                     [name: string]: unknown;
                 };

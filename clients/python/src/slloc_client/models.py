@@ -309,6 +309,36 @@ class ConfigurationResult(BaseModel):
     rotation_error_deg: Percentiles
 
 
+class CoverageCellOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    center: list[float] = Field(description="The cell's centre in map coordinates")
+    failed: int = Field(
+        description="Of those, not localized or off by more than 25 cm or 5° from their pose"
+    )
+    held_out: int = Field(description="Its references held out by the latest self-evaluation")
+    i: int = Field(description="Index along the plane's u axis")
+    j: int = Field(description="Index along the plane's v axis")
+    median_error_m: float | None = Field(description="Of the held-out ones localized")
+    references: int
+    weak: bool
+    why: list[str] = Field(description="Why the cell is weak")
+
+
+class CoverageOut(BaseModel):
+    """The map's references on their ground plane, cell by cell, with its latest
+    self-evaluation: where a query is least likely to be answered well.
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    cell_m: float
+    cells: list[CoverageCellOut]
+    evaluation_id: str | None = Field(
+        description="The self-evaluation read; null when the map has no finished one (cells then say only how many references they hold)"
+    )
+    plane: GroundPlaneOut
+    weak: int = Field(description="Weak cells")
+
+
 class DescribedByOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     descriptor_model: str = Field(description="The global descriptor that described them")
@@ -615,6 +645,13 @@ class GravityIn(BaseModel):
         default=5.0,
         description="A pose whose gravity is further off is answered localized: false, reason gravity_mismatch",
     )
+
+
+class GroundPlaneOut(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    origin: list[float]
+    u: list[float] = Field(description="Unit axis of the cells' i")
+    v: list[float] = Field(description="Unit axis of the cells' j")
 
 
 class HealthOut(BaseModel):
