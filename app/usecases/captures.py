@@ -181,10 +181,7 @@ def submit_session(
     """
     with sessions.begin() as session:
         repository = CaptureRepository(session)
-        row = repository.lock(session_id)
-        if row is None or row.map_id != map_id:
-            require_map(session, map_id)
-            raise NotFoundError("capture session", session_id)
+        row = _lock_session(session, map_id, session_id)
         if row.state != "open":
             raise ConflictError(f"the capture session is {row.state}, not open")
         if row.frame_count == 0:
@@ -234,10 +231,7 @@ def delete_session(
     """
     with sessions.begin() as session:
         repository = CaptureRepository(session)
-        row = repository.lock(session_id)
-        if row is None or row.map_id != map_id:
-            require_map(session, map_id)
-            raise NotFoundError("capture session", session_id)
+        row = _lock_session(session, map_id, session_id)
         if row.state == "adding":
             raise ConflictError(
                 "the capture session's frames are being added to the map: delete it once it "
@@ -251,6 +245,19 @@ def delete_session(
 def _require_session(session: Session, map_id: str, session_id: str) -> CaptureSession:
     row = CaptureRepository(session).get(map_id, session_id)
     if row is None:
+        require_map(session, map_id)
+        raise NotFoundError("capture session", session_id)
+    return row
+
+
+def _lock_session(session: Session, map_id: str, session_id: str) -> CaptureSession:
+    """The map's session, its row locked until the transaction ends.
+
+    Raises:
+        NotFoundError: unknown map or session.
+    """
+    row = CaptureRepository(session).lock(session_id)
+    if row is None or row.map_id != map_id:
         require_map(session, map_id)
         raise NotFoundError("capture session", session_id)
     return row
@@ -500,20 +507,8 @@ class CaptureRunner:
 
     def _reference_ids_and_poses(self, map_id: str) -> tuple[list[str], list[Rigid3d]]:
         with self.sessions() as session:
-            rows = session.execute(
-                select(
-                    ReferenceImage.id,
-                    ReferenceImage.qw,
-                    ReferenceImage.qx,
-                    ReferenceImage.qy,
-                    ReferenceImage.qz,
-                    ReferenceImage.tx,
-                    ReferenceImage.ty,
-                    ReferenceImage.tz,
-                ).where(ReferenceImage.map_id == map_id)
-            ).all()
-        ids = [str(r[0]) for r in rows]
-        return ids, [Rigid3d.from_quaternion(np.array(r[1:5]), np.array(r[5:8])) for r in rows]
+            poses = ImageRepository(session).poses(map_id)
+        return list(poses), list(poses.values())
 
     def _check(
         self,

@@ -8,15 +8,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.maps import require_map
-from db.models import ReferenceImage
 from db.repositories.evaluations import EvaluationRepository
+from db.repositories.images import ImageRepository
 from services.capture.spacing import map_spacing
 from services.errors import InvalidInputError
-from services.geometry.rigid import Rigid3d
 from services.self_evaluation.coverage import CELL_SPACINGS, Coverage, HeldOut, coverage
 
 # the most cells an answer may hold (a bounded cost whatever cell size is asked)
@@ -44,27 +42,12 @@ def map_coverage(
     """
     with sessions() as session:
         require_map(session, map_id)
-        rows = session.execute(
-            select(
-                ReferenceImage.id,
-                ReferenceImage.qw,
-                ReferenceImage.qx,
-                ReferenceImage.qy,
-                ReferenceImage.qz,
-                ReferenceImage.tx,
-                ReferenceImage.ty,
-                ReferenceImage.tz,
-            )
-            .where(ReferenceImage.map_id == map_id)
-            .order_by(ReferenceImage.id)
-        ).all()
+        poses = ImageRepository(session).poses(map_id)
         evaluation = EvaluationRepository(session).latest_done(map_id)
         result: dict[str, Any] = dict(evaluation.result or {}) if evaluation is not None else {}
         evaluation_id = evaluation.id if evaluation is not None else None
-    index = {str(r[0]): k for k, r in enumerate(rows)}
-    centers = np.array(
-        [Rigid3d.from_quaternion(np.array(r[1:5]), np.array(r[5:8])).center for r in rows]
-    ).reshape(-1, 3)
+    index = {image_id: k for k, image_id in enumerate(poses)}
+    centers = np.array([pose.center for pose in poses.values()]).reshape(-1, 3)
     if cell_m is None:
         spacing = map_spacing(centers)
         cell_m = max(CELL_SPACINGS * spacing if spacing else MIN_CELL_M, MIN_CELL_M)

@@ -4,7 +4,8 @@
 // low-confidence answer, the candidate pose dashed), its GeoPose and its inlier matches.
 // When the map has a finished self-evaluation, its held-out references are coloured by their
 // held-out position error and a side panel shows what it measured; another lists the map's
-// capture sessions (admin key only) with their alignment.
+// capture sessions (admin key only) with their alignment. The map's coverage cells lie on its
+// references' ground plane, weak ones in red.
 // Poses are cam_from_world (x_cam = R·x_world + t), quaternions [w, x, y, z]; pixel
 // coordinates follow COLMAP (the centre of the top-left pixel is (0.5, 0.5)), which is also the
 // canvas convention, so they are drawn without an offset.
@@ -21,6 +22,7 @@ const MATCH_HEIGHT = 320; // px, height of each image in a match figure
 const COLORS = {
   reference: 0x7f8c9a, retrieved: 0xf39c12, inliers: 0x27ae60, query: 0xe74c3c,
   candidate: 0x8e44ad, grid: 0xb8c0c8, gridCentre: 0x8a939c, north: 0x1f5fbf, east: 0x6c7a89,
+  weakCell: 0xd62728, cell: 0x8fa89a,
 };
 // a held-out reference's colour by its position error in the map's latest self-evaluation
 // (metres; the last band also takes the references that were not localized)
@@ -54,6 +56,8 @@ const state = {
   },
   // the map's capture sessions (newest first) and their refresh timer
   sessions: { token: 0, map: null, timer: null, refreshes: 0, active: new Set(), grown: false },
+  // the map's coverage cells: their squares in 3D (a group in the map's group)
+  coverage: { token: 0, map: null, group: null },
 };
 
 // --- API --------------------------------------------------------------------------------
@@ -235,6 +239,8 @@ function drawReferences() {
   $("scene").dataset.thumbnails = "0";
   state.frusta.clear();
   state.evaluation.markers.clear(); // disposed with the group below
+  state.coverage.group = null; // so are the coverage cells
+  $("scene").dataset.coverageCells = "0";
   state.query = null;
   resetThumbnails();
   if (!three) return;
@@ -500,6 +506,7 @@ async function selectMap(map, button) {
   const geo = loadGeoRegistration(map.id);
   const evaluation = openEvaluation(map); // read while the images load
   const sessions = openSessions(map);
+  const cells = openCoverage(map);
   try {
     let total = Infinity;
     while (state.images.size < Math.min(total, MAX_IMAGES)) {
@@ -519,6 +526,7 @@ async function selectMap(map, button) {
   showGeoRegistration(state.geo);
   drawReferences();
   showEvaluation(await evaluation, true);
+  showCoverage(await cells);
   showSessions(await sessions);
   $("localize").disabled = false;
   $("map-ready").dataset.ready = "true";
@@ -783,6 +791,7 @@ function showEvaluation(answer, recolour = false) {
     ev.selected = ev.heldOut.has(ev.selected) ? ev.selected : null;
     colourHeldOut();
     showEvaluationResult();
+    if (!recolour) refreshCoverage(); // a newer evaluation: the cells' weakness with it
   }
   panel.dataset.state = ev.done ? "done" : answer.latest ? answer.latest.state : "none";
   if (ev.done) panel.dataset.evaluationId = ev.done.id;
@@ -1221,6 +1230,109 @@ function sessionItem(session) {
   details.append(element("summary", `${a.checked.length} checked frames`), table);
   item.append(details);
   return item;
+}
+
+// --- coverage ---------------------------------------------------------------------------
+
+const WEAK_LISTED = 10; // weak cells whose reasons the panel lists
+
+// a new map: forget the last one's cells and read this one's (drawn once its frusta are)
+function openCoverage(map) {
+  const c = state.coverage;
+  Object.assign(c, { token: c.token + 1, map });
+  const panel = $("coverage");
+  panel.dataset.state = "loading";
+  panel.dataset.cells = panel.dataset.weak = "0";
+  delete panel.dataset.evaluationId;
+  $("coverage-summary").textContent = "Reading the map's coverage…";
+  $("coverage-summary").className = "";
+  $("coverage-weak").replaceChildren();
+  return readCoverage(map.id, c.token);
+}
+
+async function readCoverage(mapId, token) {
+  try {
+    return { token, coverage: await (await api(`/v1/maps/${mapId}/coverage`)).json() };
+  } catch (error) {
+    return { token, error };
+  }
+}
+
+async function refreshCoverage() {
+  const c = state.coverage;
+  if (!c.map) return;
+  c.token += 1; // an earlier read still on its way is dropped
+  showCoverage(await readCoverage(c.map.id, c.token));
+}
+
+function showCoverage(answer) {
+  const c = state.coverage;
+  if (answer.token !== c.token) return; // another map was picked meanwhile
+  const panel = $("coverage");
+  const summary = $("coverage-summary");
+  if (answer.error) { // keep the cells drawn, if any
+    const forbidden = answer.error.status === 401 || answer.error.status === 403;
+    panel.dataset.state = forbidden ? "forbidden" : "error";
+    summary.textContent = forbidden ? "Coverage: not shown to this key."
+      : `Coverage: ${answer.error.message}`;
+    summary.className = forbidden ? "" : "error";
+    return;
+  }
+  const found = answer.coverage;
+  const weak = found.cells.filter((cell) => cell.weak);
+  panel.dataset.state = "done";
+  panel.dataset.cells = String(found.cells.length);
+  panel.dataset.weak = String(weak.length);
+  if (found.evaluation_id) panel.dataset.evaluationId = found.evaluation_id;
+  const n = found.cells.length;
+  summary.textContent = `${n} cell${n === 1 ? "" : "s"}, ${weak.length} weak`;
+  summary.append(` (squares of ${formatLength(found.cell_m)} on the references' plane, weak ` +
+    "ones red)", found.evaluation_id ? "." : "; no finished self-evaluation: only cells with " +
+    "a single reference are weak.");
+  const items = weak.slice(0, WEAK_LISTED).map((cell) => {
+    const item = element("li", `cell (${cell.i}, ${cell.j}): ${cell.why.join("; ")}`);
+    Object.assign(item.dataset, { i: String(cell.i), j: String(cell.j) });
+    return item;
+  });
+  if (weak.length > WEAK_LISTED) items.push(element("li", `… and ${weak.length - WEAK_LISTED} more`));
+  $("coverage-weak").replaceChildren(...items);
+  drawCoverage(found);
+}
+
+// one square per cell (a hair smaller, so that neighbours stay apart), spanned by the plane's
+// u and v at the cell's centre, in the map's group; one geometry and two materials for all
+function drawCoverage({ plane, cell_m: side, cells }) {
+  const three = state.three;
+  const c = state.coverage;
+  if (c.group) {
+    c.group.parent?.remove(c.group);
+    disposeTree(c.group);
+  }
+  c.group = null;
+  $("scene").dataset.coverageCells = "0";
+  if (!three || !three.group) return;
+  const { THREE } = three;
+  const u = new THREE.Vector3(...plane.u);
+  const v = new THREE.Vector3(...plane.v);
+  const turn = new THREE.Quaternion().setFromRotationMatrix(
+    new THREE.Matrix4().makeBasis(u, v, new THREE.Vector3().crossVectors(u, v)));
+  const geometry = new THREE.PlaneGeometry(0.94 * side, 0.94 * side);
+  const material = (color, opacity) => new THREE.MeshBasicMaterial({
+    color, opacity, transparent: true, side: THREE.DoubleSide, depthWrite: false });
+  const weak = material(COLORS.weakCell, 0.45);
+  const fine = material(COLORS.cell, 0.18);
+  c.group = new THREE.Group();
+  c.group.name = "coverage";
+  for (const cell of cells.slice(0, MAX_IMAGES)) {
+    const square = new THREE.Mesh(geometry, cell.weak ? weak : fine);
+    square.name = `cell ${cell.i},${cell.j}`;
+    square.quaternion.copy(turn);
+    square.position.set(...cell.center);
+    c.group.add(square);
+  }
+  three.group.add(c.group);
+  $("scene").dataset.coverageCells = String(c.group.children.length);
+  three.render();
 }
 
 // --- GeoPose ----------------------------------------------------------------------------

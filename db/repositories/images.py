@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
@@ -160,6 +161,26 @@ class ImageRepository:
             .limit(limit)
         ).all()
         return list(rows), int(total or 0)
+
+    def poses(self, map_id: str) -> dict[str, Rigid3d]:
+        """Every image's ``cam_from_world`` by id, in id order."""
+        rows = self.session.execute(
+            select(
+                ReferenceImage.id,
+                ReferenceImage.qw,
+                ReferenceImage.qx,
+                ReferenceImage.qy,
+                ReferenceImage.qz,
+                ReferenceImage.tx,
+                ReferenceImage.ty,
+                ReferenceImage.tz,
+            )
+            .where(ReferenceImage.map_id == map_id)
+            .order_by(ReferenceImage.id)
+        )
+        return {
+            str(r[0]): Rigid3d.from_quaternion(np.array(r[1:5]), np.array(r[5:8])) for r in rows
+        }
 
     def blob_keys(self, map_id: str, image_id: str | None = None) -> list[str]:
         """The blob keys of the map's images (of ``image_id`` alone when given)."""

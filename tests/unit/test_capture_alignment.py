@@ -66,6 +66,24 @@ def _checked(
     return frames
 
 
+def _drifted(session: list[Rigid3d], sideways: float, yaw_deg_per_m: float) -> list[Rigid3d]:
+    """The session as a drifting tracker reports it: after s metres, its frame has turned
+    ``yaw_deg_per_m`` × s degrees about the vertical through the start and moved
+    ``sideways`` × s along y."""
+    out = []
+    travelled = 0.0
+    start = session[0].center
+    for i, pose in enumerate(session):
+        if i:
+            travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
+        yaw = np.radians(yaw_deg_per_m * travelled)
+        turn = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+        center = turn @ (pose.center - start) + start + np.array([0.0, sideways * travelled, 0.0])
+        rotation = pose.rotation @ turn.T
+        out.append(Rigid3d(rotation, -rotation @ center))
+    return out
+
+
 def _error(estimate: Similarity, truth: Similarity, session: list[Rigid3d]) -> float:
     return max(
         float(np.linalg.norm(estimate.cam_from_map(p).center - truth.cam_from_map(p).center))
@@ -142,13 +160,7 @@ def test_drift_beyond_the_bound_is_refused() -> None:
     truth = _truth(rng)
     length = path_length(session)
     # the tracking drifts by 10 % of the distance travelled, ten times the bound
-    drifted = []
-    travelled = 0.0
-    for i, pose in enumerate(session):
-        if i:
-            travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
-        center = pose.center + np.array([0.0, 0.1 * travelled, 0.0])
-        drifted.append(Rigid3d(pose.rotation, -pose.rotation @ center))
+    drifted = _drifted(session, sideways=0.1, yaw_deg_per_m=0.0)
     frames = [
         CheckedFrame(f.index, drifted[f.index], f.cam_from_map, f.confidence)
         for f in _checked(session, truth, rng)
@@ -197,17 +209,7 @@ def test_drift_between_anchors_is_corrected() -> None:
     length = path_length(session)
     # the tracking drifts as it goes: after s metres, its frame has turned 0.2° per metre
     # about the vertical through the start and moved 1 % of s sideways
-    drifted = []
-    travelled = 0.0
-    for i, pose in enumerate(session):
-        if i:
-            travelled += float(np.linalg.norm(pose.center - session[i - 1].center))
-        yaw = np.radians(0.2 * travelled)
-        turn = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
-        start = session[0].center
-        center = turn @ (pose.center - start) + start + np.array([0.0, 0.01 * travelled, 0.0])
-        rotation = pose.rotation @ turn.T
-        drifted.append(Rigid3d(rotation, -rotation @ center))
+    drifted = _drifted(session, sideways=0.01, yaw_deg_per_m=0.2)
     frames = [
         CheckedFrame(f.index, drifted[f.index], f.cam_from_map, f.confidence)
         for f in _checked(session, truth, rng, noise_m=0.002, noise_deg=0.05)
