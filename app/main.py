@@ -31,6 +31,7 @@ from app.settings import Settings, get_settings
 from app.usecases.auto_features import AutoEvaluation
 from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
+from app.usecases.growth import QueryGrowth
 from app.usecases.images import train_vocabulary_if_due
 from app.usecases.reextraction import Reextractor
 from app.viewer import install_viewer
@@ -130,6 +131,10 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         # capture sessions, aligned to their map and added (then the map may train its
         # vocabulary and be evaluated, as after a switch); those a restart interrupted resume
         app.state.capture_runner = CaptureRunner(localize_context(app.state), blobs, switched)
+        # maps that grow from their confident queries
+        app.state.query_growth = QueryGrowth(
+            app.state.sessions, localizers, blobs, app.state.admission.slots, switched
+        )
         app.state.capture_runner.resume()
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
@@ -141,6 +146,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.reextractor.shutdown()
         app.state.evaluator.shutdown()
         app.state.capture_runner.shutdown()
+        app.state.query_growth.shutdown()
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()

@@ -79,6 +79,8 @@ class Map(Base):
     pending_preset: Mapped[str | None] = mapped_column(String(64))
     # the map takes the configuration its self-evaluation recommends (features "auto")
     features_auto: Mapped[bool] = mapped_column(default=False, server_default=false())
+    # confidently localized queries that add a view become references (app/usecases/growth.py)
+    grow_from_queries: Mapped[bool] = mapped_column(default=False, server_default=false())
     # the similarity to the Earth (db/geo.py holds its stored form; None: not registered)
     geo_registration: Mapped[dict[str, object] | None] = mapped_column(JSON)
     # bumped by every image add and delete (cached retrieval indexes compare it)

@@ -16,6 +16,7 @@ from app.metrics import ServiceMetrics
 from app.settings import Settings
 from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
+from app.usecases.growth import QueryGrowth
 from app.usecases.localize import LocalizeContext
 from app.usecases.reextraction import Reextractor
 from db.blobs import BlobStore
@@ -103,6 +104,12 @@ async def get_capture_runner(request: Request) -> CaptureRunner:
     return runner
 
 
+async def get_query_growth(request: Request) -> QueryGrowth:
+    """Adds confident queries to maps that grow from them."""
+    growth: QueryGrowth = request.app.state.query_growth
+    return growth
+
+
 async def get_reextractor(request: Request) -> Reextractor:
     """Describes the references of maps whose feature options changed anew."""
     reextractor: Reextractor = request.app.state.reextractor
@@ -132,6 +139,7 @@ BlobsDep = Annotated[BlobStore, Depends(get_blobs)]
 ReextractorDep = Annotated[Reextractor, Depends(get_reextractor)]
 EvaluatorDep = Annotated[Evaluator, Depends(get_evaluator)]
 CaptureRunnerDep = Annotated[CaptureRunner, Depends(get_capture_runner)]
+QueryGrowthDep = Annotated[QueryGrowth, Depends(get_query_growth)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

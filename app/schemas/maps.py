@@ -3,7 +3,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, StrictBool
 
 from app.schemas.estimators import EstimatorEnum, EstimatorName
 from app.schemas.text import Description, Name
@@ -77,6 +77,14 @@ class FeatureCreate(FeatureOptions):
     )
 
 
+GROW_HELP = (
+    "Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map "
+    "lacks (no reference within the map's spacing looking within 15° of it) are added as "
+    "references, named query/<time>-<id>: the map fills in where it is used, at most one "
+    "reference per place and direction"
+)
+
+
 class MapCreate(BaseModel):
     name: Name
     description: Description | None = None
@@ -89,6 +97,7 @@ class MapCreate(BaseModel):
         description="Feature configuration, keypoint budget and image size for this map's "
         "references and queries",
     )
+    grow_from_queries: StrictBool = Field(False, description=GROW_HELP)
 
 
 class FeaturePatch(FeatureOptions):
@@ -103,6 +112,7 @@ class FeaturePatch(FeatureOptions):
 class MapPatch(BaseModel):
     """The fields to change; those left out keep their value."""
 
+    grow_from_queries: StrictBool | None = Field(None, description=GROW_HELP)
     description: Description | None = None
     default_estimator: EstimatorName | None = Field(
         None, description="Estimator used when a localize request names none"
@@ -184,6 +194,7 @@ class MapOut(BaseModel):
         "serve their stored features but cannot be described again"
     )
     feature_models: MapFeatureModelsOut
+    grow_from_queries: bool = Field(description=GROW_HELP)
     created_at: datetime
 
     @classmethod
@@ -224,6 +235,7 @@ class MapOut(BaseModel):
             default_estimator=record.default_estimator,
             features=features,
             image_count=record.image_count,
+            grow_from_queries=record.grow_from_queries,
             references_without_original=record.without_original,
             feature_models=MapFeatureModelsOut.from_serving(serving),
             created_at=record.created_at,

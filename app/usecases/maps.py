@@ -60,6 +60,8 @@ class MapRecord:
     # it takes the configuration its self-evaluation recommends; one is queued or running
     features_auto: bool = False
     evaluating: bool = False
+    # confidently localized queries that add a view become references
+    grow_from_queries: bool = False
 
 
 def require_map(session: Session, map_id: str) -> Map:
@@ -102,6 +104,7 @@ def create_map(
     default_estimator: str,
     options: FeatureChoice,
     limits: FeatureLimits | None = None,
+    grow_from_queries: bool = False,
 ) -> MapRecord:
     """Create an empty map; ``options.preset`` ``auto`` (``AUTO``): served with the
     server's configuration until its self-evaluation recommends one.
@@ -130,6 +133,7 @@ def create_map(
                 max_side,
                 None if auto else preset,
                 auto,
+                grow_from_queries,
             )
             return _record(row, 0)
     except IntegrityError as exc:
@@ -218,9 +222,11 @@ def update_map(
     default_estimator: str | None,
     fields: set[str],
     features_auto: bool | None = None,
+    grow_from_queries: bool | None = None,
 ) -> None:
     """Sets the map's ``description`` and ``default_estimator`` where named in ``fields``,
-    and whether it follows its self-evaluation (None: as it was).
+    whether it follows its self-evaluation and whether it grows from its queries (None: as
+    it was).
 
     Raises:
         NotFoundError: no such map.
@@ -229,6 +235,8 @@ def update_map(
         row = require_map(session, map_id)
         if features_auto is not None:
             row.features_auto = features_auto
+        if grow_from_queries is not None:
+            row.grow_from_queries = grow_from_queries
         if "description" in fields:
             row.description = description
         if "default_estimator" in fields and default_estimator is not None:
@@ -268,4 +276,5 @@ def _record(row: Map, image_count: int) -> MapRecord:
         feature_preset=row.feature_preset,
         pending_preset=row.pending_preset,
         features_auto=row.features_auto,
+        grow_from_queries=row.grow_from_queries,
     )

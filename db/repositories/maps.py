@@ -28,6 +28,7 @@ class MapRepository:
         max_side: int | None = None,
         feature_preset: str | None = None,
         features_auto: bool = True,
+        grow_from_queries: bool = False,
     ) -> Map:
         """A new map, flushed; ``default_estimator`` None takes the column's default;
         ``feature_preset`` None serves it with the server's configuration until
@@ -40,6 +41,7 @@ class MapRepository:
             max_side=max_side,
             feature_preset=feature_preset,
             features_auto=features_auto,
+            grow_from_queries=grow_from_queries,
         )
         self.session.add(row)
         self.session.flush()

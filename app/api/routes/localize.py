@@ -11,6 +11,7 @@ from app.api.deps import (
     ClientKey,
     LocalizeContextDep,
     MetricsDep,
+    QueryGrowthDep,
     SessionsDep,
     SettingsDep,
     json_form_schema,
@@ -55,6 +56,7 @@ def localize(
         ),
     ],
     metrics: MetricsDep,
+    growth: QueryGrowthDep,
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
     ] = "{}",
@@ -104,6 +106,7 @@ def localize(
             body.output,
         )
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
+    growth.offer(map_id, images[0], request.camera, result)
     return LocalizeResult.from_result(
         result, body.return_inliers, geo.geopose_answer(registration, result), body.output
     )

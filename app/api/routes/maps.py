@@ -78,6 +78,7 @@ def create_map(
         body.default_estimator,
         maps.FeatureChoice(options.preset, options.max_keypoints, options.max_side),
         maps.FeatureLimits(settings.max_keypoints, settings.max_side),
+        body.grow_from_queries,
     )
     return _out(record, sessions, localizers, engine)
 
@@ -163,7 +164,15 @@ def update_map(
             maps.FeatureChoice(preset, options.max_keypoints, options.max_side),
             reextractor,
         )
-    maps.update_map(sessions, map_id, body.description, body.default_estimator, fields, auto)
+    maps.update_map(
+        sessions,
+        map_id,
+        body.description,
+        body.default_estimator,
+        fields,
+        auto,
+        body.grow_from_queries,
+    )
     if auto:
         evaluator.evaluate_if_due(map_id)
     return _out(maps.get_map(sessions, map_id), sessions, localizers, engine)

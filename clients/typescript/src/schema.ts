@@ -1815,6 +1815,12 @@ export interface components {
             description?: string | null;
             /** @description Feature configuration, keypoint budget and image size for this map's references and queries */
             features?: components["schemas"]["FeatureCreate"];
+            /**
+             * Grow From Queries
+             * @description Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction
+             * @default false
+             */
+            grow_from_queries?: boolean;
             /** Name */
             name: string;
         };
@@ -1914,6 +1920,11 @@ export interface components {
             description: string | null;
             feature_models: components["schemas"]["MapFeatureModelsOut"];
             features: components["schemas"]["MapFeaturesOut"];
+            /**
+             * Grow From Queries
+             * @description Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction
+             */
+            grow_from_queries: boolean;
             /** Id */
             id: string;
             /** Image Count */
@@ -1948,6 +1959,11 @@ export interface components {
             description?: string | null;
             /** @description New feature configuration, keypoint budget or image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; what it serves cancels a re-description in progress. 409 when references were added before originals were kept */
             features?: components["schemas"]["FeaturePatch"] | null;
+            /**
+             * Grow From Queries
+             * @description Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction
+             */
+            grow_from_queries?: boolean | null;
         };
         /** ModelsOut */
         ModelsOut: {

@@ -868,6 +868,10 @@ class MapCreate(BaseModel):
         default=None,
         description="Feature configuration, keypoint budget and image size for this map's references and queries",
     )
+    grow_from_queries: bool = Field(
+        default=False,
+        description="Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction",
+    )
     name: str
 
 
@@ -932,6 +936,9 @@ class MapOut(BaseModel):
     description: str | None
     feature_models: MapFeatureModelsOut
     features: MapFeaturesOut
+    grow_from_queries: bool = Field(
+        description="Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction"
+    )
     id: str
     image_count: int
     name: str
@@ -959,6 +966,10 @@ class MapPatch(BaseModel):
     features: FeaturePatch | None = Field(
         default=None,
         description="New feature configuration, keypoint budget or image size: the map's references are described anew from their originals in the background (`features.state` re-extracting) while the map answers with the current ones, then it switches at once; what it serves cancels a re-description in progress. 409 when references were added before originals were kept",
+    )
+    grow_from_queries: bool | None = Field(
+        default=None,
+        description="Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction",
     )
 
 
