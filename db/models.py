@@ -81,6 +81,8 @@ class Map(Base):
     features_auto: Mapped[bool] = mapped_column(default=False, server_default=false())
     # confidently localized queries that add a view become references (app/usecases/growth.py)
     grow_from_queries: Mapped[bool] = mapped_column(default=False, server_default=false())
+    # references a capture session flags stale are deleted at once (app/usecases/captures.py)
+    retire_stale: Mapped[bool] = mapped_column(default=False, server_default=false())
     # the similarity to the Earth (db/geo.py holds its stored form; None: not registered)
     geo_registration: Mapped[dict[str, object] | None] = mapped_column(JSON)
     # bumped by every image add and delete (cached retrieval indexes compare it)

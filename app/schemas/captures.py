@@ -138,6 +138,7 @@ class StaleReferenceOut(BaseModel):
     image_id: str
     name: str
     reason: str
+    retired: bool = Field(False, description="Deleted at once (the map's retire_stale)")
 
 
 class DriftCorrectionOut(BaseModel):

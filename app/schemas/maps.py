@@ -85,6 +85,12 @@ GROW_HELP = (
 )
 
 
+RETIRE_HELP = (
+    "References a capture session flags stale (its frames that cover them no longer match "
+    "them) are deleted at once instead of listed for an admin to retire"
+)
+
+
 class MapCreate(BaseModel):
     name: Name
     description: Description | None = None
@@ -98,6 +104,7 @@ class MapCreate(BaseModel):
         "references and queries",
     )
     grow_from_queries: StrictBool = Field(False, description=GROW_HELP)
+    retire_stale: StrictBool = Field(False, description=RETIRE_HELP)
 
 
 class FeaturePatch(FeatureOptions):
@@ -113,6 +120,7 @@ class MapPatch(BaseModel):
     """The fields to change; those left out keep their value."""
 
     grow_from_queries: StrictBool | None = Field(None, description=GROW_HELP)
+    retire_stale: StrictBool | None = Field(None, description=RETIRE_HELP)
     description: Description | None = None
     default_estimator: EstimatorName | None = Field(
         None, description="Estimator used when a localize request names none"
@@ -195,6 +203,7 @@ class MapOut(BaseModel):
     )
     feature_models: MapFeatureModelsOut
     grow_from_queries: bool = Field(description=GROW_HELP)
+    retire_stale: bool = Field(description=RETIRE_HELP)
     created_at: datetime
 
     @classmethod
@@ -236,6 +245,7 @@ class MapOut(BaseModel):
             features=features,
             image_count=record.image_count,
             grow_from_queries=record.grow_from_queries,
+            retire_stale=record.retire_stale,
             references_without_original=record.without_original,
             feature_models=MapFeatureModelsOut.from_serving(serving),
             created_at=record.created_at,

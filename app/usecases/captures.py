@@ -483,8 +483,12 @@ class CaptureRunner:
                     votes.append(Vote(reference.image_id, frame.name, inliers, evidence[index]))
         verdicts = stale_references(votes)
         now = datetime.now(UTC)
-        stale = []
+        stale: list[dict[str, Any]] = []
+        retired: list[str] = []
+        keys: list[str] = []
         with self.sessions.begin() as session:
+            map_row = require_map(session, map_id)
+            images = ImageRepository(session)
             for image_id, theirs in verdicts.items():
                 row = session.get(ReferenceImage, image_id)
                 if row is None:
@@ -500,9 +504,23 @@ class CaptureRunner:
                 if row.stale_since is None:
                     row.stale_since = now
                 row.stale_reason = reason
-                stale.append({"image_id": image_id, "name": row.name, "reason": reason})
+                entry = {"image_id": image_id, "name": row.name, "reason": reason}
+                if map_row.retire_stale:  # the map retires them at once
+                    keys += images.blob_keys(map_id, image_id)
+                    images.delete(map_id, image_id)
+                    retired.append(image_id)
+                stale.append(entry | {"retired": map_row.retire_stale})
+        if retired:
+            if self.context.features_cache is not None:
+                self.context.features_cache.discard(map_id, retired)
+            remove_blobs(self.blobs, keys)
         if stale:
-            logger.info("map %s: %d references flagged stale", map_id, len(stale))
+            logger.info(
+                "map %s: %d references flagged stale, %d of them retired",
+                map_id,
+                len(stale),
+                len(retired),
+            )
         return stale
 
     def _reference_ids_and_poses(self, map_id: str) -> tuple[list[str], list[Rigid3d]]:

@@ -62,6 +62,8 @@ class MapRecord:
     evaluating: bool = False
     # confidently localized queries that add a view become references
     grow_from_queries: bool = False
+    # references a capture session flags stale are deleted at once
+    retire_stale: bool = False
 
 
 def require_map(session: Session, map_id: str) -> Map:
@@ -105,6 +107,7 @@ def create_map(
     options: FeatureChoice,
     limits: FeatureLimits | None = None,
     grow_from_queries: bool = False,
+    retire_stale: bool = False,
 ) -> MapRecord:
     """Create an empty map; ``options.preset`` ``auto`` (``AUTO``): served with the
     server's configuration until its self-evaluation recommends one.
@@ -134,6 +137,7 @@ def create_map(
                 None if auto else preset,
                 auto,
                 grow_from_queries,
+                retire_stale,
             )
             return _record(row, 0)
     except IntegrityError as exc:
@@ -223,10 +227,11 @@ def update_map(
     fields: set[str],
     features_auto: bool | None = None,
     grow_from_queries: bool | None = None,
+    retire_stale: bool | None = None,
 ) -> None:
     """Sets the map's ``description`` and ``default_estimator`` where named in ``fields``,
-    whether it follows its self-evaluation and whether it grows from its queries (None: as
-    it was).
+    whether it follows its self-evaluation, grows from its queries and retires its stale
+    references (None: as it was).
 
     Raises:
         NotFoundError: no such map.
@@ -237,6 +242,8 @@ def update_map(
             row.features_auto = features_auto
         if grow_from_queries is not None:
             row.grow_from_queries = grow_from_queries
+        if retire_stale is not None:
+            row.retire_stale = retire_stale
         if "description" in fields:
             row.description = description
         if "default_estimator" in fields and default_estimator is not None:
@@ -277,4 +284,5 @@ def _record(row: Map, image_count: int) -> MapRecord:
         pending_preset=row.pending_preset,
         features_auto=row.features_auto,
         grow_from_queries=row.grow_from_queries,
+        retire_stale=row.retire_stale,
     )

@@ -29,6 +29,7 @@ class MapRepository:
         feature_preset: str | None = None,
         features_auto: bool = True,
         grow_from_queries: bool = False,
+        retire_stale: bool = False,
     ) -> Map:
         """A new map, flushed; ``default_estimator`` None takes the column's default;
         ``feature_preset`` None serves it with the server's configuration until
@@ -42,6 +43,7 @@ class MapRepository:
             feature_preset=feature_preset,
             features_auto=features_auto,
             grow_from_queries=grow_from_queries,
+            retire_stale=retire_stale,
         )
         self.session.add(row)
         self.session.flush()

@@ -302,3 +302,10 @@ def test_a_reference_whose_image_shows_another_place_is_flagged_stale(
     others = client.get(f"/v1/maps/{map_id}/images", params={"stale": False}).json()
     assert others["total"] == len(_images(client, map_id)) - 1
     assert all(item["stale"] is None for item in others["items"])
+    # a map that retires its stale references deletes them at once
+    patched = client.patch(f"/v1/maps/{map_id}", json={"retire_stale": True})
+    assert patched.status_code == 200 and patched.json()["retire_stale"] is True
+    again = _capture(client, map_id, frames, keep_all=False, name="again")
+    [retired] = again["alignment"]["stale"]
+    assert retired["name"] == swapped.name and retired["retired"] is True
+    assert swapped.name not in _images(client, map_id)

@@ -79,6 +79,7 @@ def create_map(
         maps.FeatureChoice(options.preset, options.max_keypoints, options.max_side),
         maps.FeatureLimits(settings.max_keypoints, settings.max_side),
         body.grow_from_queries,
+        body.retire_stale,
     )
     return _out(record, sessions, localizers, engine)
 
@@ -172,6 +173,7 @@ def update_map(
         fields,
         auto,
         body.grow_from_queries,
+        body.retire_stale,
     )
     if auto:
         evaluator.evaluate_if_due(map_id)

@@ -1823,6 +1823,12 @@ export interface components {
             grow_from_queries?: boolean;
             /** Name */
             name: string;
+            /**
+             * Retire Stale
+             * @description References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire
+             * @default false
+             */
+            retire_stale?: boolean;
         };
         /**
          * MapFeatureModelsOut
@@ -1936,6 +1942,11 @@ export interface components {
              * @description Images added before originals were kept (has_original false): they serve their stored features but cannot be described again
              */
             references_without_original: number;
+            /**
+             * Retire Stale
+             * @description References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire
+             */
+            retire_stale: boolean;
         };
         /** MapPage */
         MapPage: {
@@ -1964,6 +1975,11 @@ export interface components {
              * @description Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction
              */
             grow_from_queries?: boolean | null;
+            /**
+             * Retire Stale
+             * @description References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire
+             */
+            retire_stale?: boolean | null;
         };
         /** ModelsOut */
         ModelsOut: {
@@ -2387,6 +2403,12 @@ export interface components {
             name: string;
             /** Reason */
             reason: string;
+            /**
+             * Retired
+             * @description Deleted at once (the map's retire_stale)
+             * @default false
+             */
+            retired?: boolean;
         };
         /** Timings */
         Timings: {

@@ -1,5 +1,6 @@
 """Capture sessions that extend maps, their frames waiting to be added, the stale flag their
-frames set on references that no longer match, and maps that grow from their queries.
+frames set on references that no longer match (and maps that retire those at once), and maps
+that grow from their queries.
 
 Revision ID: 0012
 Revises: 0011
@@ -22,10 +23,10 @@ def upgrade() -> None:
     # plain ALTER TABLE ADD COLUMN on both backends (no table rebuild: see 0009)
     op.add_column("reference_images", sa.Column("stale_since", sa.DateTime(timezone=True)))
     op.add_column("reference_images", sa.Column("stale_reason", sa.Text()))
-    op.add_column(
-        "maps",
-        sa.Column("grow_from_queries", sa.Boolean(), nullable=False, server_default=sa.false()),
-    )
+    for name in ("grow_from_queries", "retire_stale"):
+        op.add_column(
+            "maps", sa.Column(name, sa.Boolean(), nullable=False, server_default=sa.false())
+        )
     op.create_table(
         "capture_sessions",
         sa.Column("id", sa.String(36), primary_key=True),
@@ -84,6 +85,7 @@ def downgrade() -> None:
     op.drop_table("capture_sessions")
     sqlite = op.get_bind().dialect.name == "sqlite"
     for table, name in (
+        ("maps", "retire_stale"),
         ("maps", "grow_from_queries"),
         ("reference_images", "stale_reason"),
         ("reference_images", "stale_since"),

@@ -873,6 +873,10 @@ class MapCreate(BaseModel):
         description="Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction",
     )
     name: str
+    retire_stale: bool = Field(
+        default=False,
+        description="References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire",
+    )
 
 
 class MapFeatureModelsOut(BaseModel):
@@ -945,6 +949,9 @@ class MapOut(BaseModel):
     references_without_original: int = Field(
         description="Images added before originals were kept (has_original false): they serve their stored features but cannot be described again"
     )
+    retire_stale: bool = Field(
+        description="References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire"
+    )
 
 
 class MapPage(BaseModel):
@@ -970,6 +977,10 @@ class MapPatch(BaseModel):
     grow_from_queries: bool | None = Field(
         default=None,
         description="Queries localized with confidence ≥ 0.95 and their intrinsics that add a view the map lacks (no reference within the map's spacing looking within 15° of it) are added as references, named query/<time>-<id>: the map fills in where it is used, at most one reference per place and direction",
+    )
+    retire_stale: bool | None = Field(
+        default=None,
+        description="References a capture session flags stale (its frames that cover them no longer match them) are deleted at once instead of listed for an admin to retire",
     )
 
 
@@ -1221,6 +1232,7 @@ class StaleReferenceOut(BaseModel):
     image_id: str
     name: str
     reason: str
+    retired: bool = Field(default=False, description="Deleted at once (the map's retire_stale)")
 
 
 class Timings(BaseModel):
