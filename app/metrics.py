@@ -166,6 +166,25 @@ class _StateCollector(Collector):
         if evaluator is not None:
             trainers.append(evaluator.worker)
             yield from _evaluation_metrics(evaluator)
+        runner = getattr(self.state, "capture_runner", None)
+        if runner is not None:
+            trainers.append(runner.worker)
+            ended = CounterMetricFamily(
+                "slloc_capture_sessions",
+                "Capture sessions ended since start-up, by how they ended",
+                labels=("state",),
+            )
+            for state in ("added", "refused", "failed"):
+                ended.add_metric((state,), runner.finished.get(state, 0))
+            yield ended
+        growth = getattr(self.state, "query_growth", None)
+        if growth is not None:
+            trainers.append(growth.worker)
+            yield CounterMetricFamily(
+                "slloc_queries_added",
+                "Queries added to maps that grow from them (grow_from_queries) since start-up",
+                value=growth.added,
+            )
         for trainer in trainers:
             if trainer is not None:
                 jobs.add_metric((trainer.name,), trainer.pending())

@@ -373,6 +373,12 @@ class CaptureRunner:
             )
         path_m = path_length(poses)
         ids = [frame.id for frame in frames]
+        if empty and not metric:  # the map lost its references after the session was submitted
+            reason = "the map is empty: a session of unknown scale cannot define its frame"
+            result_empty = {"mode": "bootstrap", "map_from_session": None, "reason": reason}
+            return self._decided(
+                session_id, map_id, result_empty | {"path_length_m": path_m, "checked": []}, None
+            )
         if empty:
             logger.info("capture session %s (%r) bootstraps map %s", session_id, name, map_id)
             result: dict[str, Any] = {

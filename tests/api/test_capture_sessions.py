@@ -164,6 +164,7 @@ def test_a_session_is_aligned_and_its_frames_added(
     # the frames serve as references: a query localizes against the grown map
     answer = localize_view(client, map_id, query_views[9]).json()
     assert answer["localized"], answer
+    assert 'slloc_capture_sessions_total{state="added"} 1.0' in client.get("/metrics").text
 
 
 def test_a_session_adds_only_the_frames_that_add_a_view(

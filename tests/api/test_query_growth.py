@@ -68,6 +68,7 @@ def test_a_map_grows_from_its_confident_queries_once_per_view(
     # the same view again adds nothing: the map has it now
     assert localize_view(client, map_id, new[0]).json()["localized"]
     assert _queries_added(client, map_id) == [added]
+    assert "slloc_queries_added_total 1.0" in client.get("/metrics").text
 
 
 def test_only_maps_that_ask_grow(
