@@ -7,7 +7,7 @@ from datetime import datetime
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, StrictBool, model_validator
 
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.session import SessionPoseSchema
@@ -31,13 +31,13 @@ class CaptureSessionCreate(BaseModel):
         description="Unique in the map; the references its frames become are named "
         "<session name>/<frame name>. Default: session-<8 hex digits>",
     )
-    metric: bool = Field(
+    metric: StrictBool = Field(
         True,
         description="The frames' poses are in metres (ARKit, ARCore, a metric SLAM): the "
         "session is aligned rigidly. false: its scale is estimated (a similarity; a session "
         "of unknown scale cannot start an empty map)",
     )
-    keep_all: bool = Field(
+    keep_all: StrictBool = Field(
         False,
         description="Add every frame within the anchors' reach. false: a frame is added only "
         "where it adds a view, i.e. no reference or frame kept before it lies within the "

@@ -96,6 +96,8 @@ class Target:
     image_id: str
     adds_map_id: str
     spare: SyntheticView
+    # an open capture session of the map that takes adds, for its frames' uploads
+    session_id: str
 
 
 @pytest.fixture(
@@ -121,13 +123,16 @@ def target(
         image_id = _created(upload_view(client, map_id, reference_views[0], headers=ADMIN))
         _created(upload_view(client, map_id, reference_views[1], headers=ADMIN))
         # requests go through schemathesis' own transport; the TestClient runs the lifespan
+        adds_map_id = _new_map(client, "adds")
+        session = client.post(f"/v1/maps/{adds_map_id}/sessions", json={}, headers=ADMIN)
         yield Target(
             client,
             ASGIClient(client.app),
             map_id,
             image_id,
-            _new_map(client, "adds"),
+            adds_map_id,
             reference_views[2],
+            _created(session),
         )
 
 
@@ -205,6 +210,7 @@ def _json_form_values(component: str) -> st.SearchStrategy[Any]:
 FORM_OPERATIONS = {
     "localize": ("params", "LocalizeParamsIn", "map_id", "query"),
     "add_image": ("metadata", "ImageMetadata", "adds_map_id", "reference"),
+    "add_capture_frame": ("metadata", "CaptureFrameMetadata", "adds_map_id", "reference"),
 }
 
 
@@ -227,8 +233,11 @@ def test_json_form_fields(
     @given(value=_json_form_values(component), image=st.sampled_from(images))
     @settings(FUZZ_SETTINGS, max_examples=MAX_FORM_EXAMPLES)
     def run(value: Any, image: bytes) -> None:
+        path = {"map_id": map_id}
+        if "{session_id}" in operation.path:
+            path["session_id"] = target.session_id
         case = operation.Case(
-            path_parameters={"map_id": map_id},
+            path_parameters=path,
             headers=dict(ADMIN),
             body={"image": image, field: json.dumps(value)},
             media_type="multipart/form-data",
