@@ -119,21 +119,16 @@ def resolve_map(http: httpx.Client, map_ref: str) -> str:
     """The id of the map whose id or name is ``map_ref``.
 
     Raises:
-        SessionApiError: no such map (the known names listed).
+        SessionApiError: no such map, or the maps cannot be listed.
     """
-    items: list[dict[str, Any]] = []
-    offset = 0
-    while True:
-        page = request(http, "GET", "/v1/maps", params={"offset": offset, "limit": 1000}).json()
-        items += page["items"]
-        offset += len(page["items"])
-        if not page["items"] or offset >= page["total"]:
-            break
-    for item in items:
-        if map_ref in (item["id"], item["name"]):
-            return str(item["id"])
-    names = ", ".join(repr(item["name"]) for item in items[:20]) or "none"
-    raise SessionApiError(f"no map named or with the id {map_ref!r} (maps: {names})")
+    import httpx
+
+    from tools.evaluation.self_evaluate import find_map_id
+
+    try:
+        return find_map_id(http, map_ref)
+    except (ValueError, httpx.HTTPError) as exc:
+        raise SessionApiError(str(exc)) from exc
 
 
 def create_session(

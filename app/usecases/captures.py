@@ -29,7 +29,6 @@ from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
-from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -42,6 +41,7 @@ from db.models import CaptureFrame, CaptureSession, ReferenceImage
 from db.originals import StoredOriginals, remove_blobs, write_originals
 from db.repositories.captures import ACTIVE, CaptureRepository
 from db.repositories.images import ImageRepository
+from db.repositories.maps import MapRepository
 from db.store import camera_of, pose_of
 from services.capture.alignment import (
     Alignment,
@@ -65,7 +65,7 @@ from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
 from services.geometry.camera import Camera, default_camera
-from services.geometry.rigid import Rigid3d
+from services.geometry.rigid import Rigid3d, matrix_to_quaternion
 from services.imaging.decode import check_pixel_limit, decode_image_reduced
 from services.localization.localizer import Localizer
 from services.localization.stages import check_camera_matches, decode_depth_for
@@ -186,7 +186,7 @@ def submit_session(
             raise ConflictError(f"the capture session is {row.state}, not open")
         if row.frame_count == 0:
             raise ConflictError("the capture session has no frame: upload its frames first")
-        if not row.metric and _reference_count(session, map_id) == 0:
+        if not row.metric and not MapRepository(session).image_counts([map_id]).get(map_id):
             raise InvalidInputError(
                 "metric: the map is empty, so this session would define its frame; a session "
                 "of unknown scale cannot (its map would not be in metres)"
@@ -273,17 +273,13 @@ def _check_open(row: CaptureSession, max_frames: int) -> None:
         )
 
 
-def _reference_count(session: Session, map_id: str) -> int:
-    return int(session.scalar(select(func.count()).where(ReferenceImage.map_id == map_id)) or 0)
-
-
 class SessionStoppedError(Exception):
     """The session was deleted, or the server is stopping."""
 
 
 def similarity_json(similarity: Similarity) -> dict[str, Any]:
     return {
-        "rotation": [float(v) for v in Rigid3d(similarity.rotation, np.zeros(3)).quaternion],
+        "rotation": [float(v) for v in matrix_to_quaternion(similarity.rotation)],
         "translation": [float(v) for v in similarity.translation],
         "scale": float(similarity.scale),
     }
@@ -365,7 +361,7 @@ class CaptureRunner:
             require_map(session, map_id)
             frames = CaptureRepository(session).frames(session_id)
             metric, name, keep_all = row.metric, row.name, row.keep_all
-            empty = _reference_count(session, map_id) == 0
+            empty = not MapRepository(session).image_counts([map_id]).get(map_id)
             poses = [pose_of(frame) for frame in frames]
             checked = [] if empty else check_indices(len(frames), check_count(len(frames)))
             CaptureRepository(session).set_state(

@@ -15,6 +15,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -86,22 +87,21 @@ def _seed_map(api: httpx.Client, name: str, views: list[SyntheticView]) -> str:
     return map_id
 
 
-@pytest.fixture(scope="module")
-def served(
-    tmp_path_factory: pytest.TempPathFactory,
-    localizer: Localizer,
-    reference_views: list[SyntheticView],
-    query_views: list[SyntheticView],
-) -> Iterator[Served]:
-    tmp = tmp_path_factory.mktemp("viewer")
-    settings = Settings(
-        database_url=f"sqlite:///{tmp / 'viewer.db'}",
-        api_keys=f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
-        data_dir=tmp / "data",
-        features="sift",
-        models_dir=tmp / "no-models",
-    )
-    app = create_app(settings, localizer=localizer)
+@contextmanager
+def serve_viewer_app(
+    folder: Path, localizer: Localizer, **settings: object
+) -> Iterator[tuple[str, Any]]:
+    """A uvicorn server on a free loopback port, in a thread, for an app with auth on (the
+    admin and client keys), SQLite and the SIFT localizer in ``folder``; yields its URL and
+    the app. ``settings`` override the app's settings."""
+    values: dict[str, Any] = {
+        "database_url": f"sqlite:///{folder / 'viewer.db'}",
+        "api_keys": f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
+        "data_dir": folder / "data",
+        "features": "sift",
+        "models_dir": folder / "no-models",
+    }
+    app = create_app(Settings(**(values | settings)), localizer=localizer)
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     url = f"http://127.0.0.1:{sock.getsockname()[1]}"
@@ -113,15 +113,27 @@ def served(
         assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
         time.sleep(0.05)
     try:
+        yield url, app
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def served(
+    tmp_path_factory: pytest.TempPathFactory,
+    localizer: Localizer,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> Iterator[Served]:
+    tmp = tmp_path_factory.mktemp("viewer")
+    with serve_viewer_app(tmp, localizer) as (url, app):
         with httpx.Client(base_url=url, headers={"X-API-Key": ADMIN_KEY}, timeout=60) as api:
             map_id = _seed_map(api, "synthetic room", reference_views[:NUM_REFERENCES])
         query = query_views[0]
         query_png = tmp / "query.png"
         query_png.write_bytes(encode_png(query.image))
         yield Served(url, map_id, query, query_png, app)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
 
 
 @pytest.fixture(scope="module")

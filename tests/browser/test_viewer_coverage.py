@@ -8,19 +8,13 @@ per cell; the second map's cells replace the first's."""
 
 from __future__ import annotations
 
-import socket
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 
-from app.main import create_app
-from app.settings import Settings
 from services.localization.localizer import Localizer
 from tests.browser.test_viewer import (
     ADMIN_KEY,
@@ -29,6 +23,7 @@ from tests.browser.test_viewer import (
     _screenshot,
     _seed_map,
     _watch_errors,
+    serve_viewer_app,
 )
 from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticView
@@ -40,30 +35,8 @@ REFERENCES, HELD_OUT = 8, 4
 
 @pytest.fixture
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[str]:
-    settings = Settings(
-        database_url=f"sqlite:///{tmp_path / 'viewer.db'}",
-        api_keys=f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
-        data_dir=tmp_path / "data",
-        features="sift",
-        models_dir=tmp_path / "no-models",
-        auto_evaluation_references=0,
-    )
-    app = create_app(settings, localizer=localizer)
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    uv = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
-    thread = threading.Thread(target=uv.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not uv.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.05)
-    try:
+    with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as (url, _):
         yield url
-    finally:
-        uv.should_exit = True
-        thread.join(timeout=30)
 
 
 def _open_map(page: playwright.Page, url: str, map_id: str) -> None:

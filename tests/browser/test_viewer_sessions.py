@@ -7,9 +7,7 @@ client key (the API answers 403: the panel says that an admin key is needed)."""
 from __future__ import annotations
 
 import json
-import socket
 import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,10 +15,7 @@ from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 
-from app.main import create_app
-from app.settings import Settings
 from services.localization.localizer import Localizer
 from tests.browser.test_viewer import (
     ADMIN_KEY,
@@ -28,6 +23,7 @@ from tests.browser.test_viewer import (
     _chromium,
     _screenshot,
     _watch_errors,
+    serve_viewer_app,
 )
 from tests.conftest import image_metadata
 from tests.polling import wait_until
@@ -46,30 +42,8 @@ class Server:
 
 @pytest.fixture
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[Server]:
-    settings = Settings(
-        database_url=f"sqlite:///{tmp_path / 'viewer.db'}",
-        api_keys=f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
-        data_dir=tmp_path / "data",
-        features="sift",
-        models_dir=tmp_path / "no-models",
-        auto_evaluation_references=0,
-    )
-    app = create_app(settings, localizer=localizer)
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    uv = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
-    thread = threading.Thread(target=uv.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not uv.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.05)
-    try:
+    with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as (url, app):
         yield Server(url, app)
-    finally:
-        uv.should_exit = True
-        thread.join(timeout=30)
 
 
 def _frame(api: httpx.Client, path: str, view: SyntheticView) -> None:

@@ -17,7 +17,7 @@ from services.self_evaluation.summary import THRESHOLDS, recall_key
 POLL_S = 2.0
 
 
-def _map_id(client: httpx.Client, name_or_id: str) -> str:
+def find_map_id(client: httpx.Client, name_or_id: str) -> str:
     """The id of the map with this id or name.
 
     Raises:
@@ -95,7 +95,7 @@ def self_evaluate_main(args: argparse.Namespace) -> int:
     headers = {"X-API-Key": args.api_key} if args.api_key else {}
     with httpx.Client(base_url=args.url.rstrip("/"), headers=headers, timeout=60.0) as client:
         try:
-            map_id = _map_id(client, args.map)
+            map_id = find_map_id(client, args.map)
             url = f"/v1/maps/{map_id}/evaluations"
             if args.latest:
                 done = [
