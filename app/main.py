@@ -125,7 +125,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             settings.auto_evaluation_references,
         )
         app.state.evaluator = Evaluator(
-            app.state.sessions, localizers, blobs, app.state.admission.slots, auto
+            app.state.sessions,
+            localizers,
+            blobs,
+            app.state.admission.slots,
+            auto,
+            app.state.reference_cache,
         )
         app.state.evaluator.resume()
         # capture sessions, aligned to their map and added (then the map may train its

@@ -275,4 +275,9 @@ class CaptureFrame(Base):
     # its pose in the map once the session is aligned (``cam_from_map``: [qw, qx, qy, qz, tx,
     # ty, tz]); None before
     placed: Mapped[list[float] | None] = mapped_column(JSON)
+    # the device's GPS fix when it was taken (else its EXIF's), kept on the reference it becomes
+    gps_latitude: Mapped[float | None] = mapped_column(Float)
+    gps_longitude: Mapped[float | None] = mapped_column(Float)
+    gps_height: Mapped[float | None] = mapped_column(Float)
+    gps_accuracy_m: Mapped[float | None] = mapped_column(Float)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)

@@ -55,7 +55,8 @@ def unusable(row: ReferenceImage) -> str | None:
     return None
 
 
-def gps_of(row: ReferenceImage) -> GpsFix | None:
+def gps_of(row: ReferenceImage | CaptureFrame) -> GpsFix | None:
+    """A reference's or a capture frame's GPS position, None when it has none."""
     if row.gps_latitude is None or row.gps_longitude is None:
         return None
     try:

@@ -9,12 +9,13 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, Field, StrictBool, model_validator
 
+from app.schemas.geo import GpsSchema
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.session import SessionPoseSchema
 from app.schemas.text import Name
 from app.usecases.captures import NewFrame, similarity_of
 from db.models import CaptureFrame, CaptureSession
-from db.store import camera_of
+from db.store import camera_of, gps_of
 from services.geometry.rigid import Rigid3d
 from services.geometry.session_pose import homogeneous
 
@@ -65,6 +66,12 @@ class CaptureFrameMetadata(BaseModel):
     cam_from_session: PoseSchema | None = Field(
         None, description="x_cam = R · x_session + t, COLMAP camera axes (x right, y down)"
     )
+    gps: GpsSchema | None = Field(
+        None,
+        description="The device's GPS fix when the frame was taken, kept on the reference it "
+        "becomes; default: the image's EXIF GPS. A session that starts an empty map "
+        "geo-registers it from its frames' fixes (with height)",
+    )
 
     @model_validator(mode="after")
     def _one_pose(self) -> CaptureFrameMetadata:
@@ -78,7 +85,12 @@ class CaptureFrameMetadata(BaseModel):
         else:
             assert self.cam_from_session is not None
             pose = self.cam_from_session.to_rigid()
-        return NewFrame(self.name, self.camera.to_camera() if self.camera else None, pose)
+        return NewFrame(
+            self.name,
+            self.camera.to_camera() if self.camera else None,
+            pose,
+            self.gps.to_fix() if self.gps else None,
+        )
 
 
 class CaptureFrameOut(BaseModel):
@@ -86,15 +98,20 @@ class CaptureFrameOut(BaseModel):
     name: str
     position: int = Field(description="Its place in the capture order (upload order)")
     camera: CameraSchema
+    gps: GpsSchema | None = Field(
+        description="Its GPS fix (sent, or read from its EXIF); null when it has none"
+    )
     created_at: datetime
 
     @classmethod
     def from_row(cls, row: CaptureFrame) -> CaptureFrameOut:
+        fix = gps_of(row)
         return cls(
             id=row.id,
             name=row.name,
             position=row.position,
             camera=CameraSchema.from_camera(camera_of(row)),
+            gps=GpsSchema.from_fix(fix) if fix is not None else None,
             created_at=row.created_at,
         )
 
@@ -146,6 +163,22 @@ class DriftCorrectionOut(BaseModel):
     max: float
 
 
+class BootstrapGeoRegistrationOut(BaseModel):
+    """The geo-registration a session that started an empty map gave it from its frames'
+    GPS fixes."""
+
+    set: bool = Field(
+        description="The registration was estimated and stored (GET "
+        "/v1/maps/{map_id}/geo-registration)"
+    )
+    reason: str | None = Field(None, description="Why none was set")
+    num_references: int | None = Field(None, description="References with GPS")
+    num_inliers: int | None = Field(None, description="Of those, the fit's inliers")
+    residual_rms_m: float | None = Field(
+        None, description="RMS distance between the inliers' centres and their GPS positions"
+    )
+
+
 class CaptureAlignmentOut(BaseModel):
     mode: Literal["aligned", "bootstrap"] = Field(
         description="bootstrap: the map was empty and the session defined its frame"
@@ -191,6 +224,13 @@ class CaptureAlignmentOut(BaseModel):
     )
     spacing_m: float | None = Field(
         None, description="The map's spacing that decided which frames add a view"
+    )
+    geo_registration: BootstrapGeoRegistrationOut | None = Field(
+        None,
+        description="bootstrap only, once added: the map's geo-registration estimated from "
+        "the frames' GPS fixes (when the map had none and at least 3 frames carry GPS with "
+        "height), or why none was set. A session aligned to a map never changes its "
+        "registration",
     )
 
 

@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from app.schemas.captures import StaleReferenceOut
 from app.schemas.estimators import EstimatorName
 from app.usecases.coverage import MapCoverage
 from app.usecases.evaluations import DEFAULT_SAMPLE, MAX_SAMPLE, EvaluationRequest
@@ -128,6 +129,11 @@ class EvaluationResult(BaseModel):
     )
     served: str = Field(description="The server's feature configuration at the time")
     references: int = Field(description="The map's references with their originals")
+    stale: list[StaleReferenceOut] = Field(
+        default_factory=list,
+        description="References that no longer match the held-out references that cover "
+        "them, flagged stale (measured with the served configuration)",
+    )
 
 
 class EvaluationProgress(BaseModel):

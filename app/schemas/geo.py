@@ -12,7 +12,12 @@ from db.geo import StoredRegistration
 from services.geo.geodesy import HEIGHT_RANGE_M, Geodetic
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
 from services.geo.gps import MAX_GPS_ACCURACY_M, GpsFix
-from services.geo.registration import MAX_ENU_TRANSLATION_M, SCALE_RANGE, GeoRegistration
+from services.geo.registration import (
+    DEFAULT_MAX_ERROR_M,
+    MAX_ENU_TRANSLATION_M,
+    SCALE_RANGE,
+    GeoRegistration,
+)
 
 # numbers as JSON numbers: a boolean is not one (lax mode would read false as 0)
 Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
@@ -89,7 +94,7 @@ class GeoRegistrationIn(BaseModel):
 
 class GeoRegistrationEstimateIn(BaseModel):
     max_error_m: Number = Field(
-        10.0,
+        DEFAULT_MAX_ERROR_M,
         gt=0,
         le=10_000,
         description="RANSAC inlier threshold in metres between a registered camera centre and "

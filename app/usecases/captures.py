@@ -25,7 +25,6 @@ import threading
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -33,16 +32,18 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.errors import ConflictError, NameTakenError, NotFoundError
+from app.usecases.freshness import flag_stale
+from app.usecases.geo import estimate_map_registration
 from app.usecases.localize import LocalizeContext, LocalizeRequest, localize
 from app.usecases.maps import require_map
 from app.usecases.served_features import map_localizer
 from db.blobs import BlobStore
-from db.models import CaptureFrame, CaptureSession, ReferenceImage
+from db.models import CaptureFrame, CaptureSession
 from db.originals import StoredOriginals, remove_blobs, write_originals
 from db.repositories.captures import ACTIVE, CaptureRepository
 from db.repositories.images import ImageRepository
 from db.repositories.maps import MapRepository
-from db.store import camera_of, pose_of
+from db.store import camera_of, gps_of, pose_of
 from services.capture.alignment import (
     Alignment,
     CheckedFrame,
@@ -59,11 +60,12 @@ from services.capture.freshness import (
     Vote,
     agreeing_matches,
     covering,
-    stale_references,
 )
 from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
+from services.geo.gps import GpsFix, gps_from_exif
+from services.geo.registration import DEFAULT_MAX_ERROR_M, MIN_GPS_REFERENCES
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d, matrix_to_quaternion
 from services.imaging.decode import check_pixel_limit, decode_image_reduced
@@ -80,12 +82,14 @@ CHECK_TOP_K = 10
 @dataclass(frozen=True)
 class NewFrame:
     """An uploaded frame: its name in the session (None: its position, ``00000``…), its
-    camera (None: the default camera for the image size) and its ``cam_from_session``
-    (COLMAP camera axes)."""
+    camera (None: the default camera for the image size), its ``cam_from_session``
+    (COLMAP camera axes) and its GPS fix."""
 
     name: str | None
     camera: Camera | None
     cam_from_session: Rigid3d
+    # the device's GPS fix when the frame was taken; None: the image's EXIF GPS, if any
+    gps: GpsFix | None = None
 
 
 def create_session(
@@ -128,7 +132,8 @@ def add_frame(
     max_frames: int,
 ) -> CaptureFrame:
     """Store one frame of an open session: its image (decoded here, so that a frame the job
-    could not describe is refused now) and depth in the blob store, then its row.
+    could not describe is refused now) and depth in the blob store, then its row. Without a
+    GPS fix, the one in the image's EXIF is kept.
 
     Raises:
         NotFoundError: unknown map or session.
@@ -140,6 +145,8 @@ def add_frame(
     """
     served = localizers.served
     check_pixel_limit(image_bytes, served.max_pixels)
+    # EXIF is read only once the header passed the pixel limit
+    gps = frame.gps if frame.gps is not None else gps_from_exif(image_bytes)
     image = decode_image_reduced(image_bytes, served.max_pixels, served.extractor.max_side)
     camera = frame.camera or default_camera(image.width, image.height)
     check_camera_matches(camera, image)
@@ -159,7 +166,7 @@ def add_frame(
             if repository.frame_name_exists(session_id, name):
                 raise NameTakenError(f"the session already has a frame named {name!r}")
             stored = repository.add_frame(
-                locked, frame_id, name, camera, frame.cam_from_session, originals
+                locked, frame_id, name, camera, frame.cam_from_session, originals, gps
             )
             session.expunge(stored)
             return stored
@@ -454,9 +461,8 @@ class CaptureRunner:
         evidence: dict[int, int],
     ) -> list[dict[str, Any]]:
         """The votes of the anchors on the references that cover them
-        (``services.capture.freshness``), stored: the references whose votes are all stale
-        are flagged, those with a fresh vote unflagged. The stale ones, as the result lists
-        them."""
+        (``services.capture.freshness``), stored by ``flag_stale``: the stale ones, as the
+        result lists them."""
         localizer, _, store = self.context.map_engine(map_id, LocalizeRequest())
         ids, poses = self._reference_ids_and_poses(map_id)
         spacing = map_spacing(np.array([p.center for p in poses]))
@@ -483,47 +489,14 @@ class CaptureRunner:
                         matches,
                     )
                     votes.append(Vote(reference.image_id, frame.name, inliers, evidence[index]))
-        verdicts = stale_references(votes)
-        now = datetime.now(UTC)
-        stale: list[dict[str, Any]] = []
-        retired: list[str] = []
-        keys: list[str] = []
-        with self.sessions.begin() as session:
-            map_row = require_map(session, map_id)
-            images = ImageRepository(session)
-            for image_id, theirs in verdicts.items():
-                row = session.get(ReferenceImage, image_id)
-                if row is None:
-                    continue
-                if not theirs:
-                    row.stale_since, row.stale_reason = None, None
-                    continue
-                reason = (
-                    f"capture session {session_name!r}: {len(theirs)} frame(s) that cover it "
-                    f"matched it with at most {max(v.inliers for v in theirs)} inliers where "
-                    f"the references they retrieved had {min(v.expected for v in theirs)} or more"
-                )
-                if row.stale_since is None:
-                    row.stale_since = now
-                row.stale_reason = reason
-                entry = {"image_id": image_id, "name": row.name, "reason": reason}
-                if map_row.retire_stale:  # the map retires them at once
-                    keys += images.blob_keys(map_id, image_id)
-                    images.delete(map_id, image_id)
-                    retired.append(image_id)
-                stale.append(entry | {"retired": map_row.retire_stale})
-        if retired:
-            if self.context.features_cache is not None:
-                self.context.features_cache.discard(map_id, retired)
-            remove_blobs(self.blobs, keys)
-        if stale:
-            logger.info(
-                "map %s: %d references flagged stale, %d of them retired",
-                map_id,
-                len(stale),
-                len(retired),
-            )
-        return stale
+        return flag_stale(
+            self.sessions,
+            self.blobs,
+            self.context.features_cache,
+            map_id,
+            votes,
+            f"capture session {session_name!r}",
+        )
 
     def _reference_ids_and_poses(self, map_id: str) -> tuple[list[str], list[Rigid3d]]:
         with self.sessions() as session:
@@ -602,6 +575,7 @@ class CaptureRunner:
             if row is None or row.result is None:
                 raise SessionStoppedError
             prefix, done = row.name, row.done
+            bootstrap = row.result.get("mode") == "bootstrap"
             localizer = map_localizer(self.localizers, require_map(session, map_id))
             frames = CaptureRepository(session).frames(session_id)
             session.expunge_all()
@@ -624,7 +598,14 @@ class CaptureRunner:
                 if repository.name_exists(map_id, name):
                     name = f"{name}~{frame.id[:8]}"
                 repository.add(
-                    map_id, name, camera, pose, data, image_id=frame.id, originals=originals
+                    map_id,
+                    name,
+                    camera,
+                    pose,
+                    data,
+                    gps_of(frame),
+                    image_id=frame.id,
+                    originals=originals,
                 )
                 waiting = session.get(CaptureFrame, frame.id)
                 if waiting is not None:
@@ -634,12 +615,16 @@ class CaptureRunner:
                     raise SessionStoppedError
                 row.done += 1
             added += 1
+        # a session that defined the map's frame may place it on the globe too
+        geo = self._geo_register(session_id, map_id) if bootstrap else None
         with self.sessions.begin() as session:
             row = session.get(CaptureSession, session_id)
             if row is None:
                 raise SessionStoppedError
             result: dict[str, Any] = dict(row.result or {})
             result["added"] = row.frame_count - int(result.get("skipped") or 0)
+            if geo is not None:
+                result["geo_registration"] = geo
             CaptureRepository(session).set_state(session_id, "added", ("adding",), result=result)
         self._count("added")
         logger.info(
@@ -651,6 +636,48 @@ class CaptureRunner:
         )
         if self.on_added is not None:
             self.on_added(map_id, localizer)
+
+    def _geo_register(self, session_id: str, map_id: str) -> dict[str, Any]:
+        """The geo-registration of a map a session bootstrapped, estimated from its
+        references' GPS (``estimate_map_registration``) and stored when the map has none yet
+        and at least 3 references carry GPS with height; what happened, as the session's
+        result reports it. An estimate that fails leaves the map without a registration and
+        the session unharmed."""
+        try:
+            with self.sessions() as session:
+                registered = require_map(session, map_id).geo_registration is not None
+                fixes = [gps_of(row) for row in ImageRepository(session).with_gps(map_id)]
+            if registered:  # set meanwhile by hand: kept
+                return {"set": False, "reason": "the map has a geo-registration already"}
+            with_height = sum(f is not None and f.height is not None for f in fixes)
+            if with_height < MIN_GPS_REFERENCES:
+                reason = f"fewer than {MIN_GPS_REFERENCES} frames carry GPS with height"
+                return {"set": False, "reason": reason}
+            stored, _ = estimate_map_registration(self.sessions, map_id, DEFAULT_MAX_ERROR_M)
+        except InvalidInputError as exc:
+            logger.info(
+                "capture session %s: map %s not geo-registered: %s", session_id, map_id, exc
+            )
+            return {"set": False, "reason": str(exc)}
+        except Exception as exc:  # the frames are added: the estimate never fails the session
+            logger.exception(
+                "capture session %s: geo-registering map %s failed", session_id, map_id
+            )
+            return {"set": False, "reason": f"the estimate failed: {exc}"}
+        logger.info(
+            "capture session %s: map %s geo-registered from %s references (%s inliers, RMS %.3f m)",
+            session_id,
+            map_id,
+            stored.num_references,
+            stored.num_inliers,
+            stored.residual_rms_m,
+        )
+        return {
+            "set": True,
+            "num_references": stored.num_references,
+            "num_inliers": stored.num_inliers,
+            "residual_rms_m": stored.residual_rms_m,
+        }
 
     def _roll_back(self, session_id: str, error: str) -> None:
         """Ends a failed session ``failed``: the references it added deleted, its frames and

@@ -23,16 +23,19 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.auto_features import AutoEvaluation
 from app.usecases.errors import ConflictError, NotFoundError
+from app.usecases.freshness import flag_stale
 from app.usecases.maps import require_map
 from db.blobs import BlobStore
 from db.models import Map, MapEvaluation
 from db.repositories.evaluations import EvaluationRepository
 from db.repositories.maps import lock_map_row
 from db.store import camera_of, pose_of, unusable
+from services.capture.freshness import Vote
 from services.components import Localizers
 from services.errors import InvalidInputError
 from services.estimators.registry import get_estimator
 from services.features.configs import get_feature_config
+from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.memory import EVALUATION_DESCRIBED
 from services.self_evaluation.run import (
@@ -201,12 +204,16 @@ class Evaluator:
         blobs: BlobStore,
         slots: AbstractContextManager[object] | None = None,
         auto: AutoEvaluation | None = None,
+        features_cache: ReferenceFeatureCache | None = None,
     ) -> None:
         """``slots``: held around each description and held-out query (the localize
         workers' semaphore: an evaluation computes in a worker's place, within its memory);
         ``auto``: when maps with ``features: auto`` are evaluated on their own and what
-        follows a finished evaluation (None: only evaluations asked for run)."""
+        follows a finished evaluation (None: only evaluations asked for run);
+        ``features_cache``: the served features, whence stale references the map retires
+        are dropped."""
         self.sessions = sessions
+        self.features_cache = features_cache
         self.slots = slots if slots is not None else nullcontext()
         self.localizers = localizers
         self.auto = auto
@@ -302,6 +309,7 @@ class Evaluator:
         )
         originals = _BlobOriginals(self.blobs, keys)
         results: dict[str, dict[str, Any]] = {}
+        votes: list[Vote] = []
         for position, name in enumerate(configurations):
             # the map's configuration at its options, the others at their defaults
             localizer = self.localizers.for_map(
@@ -319,6 +327,8 @@ class Evaluator:
                 self.slots,
                 stopped=lambda: self._stopped(evaluation_id),
                 progress=partial(self._progress, evaluation_id, offset),
+                # the configuration the map serves says whether its references still match
+                votes=votes if name == preset else None,
             )
             results[name] = {
                 **summarize(answers),
@@ -326,11 +336,24 @@ class Evaluator:
                 "references": [a.as_dict() for a in answers],
             }
         recommended = recommend(results, preset)
+        stale = (
+            []
+            if self._stopped(evaluation_id)
+            else flag_stale(
+                self.sessions,
+                self.blobs,
+                self.features_cache,
+                map_id,
+                votes,
+                f"self-evaluation {evaluation_id}",
+            )
+        )
         result = {
             "configurations": results,
             "recommended": recommended,
             "served": preset,
             "references": len(references),
+            "stale": stale,
         }
         # the map that follows it moves on before the evaluation reads done: its state goes
         # from evaluating to re-extracting, never ready in between

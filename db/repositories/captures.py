@@ -9,6 +9,7 @@ from sqlalchemy.orm import Session
 
 from db.models import CaptureFrame, CaptureSession, is_stored_id
 from db.originals import StoredOriginals
+from services.geo.gps import GpsFix
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 
@@ -93,6 +94,7 @@ class CaptureRepository:
         camera: Camera,
         cam_from_session: Rigid3d,
         originals: StoredOriginals,
+        gps: GpsFix | None = None,
     ) -> CaptureFrame:
         qw, qx, qy, qz = (float(v) for v in cam_from_session.quaternion)
         tx, ty, tz = (float(v) for v in cam_from_session.translation)
@@ -115,6 +117,10 @@ class CaptureRepository:
             original_key=originals.original_key,
             original_sha256=originals.original_sha256,
             depth_key=originals.depth_key,
+            gps_latitude=gps.latitude if gps else None,
+            gps_longitude=gps.longitude if gps else None,
+            gps_height=gps.height if gps else None,
+            gps_accuracy_m=gps.accuracy_m if gps else None,
         )
         self.session.add(row)
         session_row.frame_count += 1

@@ -16,6 +16,9 @@ from services.geometry.rigid import matrix_to_quaternion, quaternion_to_matrix
 from services.types import BoolArray, FloatArray
 
 MIN_GPS_REFERENCES = 3
+# the RANSAC inlier threshold of an estimate, in metres between a registered camera centre and
+# its GPS position, when none is given (about 3 × a phone's GPS accuracy outdoors)
+DEFAULT_MAX_ERROR_M = 10.0
 # the smallest singular value (relative to the largest) of the centred map centres below
 # which their layout is a line and the rotation about it is unobservable
 COLLINEAR_RATIO = 1e-3
@@ -159,7 +162,7 @@ class RegistrationFit:
 
 
 def estimate_registration(
-    centers: FloatArray, gps: FloatArray, max_error_m: float = 10.0, seed: int = 0
+    centers: FloatArray, gps: FloatArray, max_error_m: float = DEFAULT_MAX_ERROR_M, seed: int = 0
 ) -> RegistrationFit:
     """The registration mapping camera centres onto their GPS positions: pycolmap's
     LO-RANSAC similarity (``estimate_sim3d_robust``), then a least-squares similarity

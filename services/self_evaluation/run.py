@@ -1,5 +1,9 @@
 """One configuration's self-evaluation: each sampled reference localized, as a query with its
-own camera, against a local map of the others described from their originals."""
+own camera, against a local map of the others described from their originals.
+
+A held-out reference localized confidently where it is stored shows the place as its image
+does; the references of its local map that cover it vote on whether they still match it
+(``services.capture.freshness``), as a capture session's frames do."""
 
 from __future__ import annotations
 
@@ -14,6 +18,9 @@ from typing import Protocol
 
 import numpy as np
 
+from services.capture.alignment import MIN_CONFIDENCE
+from services.capture.freshness import MIN_EVIDENCE, Vote, agreeing_matches, covering
+from services.capture.spacing import map_spacing
 from services.errors import InvalidInputError
 from services.estimators.base import PoseEstimator
 from services.geometry.camera import Camera
@@ -26,6 +33,11 @@ from services.self_evaluation.summary import HeldOutAnswer
 from services.types import FloatArray
 
 logger = logging.getLogger(__name__)
+
+# a held-out reference votes on the references that cover it when it was localized within
+# this of its stored pose (position in metres, rotation in degrees)
+VOTE_MAX_M = 0.25
+VOTE_MAX_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -114,15 +126,19 @@ def evaluate(
     slot: AbstractContextManager[object] | None = None,
     stopped: Callable[[], bool] = lambda: False,
     progress: Callable[[int], None] = lambda done: None,
+    votes: list[Vote] | None = None,
 ) -> list[HeldOutAnswer]:
     """Localizes each ``references[i]`` of ``sample`` against its held-out map (``plan``),
     from its original, with its camera; ``progress(done)`` after each. ``slot`` is held
-    around each description and each held-out query (e.g. a localize worker's semaphore).
+    around each description, each held-out query and each vote (e.g. a localize worker's
+    semaphore). ``votes``: where the votes of the held-out references on those that cover
+    them are appended (None: no votes).
 
     Raises:
         EvaluationCancelled: ``stopped()`` turned true.
     """
     centers = centers_of(references)
+    spacing = map_spacing(centers)
     described = DescribedReferences(localizer, originals, cache_capacity)
     slot = slot if slot is not None else nullcontext()
     answers: list[HeldOutAnswer] = []
@@ -147,11 +163,59 @@ def evaluate(
                     reference.image_id,
                 )
         with slot:
-            answer = _localize(localizer, query, originals, store, plan)
-        if answer is not None:
+            localized = _localize(localizer, query, originals, store, plan)
+        if localized is not None:
+            answer, evidence = localized
             answers.append(replace(answer, nearest_reference_m=nearest))
+            if votes is not None and spacing is not None and _votes_for_others(answer, evidence):
+                with slot:
+                    votes += _votes(localizer, described, query, store, spacing, evidence)
         progress(done)
     return answers
+
+
+def _votes_for_others(answer: HeldOutAnswer, evidence: int) -> bool:
+    """Whether a held-out reference shows its place well enough to vote on the others: it
+    localized confidently where it is stored, its best reference matched strongly."""
+    return (
+        answer.localized
+        and answer.confidence >= MIN_CONFIDENCE
+        and answer.within(VOTE_MAX_M, VOTE_MAX_DEG)
+        and evidence >= MIN_EVIDENCE
+    )
+
+
+def _votes(
+    localizer: Localizer,
+    described: DescribedReferences,
+    query: MapReference,
+    store: MemoryReferenceStore,
+    spacing: float,
+    evidence: int,
+) -> list[Vote]:
+    """The votes of the held-out ``query`` on the references of its local map (``store``)
+    that cover it: their matches with it that agree with the two stored poses, against
+    ``evidence`` (its best retrieved reference's inliers)."""
+    data = described.get(query)
+    if data is None:
+        return []
+    others = store.load_references(store.retrieval_index().image_ids)
+    near = covering(query.cam_from_world, [r.cam_from_world for r in others], spacing)
+    votes = []
+    for i in near:
+        reference = others[i]
+        matches = localizer.matcher.match(data.features, reference.features)
+        inliers = agreeing_matches(
+            query.camera,
+            query.cam_from_world,
+            data.features.keypoints,
+            reference.camera,
+            reference.cam_from_world,
+            reference.features.keypoints,
+            matches,
+        )
+        votes.append(Vote(reference.image_id, query.name, inliers, evidence))
+    return votes
 
 
 def _localize(
@@ -160,8 +224,9 @@ def _localize(
     originals: Originals,
     store: MemoryReferenceStore,
     plan: HeldOutPlan,
-) -> HeldOutAnswer | None:
-    """The held-out reference localized, or None when its original cannot be read."""
+) -> tuple[HeldOutAnswer, int] | None:
+    """The held-out reference localized, with its best retrieved reference's inliers; None
+    when its original cannot be read."""
     try:
         image = originals.image(query.image_id)
     except (LookupError, OSError) as exc:
@@ -183,6 +248,7 @@ def _localize(
     position, rotation = float("inf"), float("inf")
     if result.localized and result.cam_from_world is not None:
         position, rotation = pose_error(result.cam_from_world, query.cam_from_world)
+    evidence = max((r.num_inliers for r in result.retrieved), default=0)
     return HeldOutAnswer(
         image_id=query.image_id,
         name=query.name,
@@ -193,4 +259,4 @@ def _localize(
         confidence=result.confidence,
         num_inliers=result.num_inliers,
         latency_ms=latency_ms,
-    )
+    ), evidence

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from services.geo.geodesy import Geodetic, ecef_from_geodetic, geodetic_from_enu
+from services.geo.registration import GeoRegistration
 from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
 from tests.conftest import localize_view, make_client, upload_view
 from tests.polling import wait_until
@@ -22,6 +24,15 @@ from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 # the session's frame in the map's: turned 40° about an oblique axis and moved
 TURN = quaternion_to_matrix(np.array([np.cos(0.35), 0.3, np.sin(0.35) * 0.8, 0.2]))
 WORLD_FROM_SESSION = Rigid3d(TURN, np.array([1.5, -0.4, 2.0]))
+# where the session's frame lies on the globe: East-North-Up at ORIGIN from the session's
+# frame (its y axis down, its z axis turned 30° from North) and moved
+ORIGIN = Geodetic(47.3769, 8.5417, 408.0)
+_YAW = np.radians(30.0)
+ENU_FROM_SESSION = Rigid3d(
+    np.array([[np.cos(_YAW), -np.sin(_YAW), 0], [np.sin(_YAW), np.cos(_YAW), 0], [0, 0, 1]])
+    @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
+    np.array([12.0, -7.0, 1.5]),
+)
 
 
 @pytest.fixture
@@ -40,6 +51,18 @@ def _session_pose(view: SyntheticView, scale: float = 1.0) -> dict[str, object]:
     }
 
 
+def _center(view: SyntheticView) -> Any:
+    """The view's camera centre in the session's frame."""
+    return view.cam_from_world.compose(WORLD_FROM_SESSION).center
+
+
+def _gps(view: SyntheticView) -> dict[str, float]:
+    """The exact GPS fix of the view's camera centre (``ENU_FROM_SESSION``)."""
+    enu = ENU_FROM_SESSION.rotation @ _center(view) + ENU_FROM_SESSION.translation
+    latitude, longitude, height = geodetic_from_enu(enu[None], ORIGIN)[0]
+    return {"latitude": latitude, "longitude": longitude, "height": height, "accuracy_m": 0.05}
+
+
 def _map(client: TestClient, views: list[SyntheticView]) -> str:
     created = client.post("/v1/maps", json={"name": "scene", "features": {"preset": "sift"}})
     assert created.status_code == 201, created.text
@@ -55,6 +78,7 @@ def _frame(
     session_id: str,
     view: SyntheticView,
     width: int | None = None,
+    gps: object = None,
     **pose: object,
 ) -> Any:
     camera = view.camera
@@ -67,6 +91,7 @@ def _frame(
             "params": list(camera.params),
         },
         **(pose or {"cam_from_session": _session_pose(view)}),
+        **({"gps": gps} if gps is not None else {}),
     }
     return client.post(
         f"/v1/maps/{map_id}/sessions/{session_id}/frames",
@@ -83,18 +108,22 @@ def _capture(
     scale: float = 1.0,
     name: str = "walk",
     keep_all: bool = True,
+    gps: bool = False,
 ) -> dict[str, Any]:
-    """Uploads the views as a session, submits it and returns it once decided."""
+    """Uploads the views as a session (with ``gps``, each frame with its exact GPS fix),
+    submits it and returns it once decided."""
     body = {"name": name, "metric": metric, "keep_all": keep_all}
     created = client.post(f"/v1/maps/{map_id}/sessions", json=body)
     assert created.status_code == 201, created.text
     session_id = created.json()["id"]
     assert created.headers["location"] == f"/v1/maps/{map_id}/sessions/{session_id}"
     for view in views:
+        fix = _gps(view) if gps else None
         response = _frame(
-            client, map_id, session_id, view, cam_from_session=_session_pose(view, scale)
+            client, map_id, session_id, view, gps=fix, cam_from_session=_session_pose(view, scale)
         )
         assert response.status_code == 201, response.text
+        assert response.json()["gps"] == fix
     submitted = client.post(f"/v1/maps/{map_id}/sessions/{session_id}/submit")
     assert submitted.status_code == 202, submitted.text
     assert submitted.json()["state"] == "queued" and submitted.json()["frames"] == len(views)
@@ -139,10 +168,13 @@ def test_a_session_is_aligned_and_its_frames_added(
     session_views = query_views[:8]
     # a metric session, or one in a unit of half a metre whose scale is estimated
     scale = 1.0 if metric else 0.5
-    session = _capture(client, map_id, session_views, metric=metric, scale=scale)
+    session = _capture(client, map_id, session_views, metric=metric, scale=scale, gps=True)
     assert session["state"] == "added", session
     alignment = session["alignment"]
     assert alignment["mode"] == "aligned" and alignment["reason"] is None
+    # its frames' GPS goes onto the references; only a bootstrap geo-registers the map
+    assert alignment["geo_registration"] is None
+    assert client.get(f"/v1/maps/{map_id}/geo-registration").status_code == 404
     assert alignment["agreeing"] >= 3 and alignment["added"] == len(session_views)
     assert alignment["map_from_session"]["scale"] == pytest.approx(scale, rel=0.01)
     assert alignment["rms_position_m"] < 0.02
@@ -158,7 +190,7 @@ def test_a_session_is_aligned_and_its_frames_added(
         image = images[f"walk/{view.name}"]
         position, rotation = _pose_errors(image, view, Rigid3d.identity())
         assert position < 0.02 and rotation < 0.5, (view.name, position, rotation)
-        assert image["has_original"]
+        assert image["has_original"] and image["gps"] == _gps(view)
         original = client.get(f"/v1/maps/{map_id}/images/{image['id']}/original")
         assert original.content == encode_png(view.image)
     # the frames serve as references: a query localizes against the grown map
@@ -213,6 +245,15 @@ def test_an_empty_map_is_bootstrapped_from_one_session(
     assert session["state"] == "added", session
     assert session["alignment"]["mode"] == "bootstrap"
     assert session["alignment"]["map_from_session"]["matrix"] == np.eye(4).tolist()
+    # frames without GPS (nor EXIF): the map stays off the globe
+    assert session["alignment"]["geo_registration"] == {
+        "set": False,
+        "reason": "fewer than 3 frames carry GPS with height",
+        "num_references": None,
+        "num_inliers": None,
+        "residual_rms_m": None,
+    }
+    assert client.get(f"/v1/maps/{map_id}/geo-registration").status_code == 404
     images = _images(client, map_id)
     assert len(images) == 12
     # the map's frame is the session's: a query localizes where the session would put it
@@ -221,6 +262,38 @@ def test_an_empty_map_is_bootstrapped_from_one_session(
     assert answer["localized"], answer
     truth = view.cam_from_world.compose(WORLD_FROM_SESSION)
     assert np.linalg.norm(np.array(answer["camera_center"]) - truth.center) < 0.05
+
+
+def test_a_session_that_bootstraps_a_map_geo_registers_it_from_its_frames_gps(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    created = client.post("/v1/maps", json={"name": "new", "features": {"preset": "sift"}})
+    map_id = created.json()["id"]
+    views = reference_views[:8]
+    session = _capture(client, map_id, views, gps=True)
+    assert session["state"] == "added", session
+    geo = session["alignment"]["geo_registration"]
+    assert geo["set"] is True and geo["reason"] is None, geo
+    assert geo["num_references"] == geo["num_inliers"] == len(views)
+    assert geo["residual_rms_m"] < 0.01
+    response = client.get(f"/v1/maps/{map_id}/geo-registration")
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["source"] == "estimated" and body["num_inliers"] == len(views)
+    assert body["scale"] == pytest.approx(1.0, abs=1e-3)
+    origin = body["origin"]
+    registration = GeoRegistration.from_quaternion(
+        Geodetic(origin["latitude"], origin["longitude"], origin["height"]),
+        np.array(body["enu_from_map"]["rotation"]),
+        np.array(body["enu_from_map"]["translation"]),
+        body["scale"],
+    )
+    # each frame's centre in the map (the session's frame) lands on its GPS position
+    for view in views:
+        fix = _gps(view)
+        truth = ecef_from_geodetic(np.array([[fix["latitude"], fix["longitude"], fix["height"]]]))
+        placed = ecef_from_geodetic(registration.geodetic_from_map(_center(view)[None]))
+        assert np.linalg.norm(placed - truth) < 0.03, view.name
 
 
 def test_session_requests_are_checked(
@@ -253,6 +326,9 @@ def test_session_requests_are_checked(
     view = reference_views[0]
     wrong = _frame(client, map_id, session_id, view, width=view.camera.width + 2)
     assert wrong.status_code == 422 and "camera is" in wrong.json()["detail"]
+    # a GPS fix must be one
+    off = _frame(client, map_id, session_id, view, gps={"latitude": 91.0, "longitude": 8.5})
+    assert off.status_code == 422 and "latitude" in off.text
     assert client.get(f"{base}/{session_id}").json()["frames"] == 0
     # an AR session pose (ARKit's camera.transform) is taken as the localize endpoint takes it
     ar = _frame(

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from tests.conftest import create_map, make_client, upload_view
 from tests.polling import wait_until
-from tools.synthetic.scene import SyntheticView
+from tools.synthetic.scene import SyntheticScene, SyntheticView
 
 REFERENCES = 12
 HELD_OUT = 6
@@ -219,3 +219,45 @@ def test_other_configurations_are_measured_where_the_settings_allow_them(
         assert started.json()["request"]["configurations"] == ["sift"]
     with pytest.raises(ValueError, match="evaluation_features: unknown nope"):
         make_client(database_url, localizer, evaluation_features="sift,nope", **settings)
+
+
+def test_a_reference_whose_image_shows_another_place_is_flagged_by_the_next_evaluation(
+    client: TestClient, scene: SyntheticScene, reference_views: list[SyntheticView]
+) -> None:
+    views = reference_views[:REFERENCES]
+    swapped = views[5]
+    elsewhere = SyntheticScene(seed=7)  # another room, seen from the same pose
+    image, _ = elsewhere.render(swapped.cam_from_world)
+    map_id = _map(client, [v for v in views if v is not swapped])
+    impostor = SyntheticView(swapped.name, swapped.camera, swapped.cam_from_world, image, None)
+    assert upload_view(client, map_id, impostor).status_code == 201
+
+    def evaluate() -> dict[str, Any]:
+        started = client.post(
+            f"/v1/maps/{map_id}/evaluations",
+            json={"configurations": ["sift"], "sample_size": REFERENCES},
+        )
+        assert started.status_code == 202, started.text
+        evaluation = _finished(client, started.headers["Location"])
+        assert evaluation["state"] == "done", evaluation
+        return evaluation
+
+    evaluation = evaluate()
+    # held out itself it localizes nowhere near where it is stored; its neighbours, held out,
+    # localize and no longer match it
+    held = {r["name"]: r for r in evaluation["result"]["configurations"]["sift"]["references"]}
+    assert not held[swapped.name]["localized"] or held[swapped.name]["position_error_m"] > 0.25
+    [stale] = evaluation["result"]["stale"]
+    assert stale["name"] == swapped.name and stale["retired"] is False
+    assert f"self-evaluation {evaluation['id']}" in stale["reason"]
+    flagged = client.get(f"/v1/maps/{map_id}/images", params={"stale": True}).json()
+    assert [item["name"] for item in flagged["items"]] == [swapped.name]
+    fresh = client.get(f"/v1/maps/{map_id}/images", params={"stale": False}).json()
+    assert fresh["total"] == REFERENCES - 1
+    # a map that retires its stale references deletes them at the next evaluation
+    patched = client.patch(f"/v1/maps/{map_id}", json={"retire_stale": True})
+    assert patched.status_code == 200
+    [retired] = evaluate()["result"]["stale"]
+    assert retired["name"] == swapped.name and retired["retired"] is True
+    names = [item["name"] for item in client.get(f"/v1/maps/{map_id}/images").json()["items"]]
+    assert swapped.name not in names and len(names) == REFERENCES - 1

@@ -22,7 +22,9 @@ Scenarios (dataset positions, split rules of ``tools/evaluation/split.py``):
   frames of the redkitchen session (added to the first map after (b)).
 - Stale references: a map of the dataset whose two references the session (redkitchen
   500–749, kitti05 120–224, which overlap their maps) covers best show frames of the other
-  dataset, resized, poses kept; the session's stale flags against them.
+  dataset, resized, poses kept; the stale flags of a self-evaluation of the map (its default
+  sample, or ``--evaluation-sample``; the map's configuration), then those of the session,
+  against them. ``--stale-only`` runs this scenario alone.
 - Bootstrap: an empty map takes redkitchen 0–499 every 5th as a session (relative poses with
   drift), then localizes 500–999 every 10th against the ground truth expressed in the
   session's frame.
@@ -120,6 +122,10 @@ class Options:
     sessions: dict[str, str] = field(default_factory=dict)
     # where the swapped references' images are written
     scratch: Path = Path("out/capture-sessions")
+    # the stale-references scenario alone
+    stale_only: bool = False
+    # references its self-evaluation holds out (None: the server's default)
+    evaluation_sample: int | None = None
 
 
 def _log(line: str) -> None:
@@ -283,6 +289,7 @@ def decision(session: dict[str, Any], expected: str) -> dict[str, Any]:
         "upload_s": session.get("upload_s"),
         "job_s": job_seconds(session),
         "checked_frames": alignment.get("checked") or [],
+        "stale": sorted(s["name"] for s in alignment.get("stale") or []),
     }
 
 
@@ -393,6 +400,9 @@ def measure(name: str, url: str, options: Options) -> dict[str, Any]:
         "rules": {"map": scenario.map, "session": session_rule, "queries": scenario.queries},
     }
     with client(url) as http:
+        if options.stale_only:
+            result["stale"] = stale_scenario(http, url, name, options, options.scratch)
+            return result
         start = time.perf_counter()
         runner = build_map(url, f"{name}-map", references, options)
         result["map"] = {
@@ -496,7 +506,7 @@ def stale_scenario(
     http: httpx.Client, url: str, name: str, options: Options, out: Path
 ) -> dict[str, Any]:
     """A map whose references the session covers best show another place: which references
-    the session flags stale, against those swapped."""
+    a self-evaluation of the map, then the session, flag stale, against those swapped."""
     dataset = _open(options, name)
     scenario = (QUICK_SCENARIOS if options.quick else SCENARIOS)[name]
     session_rule = STALE_SESSIONS[name] if not options.quick else scenario.session
@@ -510,19 +520,38 @@ def stale_scenario(
         image.name for image in references if image.image_path.name.startswith("swapped-")
     )
     runner = build_map(url, f"{name}-stale", references, options)
+    start = time.perf_counter()
+    evaluation = request(
+        http,
+        "POST",
+        f"/v1/maps/{runner.map_id}/evaluations",
+        json={"configurations": [runner.features]}
+        | ({"sample_size": options.evaluation_sample} if options.evaluation_sample else {}),
+    ).json()
+    location = f"/v1/maps/{runner.map_id}/evaluations/{evaluation['id']}"
+    while evaluation["state"] in ("queued", "running"):
+        time.sleep(1.0)
+        evaluation = request(http, "GET", location).json()
+    evaluated = sorted(s["name"] for s in (evaluation.get("result") or {}).get("stale", []))
+    _log(
+        f"{name}: self-evaluation {evaluation['state']} in {time.perf_counter() - start:.0f} s, "
+        f"flagged {evaluated}"
+    )
     session = run_session(
         http, runner.map_id, "stale", session_frames(session_images, options), "added"
     )
-    flagged = sorted(
-        item["name"]
-        for item in request(
-            http, "GET", f"/v1/maps/{runner.map_id}/images", params={"stale": True, "limit": 1000}
-        ).json()["items"]
-    )
+    flagged = session["stale"]
     return {
         "session_rule": session_rule,
         "state": session["state"],
         "swapped": swapped,
+        "evaluation": {
+            "state": evaluation["state"],
+            "held_out": evaluation["progress"]["total"],
+            "flagged": evaluated,
+            "found": len(set(swapped) & set(evaluated)),
+            "false_flags": len(set(evaluated) - set(swapped)),
+        },
         "flagged": flagged,
         "found": len(set(swapped) & set(flagged)),
         "false_flags": len(set(flagged) - set(swapped)),
@@ -593,6 +622,8 @@ def markdown(results: dict[str, dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for name, result in results.items():
+        if "queries_before" not in result:  # --stale-only
+            continue
         lines.append(_query_row(name, "before the session", result["queries_before"]))
         lines.append(_query_row(name, "after the session", result["queries_after"]))
         if "queries" in result.get("bootstrap", {}):
@@ -608,7 +639,7 @@ def markdown(results: dict[str, dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, result in results.items():
-        for label, s in result["sessions"].items():
+        for label, s in result.get("sessions", {}).items():
             flag = "" if s["state"] == s["expected"] else " ⚠"
             scale = "–" if s["scale"] is None else f"{s['scale']:.4f}"
             lines.append(
@@ -628,7 +659,7 @@ def markdown(results: dict[str, dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, result in results.items():
-        for label, a in result["added"].items():
+        for label, a in result.get("added", {}).items():
             if not a:
                 continue
             p, r = a["position_m"], a["rotation_deg"]
@@ -641,17 +672,22 @@ def markdown(results: dict[str, dict[str, Any]]) -> str:
         "",
         "### Stale references (references the session covers best, showing another place)",
         "",
-        "| dataset | session | state | swapped | flagged stale | found | false flags |",
+        "| dataset | flagged by | state | swapped | flagged stale | found | false flags |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, result in results.items():
         st = result.get("stale")
         if st:
-            lines.append(
-                f"| {name} | {st['session_rule']} | {st['state']} | {', '.join(st['swapped'])} "
-                f"| {', '.join(st['flagged']) or '–'} | {st['found']} of {len(st['swapped'])} "
-                f"| {st['false_flags']} |"
-            )
+            ev = st["evaluation"]
+            for by, state, figures in (
+                (f"self-evaluation ({ev['held_out']} held out)", ev["state"], ev),
+                (f"session {st['session_rule']}", st["state"], st),
+            ):
+                lines.append(
+                    f"| {name} | {by} | {state} | {', '.join(st['swapped'])} "
+                    f"| {', '.join(figures['flagged']) or '–'} "
+                    f"| {figures['found']} of {len(st['swapped'])} | {figures['false_flags']} |"
+                )
     return "\n".join(lines)
 
 
@@ -696,6 +732,14 @@ def main(argv: list[str] | None = None) -> int:
         help='another session rule for a dataset, e.g. "kitti05=range:120-224" (a session '
         "that overlaps the map)",
     )
+    parser.add_argument(
+        "--stale-only", action="store_true", help="only the stale-references scenario"
+    )
+    parser.add_argument(
+        "--evaluation-sample",
+        type=int,
+        help="references the stale scenario's self-evaluation holds out (default: the server's)",
+    )
     parser.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
     parser.add_argument("--out", type=Path, default=Path("out/capture-sessions"))
     args = parser.parse_args(argv)
@@ -715,6 +759,8 @@ def main(argv: list[str] | None = None) -> int:
         datasets_dir=args.datasets_dir,
         sessions=sessions,
         scratch=args.out,
+        stale_only=args.stale_only,
+        evaluation_sample=args.evaluation_sample,
     )
     env = {"SLLOC_AUTO_EVALUATION_REFERENCES": "0", "SLLOC_FEATURES": args.preset}
     results: dict[str, dict[str, Any]] = {}

@@ -36,7 +36,9 @@ FRAME_HELP = (
     'JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", '
     '"width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: '
     '"session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": '
-    '{"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP)}'
+    '{"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP), and optionally '
+    '"gps": {"latitude", "longitude", "height"?, "accuracy_m"?} (default: the image\'s EXIF '
+    "GPS)}"
 )
 
 

@@ -486,7 +486,7 @@ export interface components {
             image: string;
             /**
              * Metadata
-             * @description JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP)}
+             * @description JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP), and optionally "gps": {"latitude", "longitude", "height"?, "accuracy_m"?} (default: the image's EXIF GPS)}
              */
             metadata: string;
         };
@@ -527,6 +527,38 @@ export interface components {
              * @default {}
              */
             params?: string;
+        };
+        /**
+         * BootstrapGeoRegistrationOut
+         * @description The geo-registration a session that started an empty map gave it from its frames'
+         *     GPS fixes.
+         */
+        BootstrapGeoRegistrationOut: {
+            /**
+             * Num Inliers
+             * @description Of those, the fit's inliers
+             */
+            num_inliers?: number | null;
+            /**
+             * Num References
+             * @description References with GPS
+             */
+            num_references?: number | null;
+            /**
+             * Reason
+             * @description Why none was set
+             */
+            reason?: string | null;
+            /**
+             * Residual Rms M
+             * @description RMS distance between the inliers' centres and their GPS positions
+             */
+            residual_rms_m?: number | null;
+            /**
+             * Set
+             * @description The registration was estimated and stored (GET /v1/maps/{map_id}/geo-registration)
+             */
+            set: boolean;
         };
         /**
          * CameraAdaptationOut
@@ -641,6 +673,8 @@ export interface components {
             confident?: number | null;
             /** @description How far the agreeing frames' centres were moved onto where the map localized them; the frames between two of them are corrected by interpolation */
             drift_correction_m?: components["schemas"]["DriftCorrectionOut"] | null;
+            /** @description bootstrap only, once added: the map's geo-registration estimated from the frames' GPS fixes (when the map had none and at least 3 frames carry GPS with height), or why none was set. A session aligned to a map never changes its registration */
+            geo_registration?: components["schemas"]["BootstrapGeoRegistrationOut"] | null;
             /** @description null when the session was refused */
             map_from_session: components["schemas"]["SessionTransformOut"] | null;
             /**
@@ -717,6 +751,11 @@ export interface components {
              */
             camera?: components["schemas"]["CameraSchema"] | null;
             /**
+             * @description The device's GPS fix when the frame was taken, kept on the reference it becomes; default: the image's EXIF GPS. A session that starts an empty map geo-registers it from its frames' fixes (with height)
+             * @default null
+             */
+            gps?: components["schemas"]["GpsSchema"] | null;
+            /**
              * Name
              * @description Unique in the session; default: 00000, …
              * @default null
@@ -736,6 +775,8 @@ export interface components {
              * Format: date-time
              */
             created_at: string;
+            /** @description Its GPS fix (sent, or read from its EXIF); null when it has none */
+            gps: components["schemas"]["GpsSchema"] | null;
             /**
              * Id
              * @description The id of the reference it becomes once added
@@ -1148,6 +1189,11 @@ export interface components {
              * @description The server's feature configuration at the time
              */
             served: string;
+            /**
+             * Stale
+             * @description References that no longer match the held-out references that cover them, flagged stale (measured with the served configuration)
+             */
+            stale?: components["schemas"]["StaleReferenceOut"][];
         };
         /**
          * FailureReason

@@ -43,7 +43,7 @@ class BodyAddCaptureFrame(BaseModel):
     )
     image: bytes = Field(description="JPEG or PNG")
     metadata: str = Field(
-        description='JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP)}'
+        description='JSON string (schema CaptureFrameMetadata): {"name": str, "camera": {"model": "PINHOLE", "width": int, "height": int, "params": [fx, fy, cx, cy]}, and the pose in the session: "session_pose": {"matrix": 4×4} (ARKit / ARCore, OpenGL axes) or "cam_from_session": {"rotation": [qw, qx, qy, qz], "translation": [tx, ty, tz]} (COLMAP), and optionally "gps": {"latitude", "longitude", "height"?, "accuracy_m"?} (default: the image\'s EXIF GPS)}'
     )
 
 
@@ -70,6 +70,24 @@ class BodyLocalize(BaseModel):
     params: str = Field(
         default="{}",
         description='JSON string (schema LocalizeParamsIn), all keys optional: {"camera": {...}, "estimator": "auto", "top_k": 10, "prior": {"position": [x, y, z], "radius": m}, "return_inliers": false, "max_error_px": 12}',
+    )
+
+
+class BootstrapGeoRegistrationOut(BaseModel):
+    """The geo-registration a session that started an empty map gave it from its frames'
+    GPS fixes.
+    """
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    num_inliers: int | None = Field(default=None, description="Of those, the fit's inliers")
+    num_references: int | None = Field(default=None, description="References with GPS")
+    reason: str | None = Field(default=None, description="Why none was set")
+    residual_rms_m: float | None = Field(
+        default=None,
+        description="RMS distance between the inliers' centres and their GPS positions",
+    )
+    set: bool = Field(
+        description="The registration was estimated and stored (GET /v1/maps/{map_id}/geo-registration)"
     )
 
 
@@ -151,6 +169,10 @@ class CaptureAlignmentOut(BaseModel):
         default=None,
         description="How far the agreeing frames' centres were moved onto where the map localized them; the frames between two of them are corrected by interpolation",
     )
+    geo_registration: BootstrapGeoRegistrationOut | None = Field(
+        default=None,
+        description="bootstrap only, once added: the map's geo-registration estimated from the frames' GPS fixes (when the map had none and at least 3 frames carry GPS with height), or why none was set. A session aligned to a map never changes its registration",
+    )
     map_from_session: SessionTransformOut | None = Field(
         description="null when the session was refused"
     )
@@ -199,6 +221,10 @@ class CaptureFrameMetadata(BaseModel):
     camera: CameraSchema | None = Field(
         default=None, description="Its intrinsics; default: the default camera for the image size"
     )
+    gps: GpsSchema | None = Field(
+        default=None,
+        description="The device's GPS fix when the frame was taken, kept on the reference it becomes; default: the image's EXIF GPS. A session that starts an empty map geo-registers it from its frames' fixes (with height)",
+    )
     name: str | None = Field(default=None, description="Unique in the session; default: 00000, …")
     session_pose: SessionPoseSchema | None = Field(
         default=None,
@@ -210,6 +236,9 @@ class CaptureFrameOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     camera: CameraSchema
     created_at: datetime
+    gps: GpsSchema | None = Field(
+        description="Its GPS fix (sent, or read from its EXIF); null when it has none"
+    )
     id: str = Field(description="The id of the reference it becomes once added")
     name: str
     position: int = Field(description="Its place in the capture order (upload order)")
@@ -430,6 +459,10 @@ class EvaluationResult(BaseModel):
     )
     references: int = Field(description="The map's references with their originals")
     served: str = Field(description="The server's feature configuration at the time")
+    stale: list[StaleReferenceOut] | None = Field(
+        default=None,
+        description="References that no longer match the held-out references that cover them, flagged stale (measured with the served configuration)",
+    )
 
 
 class FeatureCreate(BaseModel):
