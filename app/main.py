@@ -33,6 +33,7 @@ from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
 from app.usecases.growth import QueryGrowth
 from app.usecases.images import train_vocabulary_if_due
+from app.usecases.query_outcomes import QueryOutcomes
 from app.usecases.reextraction import Reextractor
 from app.viewer import install_viewer
 from db.blobs import open_blob_store
@@ -141,6 +142,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             app.state.sessions, localizers, blobs, app.state.admission.slots, switched
         )
         app.state.capture_runner.resume()
+        # where single-frame queries localize and fail (the map's coverage reads them)
+        app.state.query_outcomes = QueryOutcomes(app.state.sessions)
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
         if not settings.api_keys:
@@ -152,6 +155,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.evaluator.shutdown()
         app.state.capture_runner.shutdown()
         app.state.query_growth.shutdown()
+        app.state.query_outcomes.shutdown()
         app.state.vocabulary_trainer.shutdown()
         app.state.spare_workers.shutdown()
         app.state.ann_builder.shutdown()

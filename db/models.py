@@ -133,10 +133,15 @@ class ReferenceImage(Base):
     original_key: Mapped[str | None] = mapped_column(String(255))
     original_sha256: Mapped[str | None] = mapped_column(String(64))
     depth_key: Mapped[str | None] = mapped_column(String(255))
-    # flagged stale: frames of a capture session that cover it no longer match it
-    # (services/capture/freshness.py); None: not flagged
+    # flagged stale: the frames of a capture session or the references a self-evaluation
+    # held out that cover it no longer match it (services/capture/freshness.py); None: not
+    # flagged
     stale_since: Mapped[datetime | None] = mapped_column(UTCDateTime)
     stale_reason: Mapped[str | None] = mapped_column(Text)
+    # single-frame queries whose best retrieved reference it was, localized and failed
+    # (app/usecases/query_outcomes.py)
+    queries_localized: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    queries_failed: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     map: Mapped[Map] = relationship(back_populates="images")

@@ -18,6 +18,7 @@ from app.usecases.captures import CaptureRunner
 from app.usecases.evaluations import Evaluator
 from app.usecases.growth import QueryGrowth
 from app.usecases.localize import LocalizeContext
+from app.usecases.query_outcomes import QueryOutcomes
 from app.usecases.reextraction import Reextractor
 from db.blobs import BlobStore
 from services.components import EngineConfig, Localizers
@@ -104,6 +105,12 @@ async def get_capture_runner(request: Request) -> CaptureRunner:
     return runner
 
 
+async def get_query_outcomes(request: Request) -> QueryOutcomes:
+    """Counts where single-frame queries localize and fail."""
+    outcomes: QueryOutcomes = request.app.state.query_outcomes
+    return outcomes
+
+
 async def get_query_growth(request: Request) -> QueryGrowth:
     """Adds confident queries to maps that grow from them."""
     growth: QueryGrowth = request.app.state.query_growth
@@ -140,6 +147,7 @@ ReextractorDep = Annotated[Reextractor, Depends(get_reextractor)]
 EvaluatorDep = Annotated[Evaluator, Depends(get_evaluator)]
 CaptureRunnerDep = Annotated[CaptureRunner, Depends(get_capture_runner)]
 QueryGrowthDep = Annotated[QueryGrowth, Depends(get_query_growth)]
+QueryOutcomesDep = Annotated[QueryOutcomes, Depends(get_query_outcomes)]
 LocalizeContextDep = Annotated[LocalizeContext, Depends(get_localize_context)]
 
 # paging: bounded so that every value fits the databases' integer types (else 422)

@@ -195,6 +195,12 @@ class CoverageCellOut(BaseModel):
         description="Of those, not localized or off by more than 25 cm or 5° from their pose"
     )
     median_error_m: float | None = Field(description="Of the held-out ones localized")
+    queries_localized: int = Field(
+        description="Single-frame queries localized whose best retrieved reference lies here"
+    )
+    queries_failed: int = Field(
+        description="Single-frame queries not localized whose best retrieved reference lies here"
+    )
     weak: bool
     why: list[str] = Field(description="Why the cell is weak")
 
@@ -230,6 +236,8 @@ class CoverageOut(BaseModel):
                 held_out=cell.held_out,
                 failed=cell.failed,
                 median_error_m=cell.median_error_m,
+                queries_localized=cell.queries_localized,
+                queries_failed=cell.queries_failed,
                 weak=bool(cell.why_weak),
                 why=cell.why_weak,
             )

@@ -1,5 +1,6 @@
 """Where a map is weak: its references on their ground plane, cell by cell, with its latest
-self-evaluation's held-out answers (``services.self_evaluation.coverage``)."""
+self-evaluation's held-out answers and its queries' outcomes
+(``services.self_evaluation.coverage``)."""
 
 from __future__ import annotations
 
@@ -42,7 +43,9 @@ def map_coverage(
     """
     with sessions() as session:
         require_map(session, map_id)
-        poses = ImageRepository(session).poses(map_id)
+        images = ImageRepository(session)
+        poses = images.poses(map_id)
+        outcomes = images.query_outcomes(map_id)
         evaluation = EvaluationRepository(session).latest_done(map_id)
         result: dict[str, Any] = dict(evaluation.result or {}) if evaluation is not None else {}
         evaluation_id = evaluation.id if evaluation is not None else None
@@ -72,7 +75,8 @@ def map_coverage(
                     _number(answer.get("rotation_error_deg")),
                 )
             )
-    return MapCoverage(coverage(centers, held_out, cell_m), evaluation_id)
+    queries = {index[i]: counts for i, counts in outcomes.items() if i in index}
+    return MapCoverage(coverage(centers, held_out, cell_m, queries), evaluation_id)
 
 
 def _number(value: object) -> float:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
-from sqlalchemy import delete, func, select, update
+from sqlalchemy import Table, bindparam, delete, func, select, update
 from sqlalchemy.orm import Session
 
 from db.arrays import to_row
@@ -161,6 +163,38 @@ class ImageRepository:
             .limit(limit)
         ).all()
         return list(rows), int(total or 0)
+
+    def add_query_outcomes(self, counts: Mapping[str, tuple[int, int]]) -> None:
+        """Adds (localized, failed) query counts to the references by id (a reference deleted
+        meanwhile is skipped)."""
+        table = ReferenceImage.__table__
+        assert isinstance(table, Table)
+        statement = (
+            update(table)
+            .where(table.c.id == bindparam("image_id"))
+            .values(
+                queries_localized=table.c.queries_localized + bindparam("localized"),
+                queries_failed=table.c.queries_failed + bindparam("failed"),
+            )
+        )
+        rows = [
+            {"image_id": image_id, "localized": localized, "failed": failed}
+            for image_id, (localized, failed) in counts.items()
+        ]
+        if rows:
+            self.session.connection().execute(statement, rows)
+
+    def query_outcomes(self, map_id: str) -> dict[str, tuple[int, int]]:
+        """(localized, failed) query counts of the references that have any, by id."""
+        rows = self.session.execute(
+            select(
+                ReferenceImage.id, ReferenceImage.queries_localized, ReferenceImage.queries_failed
+            ).where(
+                ReferenceImage.map_id == map_id,
+                (ReferenceImage.queries_localized > 0) | (ReferenceImage.queries_failed > 0),
+            )
+        )
+        return {image_id: (int(ok), int(failed)) for image_id, ok, failed in rows}
 
     def poses(self, map_id: str) -> dict[str, Rigid3d]:
         """Every image's ``cam_from_world`` by id, in id order."""

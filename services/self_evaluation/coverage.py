@@ -20,6 +20,8 @@ WRONG_M = 0.25
 WRONG_DEG = 5.0
 # the default cell: this many times the map's spacing
 CELL_SPACINGS = 4.0
+# the fewest queries whose failures make a cell weak
+MIN_QUERIES = 5
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,8 @@ class Cell:
     held_out: int = 0
     failed: int = 0
     errors_m: list[float] = field(default_factory=list)
+    queries_localized: int = 0
+    queries_failed: int = 0
 
     @property
     def median_error_m(self) -> float | None:
@@ -63,6 +67,9 @@ class Cell:
         why = []
         if self.held_out and 2 * self.failed >= self.held_out:
             why.append(f"{self.failed} of {self.held_out} references held out failed")
+        queries = self.queries_localized + self.queries_failed
+        if queries >= MIN_QUERIES and 2 * self.queries_failed >= queries:
+            why.append(f"{self.queries_failed} of {queries} queries failed")
         if self.references == 1:
             why.append("a single reference")
         return why
@@ -92,9 +99,15 @@ def ground_plane(centers: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
     return origin, u, v
 
 
-def coverage(centers: FloatArray, held_out: list[HeldOut], cell_m: float) -> Coverage:
+def coverage(
+    centers: FloatArray,
+    held_out: list[HeldOut],
+    cell_m: float,
+    queries: dict[int, tuple[int, int]] | None = None,
+) -> Coverage:
     """The cells of the references' ``centers`` ((N, 3)) at ``cell_m``, with the held-out
-    answers of the references in each."""
+    answers of the references in each and ``queries``: the (localized, failed) counts of the
+    queries whose best retrieved reference each was, by the reference's index."""
     centers = np.asarray(centers, np.float64).reshape(-1, 3)
     origin, u, v = ground_plane(centers) if len(centers) else (np.zeros(3), *np.eye(3)[:2])
     if not len(centers):
@@ -116,4 +129,8 @@ def coverage(centers: FloatArray, held_out: list[HeldOut], cell_m: float) -> Cov
         cell.failed += int(answer.failed)
         if answer.localized and np.isfinite(answer.position_error_m):
             cell.errors_m.append(answer.position_error_m)
+    for index, (localized, failed) in (queries or {}).items():
+        cell = cells[(int(ij[index][0]), int(ij[index][1]))]
+        cell.queries_localized += localized
+        cell.queries_failed += failed
     return Coverage(origin, u, v, cell_m, [cells[key] for key in sorted(cells)])

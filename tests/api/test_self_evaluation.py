@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.conftest import create_map, make_client, upload_view
+from tests.conftest import create_map, localize_view, make_client, upload_view
 from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticScene, SyntheticView
 
@@ -261,3 +261,35 @@ def test_a_reference_whose_image_shows_another_place_is_flagged_by_the_next_eval
     assert retired["name"] == swapped.name and retired["retired"] is True
     names = [item["name"] for item in client.get(f"/v1/maps/{map_id}/images").json()["items"]]
     assert swapped.name not in names and len(names) == REFERENCES - 1
+
+
+def test_where_queries_fail_the_map_is_weak(
+    client: TestClient,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+) -> None:
+    map_id = _map(client, reference_views)
+    localized = 0
+    for view in query_views[:4]:
+        answer = localize_view(client, map_id, view)
+        assert answer.status_code == 200, answer.text
+        localized += bool(answer.json()["localized"])
+    # another room, seen from the map's poses: retrieved against the map, never localized
+    elsewhere = SyntheticScene(seed=7)
+    for view in reference_views[:6]:
+        image, _ = elsewhere.render(view.cam_from_world)
+        stranger = SyntheticView(
+            f"elsewhere-{view.name}", view.camera, view.cam_from_world, image, None
+        )
+        answer = localize_view(client, map_id, stranger)
+        assert answer.status_code == 200 and not answer.json()["localized"], answer.text
+    client.app.state.query_outcomes.flush()  # type: ignore[attr-defined]
+    coverage = client.get(f"/v1/maps/{map_id}/coverage", params={"cell_m": 100.0}).json()
+    [cell] = coverage["cells"]  # one cell holds the whole map
+    assert (cell["queries_localized"], cell["queries_failed"]) == (localized, 6)
+    assert localized >= 3
+    assert "6 of " in " ".join(cell["why"]) and cell["weak"] is True
+    # counted once: a second flush writes nothing more
+    client.app.state.query_outcomes.flush()  # type: ignore[attr-defined]
+    again = client.get(f"/v1/maps/{map_id}/coverage", params={"cell_m": 100.0}).json()
+    assert again["cells"][0]["queries_failed"] == 6

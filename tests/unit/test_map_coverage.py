@@ -42,3 +42,19 @@ def test_cells_are_weak_where_held_out_references_failed_or_stand_alone() -> Non
     ]
     assert cells[2].median_error_m == pytest.approx(0.21)
     assert cells[1].median_error_m is None
+
+
+def test_cells_are_weak_where_half_their_queries_failed() -> None:
+    # cells 1 m wide along x, two references each
+    centers = np.array(
+        [[x, 0.0, 0.01 * (i % 2)] for i, x in enumerate([0.2, 0.7, 1.2, 1.7, 2.2, 2.7])]
+    )
+    queries = {
+        0: (3, 2),  # cell 0: 2 of 5 failed
+        2: (1, 2),
+        3: (0, 2),  # cell 1: 4 of 5 failed, over two references
+        4: (0, 4),  # cell 2: 4 of 4 failed, too few to tell
+    }
+    cells = coverage(centers, [], cell_m=1.0, queries=queries).cells
+    assert [(c.queries_localized, c.queries_failed) for c in cells] == [(3, 2), (1, 4), (0, 4)]
+    assert [c.why_weak for c in cells] == [[], ["4 of 5 queries failed"], []]

@@ -12,6 +12,7 @@ from app.api.deps import (
     LocalizeContextDep,
     MetricsDep,
     QueryGrowthDep,
+    QueryOutcomesDep,
     SessionsDep,
     SettingsDep,
     json_form_schema,
@@ -57,6 +58,7 @@ def localize(
     ],
     metrics: MetricsDep,
     growth: QueryGrowthDep,
+    outcomes: QueryOutcomesDep,
     params: Annotated[
         str, Form(description=PARAMS_HELP, json_schema_extra=json_form_schema(LocalizeParamsIn))
     ] = "{}",
@@ -107,6 +109,7 @@ def localize(
         )
     metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
     growth.offer(map_id, images[0], request.camera, result)
+    outcomes.record(result)
     return LocalizeResult.from_result(
         result, body.return_inliers, geo.geopose_answer(registration, result), body.output
     )

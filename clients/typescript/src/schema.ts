@@ -990,6 +990,16 @@ export interface components {
              * @description Of the held-out ones localized
              */
             median_error_m: number | null;
+            /**
+             * Queries Failed
+             * @description Single-frame queries not localized whose best retrieved reference lies here
+             */
+            queries_failed: number;
+            /**
+             * Queries Localized
+             * @description Single-frame queries localized whose best retrieved reference lies here
+             */
+            queries_localized: number;
             /** References */
             references: number;
             /** Weak */

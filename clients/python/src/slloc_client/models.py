@@ -348,6 +348,12 @@ class CoverageCellOut(BaseModel):
     i: int = Field(description="Index along the plane's u axis")
     j: int = Field(description="Index along the plane's v axis")
     median_error_m: float | None = Field(description="Of the held-out ones localized")
+    queries_failed: int = Field(
+        description="Single-frame queries not localized whose best retrieved reference lies here"
+    )
+    queries_localized: int = Field(
+        description="Single-frame queries localized whose best retrieved reference lies here"
+    )
     references: int
     weak: bool
     why: list[str] = Field(description="Why the cell is weak")
