@@ -6,6 +6,7 @@ PostgreSQL tests use the server at ``SLLOC_TEST_POSTGRES_URL`` (default
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import uuid
@@ -169,6 +170,18 @@ def localize_view(client: TestClient, map_id: str, view: SyntheticView) -> httpx
         files={"image": ("q.png", encode_png(view.image), "image/png")},
         data={"params": json.dumps(params)},
     )
+
+
+@functools.cache
+def _another_room() -> SyntheticScene:
+    return SyntheticScene(seed=7)
+
+
+def seen_elsewhere(view: SyntheticView, name: str | None = None) -> SyntheticView:
+    """What ``view``'s camera sees from its pose in another room (a swapped image, a query
+    of another place); named ``name`` (default: the view's)."""
+    image, _ = _another_room().render(view.cam_from_world)
+    return SyntheticView(name or view.name, view.camera, view.cam_from_world, image, None)
 
 
 def create_map(client: TestClient, name: str = "scene") -> str:

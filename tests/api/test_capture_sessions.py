@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from services.geo.geodesy import Geodetic, ecef_from_geodetic, geodetic_from_enu
 from services.geo.registration import GeoRegistration
 from services.geometry.rigid import Rigid3d, quaternion_to_matrix, rotation_error_deg
-from tests.conftest import localize_view, make_client, upload_view
+from tests.conftest import localize_view, make_client, seen_elsewhere, upload_view
 from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
@@ -357,11 +357,8 @@ def test_a_reference_whose_image_shows_another_place_is_flagged_stale(
 ) -> None:
     views = reference_views[:12]
     swapped = views[3]
-    elsewhere = SyntheticScene(seed=7)  # another room, seen from the same pose
-    image, _ = elsewhere.render(swapped.cam_from_world)
     map_id = _map(client, [v for v in views if v is not swapped])
-    impostor = SyntheticView(swapped.name, swapped.camera, swapped.cam_from_world, image, None)
-    assert upload_view(client, map_id, impostor).status_code == 201
+    assert upload_view(client, map_id, seen_elsewhere(swapped)).status_code == 201
     # the place as it is now: each reference's view again, from 5 cm to its right
     frames = []
     for view in views:

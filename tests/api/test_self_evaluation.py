@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.conftest import create_map, localize_view, make_client, upload_view
+from tests.conftest import create_map, localize_view, make_client, seen_elsewhere, upload_view
 from tests.polling import wait_until
-from tools.synthetic.scene import SyntheticScene, SyntheticView
+from tools.synthetic.scene import SyntheticView
 
 REFERENCES = 12
 HELD_OUT = 6
@@ -222,15 +222,12 @@ def test_other_configurations_are_measured_where_the_settings_allow_them(
 
 
 def test_a_reference_whose_image_shows_another_place_is_flagged_by_the_next_evaluation(
-    client: TestClient, scene: SyntheticScene, reference_views: list[SyntheticView]
+    client: TestClient, reference_views: list[SyntheticView]
 ) -> None:
     views = reference_views[:REFERENCES]
     swapped = views[5]
-    elsewhere = SyntheticScene(seed=7)  # another room, seen from the same pose
-    image, _ = elsewhere.render(swapped.cam_from_world)
     map_id = _map(client, [v for v in views if v is not swapped])
-    impostor = SyntheticView(swapped.name, swapped.camera, swapped.cam_from_world, image, None)
-    assert upload_view(client, map_id, impostor).status_code == 201
+    assert upload_view(client, map_id, seen_elsewhere(swapped)).status_code == 201
 
     def evaluate() -> dict[str, Any]:
         started = client.post(
@@ -275,13 +272,8 @@ def test_where_queries_fail_the_map_is_weak(
         assert answer.status_code == 200, answer.text
         localized += bool(answer.json()["localized"])
     # another room, seen from the map's poses: retrieved against the map, never localized
-    elsewhere = SyntheticScene(seed=7)
     for view in reference_views[:6]:
-        image, _ = elsewhere.render(view.cam_from_world)
-        stranger = SyntheticView(
-            f"elsewhere-{view.name}", view.camera, view.cam_from_world, image, None
-        )
-        answer = localize_view(client, map_id, stranger)
+        answer = localize_view(client, map_id, seen_elsewhere(view))
         assert answer.status_code == 200 and not answer.json()["localized"], answer.text
     client.app.state.query_outcomes.flush()  # type: ignore[attr-defined]
     coverage = client.get(f"/v1/maps/{map_id}/coverage", params={"cell_m": 100.0}).json()
