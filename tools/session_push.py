@@ -6,7 +6,8 @@ running server and print its decision, or show a session's decision again.
     slloc session show --url URL --map MAP SESSION
 
 The CSV is an import CSV (``slloc import --csv``); its pose columns are taken as each frame's
-``cam_from_session`` (COLMAP convention), frames in row order. The client functions
+``cam_from_session`` (COLMAP convention), its GPS columns as the frame's fix, frames in row
+order. The client functions
 (``create_session`` … ``push_session``, ``wait_decided``) serve the benchmarks too
 (``tools/benchmarks/capture_sessions.py``). httpx is imported only where a request is made,
 so that ``slloc`` builds its parser without the evaluation tools.
@@ -48,14 +49,16 @@ class SessionApiError(RuntimeError):
 @dataclass(frozen=True)
 class SessionFrame:
     """One frame to upload: its name in the session, its image (bytes, or a file read when
-    uploaded), its camera, its ``cam_from_session`` (COLMAP axes: x right, y down) and an
-    optional depth (16-bit PNG in millimetres or .npy float32 metres)."""
+    uploaded), its camera, its ``cam_from_session`` (COLMAP axes: x right, y down), an
+    optional depth (16-bit PNG in millimetres or .npy float32 metres) and GPS fix."""
 
     name: str
     image: bytes | Path
     camera: Camera
     cam_from_session: Rigid3d
     depth: bytes | Path | None = None
+    # the device's GPS fix as the API takes it ({latitude, longitude, height?, accuracy_m?})
+    gps: dict[str, float] | None = None
 
 
 Progress = Callable[[str], None]
@@ -168,7 +171,7 @@ def frame_metadata(frame: SessionFrame) -> dict[str, Any]:
             "rotation": [float(v) for v in pose.quaternion],
             "translation": [float(v) for v in pose.translation],
         },
-    }
+    } | ({"gps": frame.gps} if frame.gps is not None else {})
 
 
 def upload_frame(
@@ -396,16 +399,28 @@ def select_images(dataset: Dataset, rule: str | None) -> list[PosedImage]:
 def frames_from_csv(path: Path, rule: str | None = None) -> list[SessionFrame]:
     """The frames of an import CSV in row order, those ``rule`` selects (see
     ``select_images``; None: all); each row's ``cam_from_world`` is taken as the frame's
-    ``cam_from_session`` and its image name as the frame's name.
+    ``cam_from_session``, its image name as the frame's name and its GPS columns
+    (``latitude``, ``longitude``, ``gps_height``, ``gps_accuracy_m``) as its fix.
 
     Raises:
         OSError, ValueError: the CSV cannot be read, the rule is malformed or selects nothing.
     """
     from tools.evaluation.datasets import csv_dataset
+    from tools.importers import read_csv
 
+    gps = {
+        item.metadata.name: item.metadata.gps.model_dump(exclude_none=True)
+        for item in read_csv(path)
+        if item.metadata.gps is not None
+    }
     return [
         SessionFrame(
-            image.name, image.image_path, image.camera, image.cam_from_world, image.depth_path
+            image.name,
+            image.image_path,
+            image.camera,
+            image.cam_from_world,
+            image.depth_path,
+            gps.get(image.name),
         )
         for image in select_images(csv_dataset(path), rule)
     ]
