@@ -22,8 +22,9 @@ const MATCH_HEIGHT = 320; // px, height of each image in a match figure
 const COLORS = {
   reference: 0x7f8c9a, retrieved: 0xf39c12, inliers: 0x27ae60, query: 0xe74c3c,
   candidate: 0x8e44ad, grid: 0xb8c0c8, gridCentre: 0x8a939c, north: 0x1f5fbf, east: 0x6c7a89,
-  weakCell: 0xd62728, cell: 0x8fa89a,
+  weakCell: 0xd62728, cell: 0x8fa89a, stale: 0xc2185b,
 };
+const STALE_LISTED = 20; // stale references the panel names
 // a held-out reference's colour by its position error in the map's latest self-evaluation
 // (metres; the last band also takes the references that were not localized)
 const ERROR_BANDS = [
@@ -256,15 +257,22 @@ function drawReferences() {
     .sort((a, b) => a - b);
   const radius = spread.length ? Math.max(spread[Math.floor(spread.length / 2)], 1e-3) : 1;
   three.depth = 0.22 * radius;
+  let staleFrusta = 0;
   for (const image of images) {
-    const { lines, rim } = frustumLines(three, image.camera, image.cam_from_world, COLORS.reference);
+    // a stale reference: dashed, in its own colour (a self-evaluation's band overrides the
+    // colour, never the dashes)
+    const base = image.stale ? COLORS.stale : COLORS.reference;
+    const { lines, rim } = frustumLines(three, image.camera, image.cam_from_world, base,
+      { dashed: Boolean(image.stale) });
     const group = new three.THREE.Group();
     group.name = image.id;
     group.add(lines);
     three.group.add(group);
-    state.frusta.set(image.id, { group, lines, rim, plane: null, base: COLORS.reference });
+    state.frusta.set(image.id, { group, lines, rim, plane: null, base });
+    staleFrusta += image.stale ? 1 : 0;
   }
   $("scene").dataset.referenceFrusta = String(state.frusta.size);
+  $("scene").dataset.staleFrusta = String(staleFrusta);
 
   const { up, north } = mapFrame(images, state.geo);
   const heights = centres.map((c) => dot(c, up));
@@ -525,6 +533,7 @@ async function selectMap(map, button) {
   state.geo = await geo;
   showGeoRegistration(state.geo);
   drawReferences();
+  showStale();
   showEvaluation(await evaluation, true);
   showCoverage(await cells);
   showSessions(await sessions);
@@ -988,7 +997,7 @@ function colourHeldOut() {
   for (const [id, frustum] of state.frusta) {
     const ref = ev.heldOut.get(id);
     const image = state.images.get(id);
-    frustum.base = ref ? bandOf(ref).color : COLORS.reference;
+    frustum.base = ref ? bandOf(ref).color : image?.stale ? COLORS.stale : COLORS.reference;
     frustum.lines.material.color.setHex(frustum.base);
     if (!ref || !three || !image) continue;
     const { THREE } = three;
@@ -1086,6 +1095,33 @@ function watchHeldOutPointer(three) {
     const id = heldOutAt(event.clientX, event.clientY);
     if (id) selectHeldOut(id);
   });
+}
+
+// --- stale references --------------------------------------------------------------------
+
+// the references a capture session or a self-evaluation flagged stale, read from the images
+// listed (their `stale`), with why
+function showStale() {
+  const stale = [...state.images.values()].filter((image) => image.stale)
+    .sort((a, b) => a.name.localeCompare(b.name));
+  const panel = $("stale");
+  panel.dataset.count = String(stale.length);
+  $("stale-summary").textContent = stale.length
+    ? `${stale.length} of ${state.images.size} references flagged stale (dashed): they no ` +
+      "longer match what capture sessions or self-evaluations saw there. Retire them with " +
+      "DELETE …/images/{image_id}."
+    : "No reference is flagged stale.";
+  const items = stale.slice(0, STALE_LISTED).map((image) => {
+    const item = element("li");
+    item.dataset.imageId = image.id;
+    item.append(element("strong", image.name, "name"), " ",
+      element("span", `since ${image.stale.since}: ${image.stale.reason}`, "reason"));
+    return item;
+  });
+  if (stale.length > STALE_LISTED) {
+    items.push(element("li", `… and ${stale.length - STALE_LISTED} more`));
+  }
+  $("stale-list").replaceChildren(...items);
 }
 
 // --- capture sessions -------------------------------------------------------------------
