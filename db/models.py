@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     DateTime,
     Float,
     ForeignKey,
@@ -140,8 +141,8 @@ class ReferenceImage(Base):
     stale_reason: Mapped[str | None] = mapped_column(Text)
     # single-frame queries whose best retrieved reference it was, localized and failed
     # (app/usecases/query_outcomes.py)
-    queries_localized: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
-    queries_failed: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    queries_localized: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
+    queries_failed: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=_now)
 
     map: Mapped[Map] = relationship(back_populates="images")

@@ -22,7 +22,7 @@ def upgrade() -> None:
     for name in COLUMNS:
         op.add_column(
             "reference_images",
-            sa.Column(name, sa.Integer(), nullable=False, server_default="0"),
+            sa.Column(name, sa.BigInteger(), nullable=False, server_default="0"),
         )
 
 
