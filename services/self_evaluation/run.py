@@ -27,7 +27,7 @@ from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
-from services.references.store import ReferenceData
+from services.references.store import ReferenceData, ReferenceView
 from services.self_evaluation.sample import held_out_map
 from services.self_evaluation.summary import HeldOutAnswer
 from services.types import FloatArray
@@ -148,6 +148,7 @@ def evaluate(
         query = references[index]
         kept = held_out_map(centers, index, plan.local_map, plan.radius_m)
         store = MemoryReferenceStore()
+        local: list[str] = []  # the image ids in it
         nearest = math.inf
         for k in kept:
             reference = references[k]
@@ -162,6 +163,7 @@ def evaluate(
                     data,
                     reference.image_id,
                 )
+                local.append(reference.image_id)
         with slot:
             localized = _localize(localizer, query, originals, store, plan)
         if localized is not None:
@@ -169,7 +171,8 @@ def evaluate(
             answers.append(replace(answer, nearest_reference_m=nearest))
             if votes is not None and spacing is not None and _votes_for_others(answer, evidence):
                 with slot:
-                    votes += _votes(localizer, described, query, store, spacing, evidence)
+                    others = store.load_references(local)
+                    votes += _votes(localizer, described, query, others, spacing, evidence)
         progress(done)
     return answers
 
@@ -189,17 +192,16 @@ def _votes(
     localizer: Localizer,
     described: DescribedReferences,
     query: MapReference,
-    store: MemoryReferenceStore,
+    others: list[ReferenceView],
     spacing: float,
     evidence: int,
 ) -> list[Vote]:
-    """The votes of the held-out ``query`` on the references of its local map (``store``)
+    """The votes of the held-out ``query`` on the references of its local map (``others``)
     that cover it: their matches with it that agree with the two stored poses, against
     ``evidence`` (its best retrieved reference's inliers)."""
     data = described.get(query)
     if data is None:
         return []
-    others = store.load_references(store.retrieval_index().image_ids)
     near = covering(query.cam_from_world, [r.cam_from_world for r in others], spacing)
     votes = []
     for i in near:

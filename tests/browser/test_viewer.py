@@ -163,15 +163,22 @@ def _watch_errors(page: playwright.Page) -> list[str]:
     return errors
 
 
-def _open_map(page: playwright.Page, served: Served, map_id: str | None = None) -> None:
-    """Type the client key and pick the map (``served``'s unless ``map_id``); returns once it
-    is drawn."""
-    page.goto(served.url + "/")
+def open_viewer_map(
+    page: playwright.Page, address: str, map_id: str, key: str = CLIENT_KEY
+) -> None:
+    """Open the viewer at ``address``, type ``key`` and pick the map; returns once it is
+    drawn."""
+    page.goto(address)
     page.wait_for_selector("body[data-ready=true]")
-    page.fill("#api-key", CLIENT_KEY)
+    page.fill("#api-key", key)
     page.click("#save-key")
-    page.click(f"#maps button[data-map-id='{map_id or served.map_id}']")
+    page.click(f"#maps button[data-map-id='{map_id}']")
     page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
+
+
+def _open_map(page: playwright.Page, served: Served, map_id: str | None = None) -> None:
+    """Type the client key and pick the map (``served``'s unless ``map_id``)."""
+    open_viewer_map(page, served.url + "/", map_id or served.map_id)
     page.wait_for_selector("#localize:not([disabled])")
 
 

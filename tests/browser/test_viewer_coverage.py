@@ -18,11 +18,11 @@ import pytest
 from services.localization.localizer import Localizer
 from tests.browser.test_viewer import (
     ADMIN_KEY,
-    CLIENT_KEY,
     _chromium,
     _screenshot,
     _seed_map,
     _watch_errors,
+    open_viewer_map,
     serve_viewer_app,
 )
 from tests.polling import wait_until
@@ -37,15 +37,6 @@ REFERENCES, HELD_OUT = 8, 4
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[str]:
     with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as (url, _):
         yield url
-
-
-def _open_map(page: playwright.Page, url: str, map_id: str) -> None:
-    page.goto(url + "/viewer/")
-    page.wait_for_selector("body[data-ready=true]")
-    page.fill("#api-key", CLIENT_KEY)
-    page.click("#save-key")
-    page.click(f"#maps button[data-map-id='{map_id}']")
-    page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
 
 
 def _expect_cells(page: playwright.Page, coverage: dict[str, Any]) -> None:
@@ -99,7 +90,7 @@ def test_viewer_draws_the_coverage_cells(
         browser = p.chromium.launch(executable_path=_chromium(), args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
         errors = _watch_errors(page)
-        _open_map(page, server, map_id)
+        open_viewer_map(page, server + "/viewer/", map_id)
         _expect_cells(page, coverage)
         assert page.locator("#coverage").get_attribute("data-evaluation-id") == evaluation["id"]
         held_out = [cell for cell in coverage["cells"] if cell["held_out"]]

@@ -23,6 +23,7 @@ from tests.browser.test_viewer import (
     _chromium,
     _screenshot,
     _watch_errors,
+    open_viewer_map,
     serve_viewer_app,
 )
 from tests.conftest import image_metadata
@@ -59,15 +60,6 @@ def _frame(api: httpx.Client, path: str, view: SyntheticView) -> None:
     assert response.status_code == 201, response.text
 
 
-def _open_map(page: playwright.Page, server: Server, key: str, map_id: str) -> None:
-    page.goto(server.url + "/viewer/")
-    page.wait_for_selector("body[data-ready=true]")
-    page.fill("#api-key", key)
-    page.click("#save-key")
-    page.click(f"#maps button[data-map-id='{map_id}']")
-    page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
-
-
 def test_viewer_lists_capture_sessions(
     server: Server, reference_views: list[SyntheticView], tmp_path: Path
 ) -> None:
@@ -89,7 +81,7 @@ def test_viewer_lists_capture_sessions(
             server.app.state.capture_runner.worker.schedule("hold", release.wait)
             try:
                 assert api.post(f"{path}/submit").status_code == 202
-                _open_map(page, server, ADMIN_KEY, map_id)
+                open_viewer_map(page, server.url + "/viewer/", map_id, ADMIN_KEY)
                 panel = page.locator("#sessions")
                 assert panel.get_attribute("data-state") == "active"
                 item = page.locator(f"#sessions-list li[data-session-id='{created.json()['id']}']")
@@ -122,7 +114,7 @@ def test_viewer_lists_capture_sessions(
             _screenshot(page, tmp_path, "viewer-sessions.png")
 
             # a client key may not read sessions: a note, not an error
-            _open_map(page, server, CLIENT_KEY, map_id)
+            open_viewer_map(page, server.url + "/viewer/", map_id, CLIENT_KEY)
             assert panel.get_attribute("data-state") == "forbidden"
             playwright.expect(page.locator("#sessions-summary")).to_contain_text("admin key")
             assert page.locator("#sessions-list li").count() == 0

@@ -19,11 +19,11 @@ from db.models import ReferenceImage
 from services.localization.localizer import Localizer
 from tests.browser.test_viewer import (
     ADMIN_KEY,
-    CLIENT_KEY,
     _chromium,
     _screenshot,
     _seed_map,
     _watch_errors,
+    open_viewer_map,
     serve_viewer_app,
 )
 from tools.synthetic.scene import SyntheticView
@@ -37,15 +37,6 @@ REASON = "self-evaluation 1234: 2 view(s) that cover it matched it with at most 
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[tuple[str, Any]]:
     with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as served:
         yield served
-
-
-def _open_map(page: playwright.Page, url: str, map_id: str) -> None:
-    page.goto(url + "/viewer/")
-    page.wait_for_selector("body[data-ready=true]")
-    page.fill("#api-key", CLIENT_KEY)
-    page.click("#save-key")
-    page.click(f"#maps button[data-map-id='{map_id}']")
-    page.wait_for_selector("#map-ready[data-ready=true]", state="attached")
 
 
 def test_viewer_lists_stale_references(
@@ -65,7 +56,7 @@ def test_viewer_lists_stale_references(
         browser = p.chromium.launch(executable_path=_chromium(), args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
         errors = _watch_errors(page)
-        _open_map(page, url, flagged_map)
+        open_viewer_map(page, url + "/viewer/", flagged_map)
         panel = page.locator("#stale")
         assert panel.get_attribute("data-count") == "1"
         playwright.expect(page.locator("#stale-summary")).to_contain_text(
