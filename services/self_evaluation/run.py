@@ -3,7 +3,8 @@ own camera, against a local map of the others described from their originals.
 
 A held-out reference localized confidently where it is stored shows the place as its image
 does; the references of its local map that cover it vote on whether they still match it
-(``services.capture.freshness``), as a capture session's frames do."""
+(``services.capture.freshness``), as a capture session's frames do. A covering reference that
+the localization retrieved votes with the inliers it gave there; the others are matched."""
 
 from __future__ import annotations
 
@@ -25,12 +26,13 @@ from services.errors import InvalidInputError
 from services.estimators.base import PoseEstimator
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
+from services.localization.answer import LocalizationResult, RetrievedReference
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
 from services.references.store import ReferenceData, ReferenceView
 from services.self_evaluation.sample import held_out_map
 from services.self_evaluation.summary import HeldOutAnswer
-from services.types import FloatArray
+from services.types import Float32Array, FloatArray, IntArray
 
 logger = logging.getLogger(__name__)
 
@@ -167,12 +169,13 @@ def evaluate(
         with slot:
             localized = _localize(localizer, query, originals, store, plan)
         if localized is not None:
-            answer, evidence = localized
+            answer, result = localized
             answers.append(replace(answer, nearest_reference_m=nearest))
+            evidence = max((r.num_inliers for r in result.retrieved), default=0)
             if votes is not None and spacing is not None and _votes_for_others(answer, evidence):
                 with slot:
                     others = store.load_references(local)
-                    votes += _votes(localizer, described, query, others, spacing, evidence)
+                    votes += _votes(localizer, described, query, others, spacing, result, evidence)
         progress(done)
     return answers
 
@@ -194,30 +197,62 @@ def _votes(
     query: MapReference,
     others: list[ReferenceView],
     spacing: float,
+    result: LocalizationResult,
     evidence: int,
 ) -> list[Vote]:
     """The votes of the held-out ``query`` on the references of its local map (``others``)
     that cover it: their matches with it that agree with the two stored poses, against
-    ``evidence`` (its best retrieved reference's inliers)."""
-    data = described.get(query)
-    if data is None:
-        return []
+    ``evidence`` (its best retrieved reference's inliers).
+
+    A covering reference that its localization (``result``) retrieved votes fresh with the
+    inliers it gave there when they are enough (their pixels are the query's as stored: its
+    own camera, upright); otherwise it is matched with the query's description, so a stale
+    vote always counts every match."""
+    reused: dict[str, RetrievedReference] = {}
+    if result.camera == query.camera and result.upright_turn_deg == 0:
+        reused = {r.image_id: r for r in result.retrieved}
     near = covering(query.cam_from_world, [r.cam_from_world for r in others], spacing)
     votes = []
     for i in near:
         reference = others[i]
+        if reference.image_id in reused:
+            retrieved = reused[reference.image_id]
+            pairs = np.repeat(np.arange(len(retrieved.query_xy))[:, None], 2, axis=1)
+            agreeing = _agreeing(
+                query, retrieved.query_xy, reference, retrieved.reference_xy, pairs
+            )
+            vote = Vote(reference.image_id, query.name, agreeing, evidence)
+            if not vote.stale:
+                votes.append(vote)
+                continue
+        data = described.get(query)
+        if data is None:
+            continue
         matches = localizer.matcher.match(data.features, reference.features)
-        inliers = agreeing_matches(
-            query.camera,
-            query.cam_from_world,
-            data.features.keypoints,
-            reference.camera,
-            reference.cam_from_world,
-            reference.features.keypoints,
-            matches,
+        agreeing = _agreeing(
+            query, data.features.keypoints, reference, reference.features.keypoints, matches
         )
-        votes.append(Vote(reference.image_id, query.name, inliers, evidence))
+        votes.append(Vote(reference.image_id, query.name, agreeing, evidence))
     return votes
+
+
+def _agreeing(
+    query: MapReference,
+    query_xy: FloatArray | Float32Array,
+    reference: ReferenceView,
+    reference_xy: FloatArray | Float32Array,
+    matches: IntArray,
+) -> int:
+    """How many ``matches`` agree with the stored poses of ``query`` and ``reference``."""
+    return agreeing_matches(
+        query.camera,
+        query.cam_from_world,
+        query_xy,
+        reference.camera,
+        reference.cam_from_world,
+        reference_xy,
+        matches,
+    )
 
 
 def _localize(
@@ -226,9 +261,9 @@ def _localize(
     originals: Originals,
     store: MemoryReferenceStore,
     plan: HeldOutPlan,
-) -> tuple[HeldOutAnswer, int] | None:
-    """The held-out reference localized, with its best retrieved reference's inliers; None
-    when its original cannot be read."""
+) -> tuple[HeldOutAnswer, LocalizationResult] | None:
+    """The held-out reference localized, and the localization's result; None when its
+    original cannot be read."""
     try:
         image = originals.image(query.image_id)
     except (LookupError, OSError) as exc:
@@ -250,7 +285,6 @@ def _localize(
     position, rotation = float("inf"), float("inf")
     if result.localized and result.cam_from_world is not None:
         position, rotation = pose_error(result.cam_from_world, query.cam_from_world)
-    evidence = max((r.num_inliers for r in result.retrieved), default=0)
     return HeldOutAnswer(
         image_id=query.image_id,
         name=query.name,
@@ -261,4 +295,4 @@ def _localize(
         confidence=result.confidence,
         num_inliers=result.num_inliers,
         latency_ms=latency_ms,
-    ), evidence
+    ), result

@@ -160,7 +160,11 @@ def test_one_frame_with_session_pose(
     # without a session pose: the answer of today, without the new fields
     plain = _post(client, scene_map, [encode_png(view.image)], {"camera": _camera(view)}).json()
     assert plain["map_from_session"] is None and plain["frames"] is None
-    assert plain["cam_from_world"] == result["cam_from_world"]
+    for key in ("rotation", "translation"):  # the same estimate; a loaded machine may end its
+        # deadline-sliced refinement a step earlier on one call than on the other
+        np.testing.assert_allclose(
+            plain["cam_from_world"][key], result["cam_from_world"][key], atol=1e-3
+        )
 
 
 def test_frames_too_weak_alone_localize_jointly(
