@@ -113,8 +113,13 @@ def test_low_confidence_answer_holds_its_candidate(
     )
     assert refused["localized"] is False and refused["reason"] == "low_confidence"
     assert refused["cam_from_world"] is None and refused["camera_center"] is None
-    assert refused["candidate"] == answered["cam_from_world"]
-    assert refused["confidence"] == answered["confidence"]
+    # the same estimate; a loaded machine may end its deadline-sliced refinement a step
+    # earlier on one call than on the other
+    for key in ("rotation", "translation"):
+        np.testing.assert_allclose(
+            refused["candidate"][key], answered["cam_from_world"][key], atol=1e-3
+        )
+    assert refused["confidence"] == pytest.approx(answered["confidence"], abs=1e-3)
 
 
 def test_unrelated_image_is_not_localized(client: TestClient, scene_map: str) -> None:
