@@ -10,4 +10,4 @@ scripts/postgres.sh
 scripts/build_web.sh
 scripts/install_chromium.sh
 scripts/lint.sh
-.venv/bin/python -m pytest -q -ra "$@"
+.venv/bin/python -m pytest -q -ra --durations=25 "$@"
