@@ -58,17 +58,20 @@ from services.capture.drift import REACH_M, anchored, corrected_poses
 from services.capture.freshness import (
     MIN_EVIDENCE,
     Vote,
-    agreeing_matches,
     covering,
+    frame_votes,
+    reusable_inliers,
 )
 from services.capture.spacing import map_spacing, new_views
 from services.components import Localizers
 from services.errors import InvalidInputError
+from services.features.base import LocalFeatures
 from services.geo.gps import GpsFix, gps_from_exif
 from services.geo.registration import DEFAULT_MAX_ERROR_M, MIN_GPS_REFERENCES
 from services.geometry.camera import Camera, default_camera
 from services.geometry.rigid import Rigid3d, matrix_to_quaternion
 from services.imaging.decode import check_pixel_limit, decode_image_reduced
+from services.localization.answer import LocalizationResult
 from services.localization.localizer import Localizer
 from services.localization.stages import check_camera_matches, decode_depth_for
 from services.retrieval.training import BackgroundTrainer
@@ -392,11 +395,11 @@ class CaptureRunner:
                 "frame_ids": ids,
             }
             return self._decided(session_id, map_id, result, dict(zip(ids, poses, strict=True)))
-        # each checked frame's best retrieved reference's inliers: how well the place matched
-        evidence: dict[int, int] = {}
+        # each checked frame's localization: how well the place matched, and the inliers its
+        # retrieved references gave
+        checks: dict[int, LocalizationResult] = {}
         localized = [
-            self._check(session_id, map_id, frames[i], i, n, evidence)
-            for n, i in enumerate(checked)
+            self._check(session_id, map_id, frames[i], i, n, checks) for n, i in enumerate(checked)
         ]
         # a session that overlaps the map over a short stretch (it extends the map): the
         # frames around those the map localized are checked too
@@ -410,7 +413,7 @@ class CaptureRunner:
                 row.total += len(more)
             offset = len(localized)
             localized += [
-                self._check(session_id, map_id, frames[i], i, offset + n, evidence)
+                self._check(session_id, map_id, frames[i], i, offset + n, checks)
                 for n, i in enumerate(more)
             ]
             localized.sort(key=lambda f: f.index)
@@ -438,7 +441,7 @@ class CaptureRunner:
                     result["spacing_m"] = spacing
             placed = {ids[i]: corrected[i] for i in kept}
             result["skipped"] = len(frames) - len(kept)  # unanchored included
-            result["stale"] = self._freshness(map_id, name, frames, anchors, evidence)
+            result["stale"] = self._freshness(map_id, name, frames, anchors, checks)
             result["drift_correction_m"] = {
                 "median": float(np.median(shifts)),
                 "max": float(shifts.max()),
@@ -458,11 +461,11 @@ class CaptureRunner:
         session_name: str,
         frames: list[CaptureFrame],
         anchors: dict[int, Rigid3d],
-        evidence: dict[int, int],
+        checks: dict[int, LocalizationResult],
     ) -> list[dict[str, Any]]:
         """The votes of the anchors on the references that cover them
-        (``services.capture.freshness``), stored by ``flag_stale``: the stale ones, as the
-        result lists them."""
+        (``services.capture.freshness``), from their localizations (``checks``), stored by
+        ``flag_stale``: the stale ones, as the result lists them."""
         localizer, _, store = self.context.map_engine(map_id, LocalizeRequest())
         ids, poses = self._reference_ids_and_poses(map_id)
         spacing = map_spacing(np.array([p.center for p in poses]))
@@ -470,25 +473,29 @@ class CaptureRunner:
             return []
         votes: list[Vote] = []
         for index, cam_from_map in sorted(anchors.items()):
+            check = checks[index]
+            evidence = max((r.num_inliers for r in check.retrieved), default=0)
             near = covering(cam_from_map, poses, spacing)
-            if evidence.get(index, 0) < MIN_EVIDENCE or not near:
+            if evidence < MIN_EVIDENCE or not near:
                 continue
             frame = frames[index]
             camera = camera_of(frame)
+
+            def describe(frame: CaptureFrame = frame, camera: Camera = camera) -> LocalFeatures:
+                original = self.blobs.get(frame.original_key)
+                return localizer.describe_reference(original, camera).features
+
             with self.context.slots:
-                described = localizer.describe_reference(self.blobs.get(frame.original_key), camera)
-                for reference in store.load_references([ids[i] for i in near]):
-                    matches = localizer.matcher.match(described.features, reference.features)
-                    inliers = agreeing_matches(
-                        camera,
-                        cam_from_map,
-                        described.features.keypoints,
-                        reference.camera,
-                        reference.cam_from_world,
-                        reference.features.keypoints,
-                        matches,
-                    )
-                    votes.append(Vote(reference.image_id, frame.name, inliers, evidence[index]))
+                votes += frame_votes(
+                    frame.name,
+                    camera,
+                    cam_from_map,
+                    store.load_references([ids[i] for i in near]),
+                    reusable_inliers(check, camera),
+                    describe,
+                    localizer.matcher,
+                    evidence,
+                )
         return flag_stale(
             self.sessions,
             self.blobs,
@@ -510,17 +517,17 @@ class CaptureRunner:
         frame: CaptureFrame,
         index: int,
         done: int,
-        evidence: dict[int, int],
+        checks: dict[int, LocalizationResult],
     ) -> CheckedFrame:
-        """The frame localized against the map as a query with its own camera; ``evidence``
-        gets its best retrieved reference's inliers."""
+        """The frame localized against the map as a query with its own camera; ``checks``
+        gets its localization."""
         answer = localize(
             self.context,
             map_id,
             LocalizeRequest(camera=camera_of(frame), top_k=CHECK_TOP_K),
             self.blobs.get(frame.original_key),
         )
-        evidence[index] = max((r.num_inliers for r in answer.retrieved), default=0)
+        checks[index] = answer
         self._progress(session_id, done + 1)
         return CheckedFrame(
             index,

@@ -11,17 +11,26 @@ lines) are counted; fewer than ``STALE_FRACTION`` of the best retrieved referenc
 whose best retrieved reference has fewer than ``MIN_EVIDENCE`` inliers casts no vote: the
 place matched too weakly to tell. A reference is stale when its votes in a session are all
 stale.
+
+A covering reference that the frame's localization retrieved votes fresh from the inliers it
+gave there when they are enough; the others, and any vote that would be stale, are matched
+with the frame's features, so a stale vote always counts every match.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.epipolar import epipolar_errors
 from services.geometry.rigid import Rigid3d
+from services.localization.answer import LocalizationResult, RetrievedReference
+from services.matching.base import Matcher
+from services.references.store import ReferenceView
 from services.types import Float32Array, FloatArray, IntArray
 
 COVER_SPACINGS = 2.0
@@ -89,6 +98,67 @@ def agreeing_matches(
         np.asarray(reference_xy, np.float64)[matches[:, 1]],
     )
     return int(np.count_nonzero(errors <= EPIPOLAR_PX))
+
+
+def reusable_inliers(result: LocalizationResult, camera: Camera) -> dict[str, RetrievedReference]:
+    """The retrieved references of a frame's localization (``result``) by image id, whose
+    inlier pixels are the frame's as given: localized with its own ``camera``, upright (none
+    otherwise)."""
+    if result.camera != camera or result.upright_turn_deg != 0:
+        return {}
+    return {r.image_id: r for r in result.retrieved}
+
+
+def frame_votes(
+    frame: str,
+    camera: Camera,
+    cam_from_map: Rigid3d,
+    references: Sequence[ReferenceView],
+    inliers: Mapping[str, RetrievedReference],
+    describe: Callable[[], LocalFeatures | None],
+    matcher: Matcher,
+    expected: int,
+) -> list[Vote]:
+    """The votes of ``frame`` (its ``camera`` at ``cam_from_map``) on the ``references`` that
+    cover it, against ``expected`` (its best retrieved reference's inliers). A reference in
+    ``inliers`` (``reusable_inliers``) whose inliers agree enough votes fresh with them; the
+    others are matched with the frame's features, ``describe()``d once at most (None: they
+    cast no vote)."""
+    votes = []
+    features: LocalFeatures | None = None
+    described = False
+    for reference in references:
+        retrieved = inliers.get(reference.image_id)
+        if retrieved is not None:
+            pairs = np.repeat(np.arange(len(retrieved.query_xy))[:, None], 2, axis=1)
+            agreeing = agreeing_matches(
+                camera,
+                cam_from_map,
+                retrieved.query_xy,
+                reference.camera,
+                reference.cam_from_world,
+                retrieved.reference_xy,
+                pairs,
+            )
+            vote = Vote(reference.image_id, frame, agreeing, expected)
+            if not vote.stale:
+                votes.append(vote)
+                continue
+        if not described:
+            features, described = describe(), True
+        if features is None:
+            continue
+        agreeing = agreeing_matches(
+            camera,
+            cam_from_map,
+            features.keypoints,
+            reference.camera,
+            reference.cam_from_world,
+            reference.features.keypoints,
+            matcher.match(features, reference.features),
+        )
+        votes.append(Vote(reference.image_id, frame, agreeing, expected))
+    return votes
 
 
 def stale_references(votes: list[Vote]) -> dict[str, list[Vote]]:

@@ -3,8 +3,7 @@ own camera, against a local map of the others described from their originals.
 
 A held-out reference localized confidently where it is stored shows the place as its image
 does; the references of its local map that cover it vote on whether they still match it
-(``services.capture.freshness``), as a capture session's frames do. A covering reference that
-the localization retrieved votes with the inliers it gave there; the others are matched."""
+(``services.capture.freshness``), as a capture session's frames do."""
 
 from __future__ import annotations
 
@@ -20,19 +19,26 @@ from typing import Protocol
 import numpy as np
 
 from services.capture.alignment import MIN_CONFIDENCE
-from services.capture.freshness import MIN_EVIDENCE, Vote, agreeing_matches, covering
+from services.capture.freshness import (
+    MIN_EVIDENCE,
+    Vote,
+    covering,
+    frame_votes,
+    reusable_inliers,
+)
 from services.capture.spacing import map_spacing
 from services.errors import InvalidInputError
 from services.estimators.base import PoseEstimator
+from services.features.base import LocalFeatures
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, pose_error
-from services.localization.answer import LocalizationResult, RetrievedReference
+from services.localization.answer import LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
 from services.references.store import ReferenceData, ReferenceView
 from services.self_evaluation.sample import held_out_map
 from services.self_evaluation.summary import HeldOutAnswer
-from services.types import Float32Array, FloatArray, IntArray
+from services.types import FloatArray
 
 logger = logging.getLogger(__name__)
 
@@ -201,57 +207,23 @@ def _votes(
     evidence: int,
 ) -> list[Vote]:
     """The votes of the held-out ``query`` on the references of its local map (``others``)
-    that cover it: their matches with it that agree with the two stored poses, against
-    ``evidence`` (its best retrieved reference's inliers).
-
-    A covering reference that its localization (``result``) retrieved votes fresh with the
-    inliers it gave there when they are enough (their pixels are the query's as stored: its
-    own camera, upright); otherwise it is matched with the query's description, so a stale
-    vote always counts every match."""
-    reused: dict[str, RetrievedReference] = {}
-    if result.camera == query.camera and result.upright_turn_deg == 0:
-        reused = {r.image_id: r for r in result.retrieved}
+    that cover it (``services.capture.freshness.frame_votes``), from its localization
+    (``result``) and against ``evidence`` (its best retrieved reference's inliers)."""
     near = covering(query.cam_from_world, [r.cam_from_world for r in others], spacing)
-    votes = []
-    for i in near:
-        reference = others[i]
-        if reference.image_id in reused:
-            retrieved = reused[reference.image_id]
-            pairs = np.repeat(np.arange(len(retrieved.query_xy))[:, None], 2, axis=1)
-            agreeing = _agreeing(
-                query, retrieved.query_xy, reference, retrieved.reference_xy, pairs
-            )
-            vote = Vote(reference.image_id, query.name, agreeing, evidence)
-            if not vote.stale:
-                votes.append(vote)
-                continue
+
+    def describe() -> LocalFeatures | None:
         data = described.get(query)
-        if data is None:
-            continue
-        matches = localizer.matcher.match(data.features, reference.features)
-        agreeing = _agreeing(
-            query, data.features.keypoints, reference, reference.features.keypoints, matches
-        )
-        votes.append(Vote(reference.image_id, query.name, agreeing, evidence))
-    return votes
+        return data.features if data is not None else None
 
-
-def _agreeing(
-    query: MapReference,
-    query_xy: FloatArray | Float32Array,
-    reference: ReferenceView,
-    reference_xy: FloatArray | Float32Array,
-    matches: IntArray,
-) -> int:
-    """How many ``matches`` agree with the stored poses of ``query`` and ``reference``."""
-    return agreeing_matches(
+    return frame_votes(
+        query.name,
         query.camera,
         query.cam_from_world,
-        query_xy,
-        reference.camera,
-        reference.cam_from_world,
-        reference_xy,
-        matches,
+        [others[i] for i in near],
+        reusable_inliers(result, query.camera),
+        describe,
+        localizer.matcher,
+        evidence,
     )
 
 
