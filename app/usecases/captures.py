@@ -58,6 +58,7 @@ from services.capture.drift import REACH_M, anchored, corrected_poses
 from services.capture.freshness import (
     MIN_EVIDENCE,
     Vote,
+    best_inliers,
     covering,
     frame_votes,
     reusable_inliers,
@@ -474,7 +475,7 @@ class CaptureRunner:
         votes: list[Vote] = []
         for index, cam_from_map in sorted(anchors.items()):
             check = checks[index]
-            evidence = max((r.num_inliers for r in check.retrieved), default=0)
+            evidence = best_inliers(check)
             near = covering(cam_from_map, poses, spacing)
             if evidence < MIN_EVIDENCE or not near:
                 continue

@@ -100,6 +100,12 @@ def agreeing_matches(
     return int(np.count_nonzero(errors <= EPIPOLAR_PX))
 
 
+def best_inliers(result: LocalizationResult) -> int:
+    """How well a frame's place matched: its best retrieved reference's inliers (the level
+    its votes are compared with, and ``MIN_EVIDENCE``'s)."""
+    return max((r.num_inliers for r in result.retrieved), default=0)
+
+
 def reusable_inliers(result: LocalizationResult, camera: Camera) -> dict[str, RetrievedReference]:
     """The retrieved references of a frame's localization (``result``) by image id, whose
     inlier pixels are the frame's as given: localized with its own ``camera``, upright (none

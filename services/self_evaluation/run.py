@@ -22,6 +22,7 @@ from services.capture.alignment import MIN_CONFIDENCE
 from services.capture.freshness import (
     MIN_EVIDENCE,
     Vote,
+    best_inliers,
     covering,
     frame_votes,
     reusable_inliers,
@@ -177,7 +178,7 @@ def evaluate(
         if localized is not None:
             answer, result = localized
             answers.append(replace(answer, nearest_reference_m=nearest))
-            evidence = max((r.num_inliers for r in result.retrieved), default=0)
+            evidence = best_inliers(result)
             if votes is not None and spacing is not None and _votes_for_others(answer, evidence):
                 with slot:
                     others = store.load_references(local)
