@@ -74,6 +74,7 @@ def engine_config(
         onnx=onnx_options(settings),
         global_model=settings.global_model,
         wide_threads=wide_threads(plan or thread_plan(settings)),
+        reference_image_cache_mib=settings.reference_image_cache_mib,
     )
 
 
@@ -95,6 +96,13 @@ def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) ->
         max_keypoints=settings.max_keypoints,
         max_top_k=settings.max_top_k,
         reference_cache_mib=settings.reference_cache_mib,
+        # only configurations that refine their matches keep reference images
+        reference_image_cache_mib=settings.reference_image_cache_mib
+        if any(
+            get_feature_config(name).refine_matches
+            for name in (engine.features, *settings.parsed_evaluation_features())
+        )
+        else 0,
         other_configurations=tuple(
             (
                 replace(engine, features=name, wide_threads=None).model_file_bytes(),

@@ -174,6 +174,13 @@ class Settings(BaseSettings):
         description="Decoded reference features (and depth) kept in memory between "
         "requests, MiB; 0 = off",
     )
+    reference_image_cache_mib: int = Field(
+        64,
+        ge=0,
+        description="Reference images kept decoded between requests for the sub-pixel "
+        "refinement of matches (configurations whose keypoints are found on shrunken images, "
+        "the xfeat family), MiB; 0 = none kept (each is decoded from its original anew)",
+    )
     ann_min_references: int = Field(
         50_000,
         gt=0,

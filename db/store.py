@@ -12,7 +12,9 @@ from sqlalchemy import ColumnElement, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row
+from db.blobs import BlobStore, BlobStoreError
 from db.models import CaptureFrame, FeatureArray, Map, ReferenceImage
+from db.originals import read_original
 from db.vocabulary import VLAD_KIND
 from services.errors import InvalidInputError
 from services.features.base import LocalFeatures
@@ -81,10 +83,12 @@ class SqlReferenceStore:
         cache: RetrievalIndexCache | None = None,
         vocabulary: Callable[[], VocabularyState | None] | None = None,
         features_cache: ReferenceFeatureCache | None = None,
+        blobs: BlobStore | None = None,
     ) -> None:
         """``vocabulary``: the map's VLAD vocabulary to search with (None from it, or no
         callable: the localizer's global descriptors). ``features_cache``: keeps decoded
-        reference features between requests."""
+        reference features between requests. ``blobs``: where the references' originals are
+        (None: the views name none)."""
         self.sessions = sessions
         self.cache = cache
         self.features_cache = features_cache
@@ -92,6 +96,7 @@ class SqlReferenceStore:
         self.feature_model = feature_model
         self.descriptor_model = descriptor_model
         self._vocabulary = vocabulary
+        self.blobs = blobs
 
     def retrieval_index(self) -> RetrievalIndex:
         if self.cache is None:
@@ -199,9 +204,19 @@ class SqlReferenceStore:
                     cam_from_world=pose_of(image),
                     features=entry.features,
                     depth=entry.depth,
+                    original_key=image.original_key if self.blobs is not None else None,
                 )
             )
         return views
+
+    def read_original(self, key: str) -> bytes | None:
+        if self.blobs is None:
+            return None
+        try:
+            return read_original(self.blobs, key)
+        except BlobStoreError as exc:
+            logger.warning("map %s: original %s not read: %s", self.map_id, key, exc)
+            return None
 
     def _cached(self, image_id: str) -> CachedFeatures | None:
         if self.features_cache is None:

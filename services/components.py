@@ -33,10 +33,12 @@ from services.localization.localizer import Localizer
 from services.matching.base import Matcher
 from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from services.references.images import ReferenceImageCache
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.onnx_global import OnnxGlobalDescriptor
 from services.retrieval.thumbnail import ThumbnailDescriptor
 from services.runtime.manifest import ModelEntry, read_manifest, verified_path
+from services.runtime.memory import MIB
 from services.runtime.onnx import OnnxOptions, create_session
 
 logger = logging.getLogger(__name__)
@@ -187,6 +189,8 @@ class EngineConfig:
             ``services/retrieval/onnx_global.py``); None: thumbnails, with VLAD retrieval.
         wide_threads: the threads of the extractor's second session, for requests that
             borrow every idle worker (None: none; ``build_features``).
+        reference_image_cache_mib: the reference images kept decoded for the refinement of
+            matches (``services.references.images``), MiB; 0 = none kept.
     """
 
     models_dir: Path
@@ -195,6 +199,7 @@ class EngineConfig:
     onnx: OnnxOptions = field(default_factory=OnnxOptions)
     global_model: Path | None = None
     wide_threads: int | None = None
+    reference_image_cache_mib: int = 64
 
     @classmethod
     def resolve(
@@ -207,6 +212,7 @@ class EngineConfig:
         onnx: OnnxOptions | None = None,
         global_model: Path | None = None,
         wide_threads: int | None = None,
+        reference_image_cache_mib: int = 64,
     ) -> EngineConfig:
         """The configuration with ``features`` resolved (``None`` / ``"auto"``: the one
         ``resolve_features`` picks against the models built and ``stored``, the extractors
@@ -217,7 +223,15 @@ class EngineConfig:
         """
         name = resolve_features(models_dir, features, stored)
         get_feature_config(name)  # an unknown name fails here, not when the models load
-        return cls(models_dir, name, max_pixels, onnx or OnnxOptions(), global_model, wide_threads)
+        return cls(
+            models_dir,
+            name,
+            max_pixels,
+            onnx or OnnxOptions(),
+            global_model,
+            wide_threads,
+            reference_image_cache_mib,
+        )
 
     @property
     def feature_config(self) -> FeatureConfig:
@@ -245,7 +259,8 @@ class EngineConfig:
 
 def build_localizer(engine: EngineConfig) -> Localizer:
     """The localizer ``engine`` describes: its feature configuration on the models of its
-    folder; retrieval by its global descriptor model or by thumbnails.
+    folder; retrieval by its global descriptor model or by thumbnails; matches refined on the
+    images where the configuration asks for it.
 
     Raises:
         ModelsMissingError: the configuration needs models that are not built.
@@ -265,7 +280,22 @@ def build_localizer(engine: EngineConfig) -> Localizer:
         engine.models_dir,
         global_descriptor.name,
     )
-    return Localizer(extractor, matcher, global_descriptor, engine.max_pixels)
+    return Localizer(
+        extractor,
+        matcher,
+        global_descriptor,
+        engine.max_pixels,
+        reference_images=_refinement_cache(
+            engine.feature_config, ReferenceImageCache(engine.reference_image_cache_mib * MIB)
+        ),
+    )
+
+
+def _refinement_cache(
+    config: FeatureConfig, cache: ReferenceImageCache
+) -> ReferenceImageCache | None:
+    """``cache`` for a configuration whose matches are refined on the images, else None."""
+    return cache if config.refine_matches else None
 
 
 class PresetUnavailableError(InvalidInputError):
@@ -290,6 +320,9 @@ class Localizers:
             dict.fromkeys(n for n in (engine.features, *others) if n not in self.unavailable)
         )
         self._built: dict[str, Localizer] = {engine.features: served}
+        self.reference_images = served.reference_images or ReferenceImageCache(
+            engine.reference_image_cache_mib * MIB
+        )
         self._models = ModelStore(engine.models_dir, engine.onnx)
         self._lock = threading.Lock()
 
@@ -311,9 +344,14 @@ class Localizers:
                 return localizer
             if name not in self.choices:
                 raise PresetUnavailableError(self.refusal(name))
-            extractor, matcher = build_features(get_feature_config(name), self._models)
+            config = get_feature_config(name)
+            extractor, matcher = build_features(config, self._models)
             localizer = Localizer(
-                extractor, matcher, self.served.global_descriptor, self.served.max_pixels
+                extractor,
+                matcher,
+                self.served.global_descriptor,
+                self.served.max_pixels,
+                reference_images=_refinement_cache(config, self.reference_images),
             )
             self._built[name] = localizer
         logger.info("features: %s loaded (%s + %s)", name, extractor.name, matcher.name)

@@ -88,6 +88,7 @@ def localize_context(state: State) -> LocalizeContext:
         spare=state.spare_workers,
         trainer=state.vocabulary_trainer,
         features_cache=state.reference_cache,
+        blobs=state.blobs,
         models_dir=engine.models_dir,
         features=engine.features,
     )

@@ -39,7 +39,8 @@ class RuntimeOut(BaseModel):
         "sum of memory_terms_mib (the docs' Deploying page, Memory)"
     )
     memory_terms_mib: dict[str, float] = Field(
-        description="The bound's terms, MiB: runtime, models, reference_cache, extraction, "
+        description="The bound's terms, MiB: runtime, models, reference_cache, reference_images, "
+        "extraction, "
         "decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the "
         "retrieval indexes held now; they grow with the references)"
     )

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.usecases.maps import require_map
 from app.usecases.served_features import check_servable, map_localizer
+from db.blobs import BlobStore
 from db.store import SqlReferenceStore
 from db.vocabulary import SqlVocabularyStore
 from services.components import Localizers
@@ -115,6 +116,8 @@ class LocalizeContext:
         spare: the idle worker slots a request's matching may borrow (None: none lent).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
         features_cache: keeps the decoded features of references between calls.
+        blobs: where the references' originals are, for the refinement of matches (None:
+            matches are not refined).
         models_dir / features: where the server's models are and its feature configuration
             (named when a map's references need models it lacks).
     """
@@ -129,6 +132,7 @@ class LocalizeContext:
     spare: SpareWorkers | None = None
     trainer: BackgroundTrainer | None = None
     features_cache: ReferenceFeatureCache | None = None
+    blobs: BlobStore | None = None
     models_dir: Path = Path("models")
     features: str = ""
 
@@ -172,6 +176,7 @@ class LocalizeContext:
             self.vlad,
             self.trainer,
             self.features_cache,
+            self.blobs,
         )
         return localizer, params, store
 
@@ -209,9 +214,11 @@ def reference_store(
     vlad: bool = True,
     trainer: BackgroundTrainer | None = None,
     features_cache: ReferenceFeatureCache | None = None,
+    blobs: BlobStore | None = None,
 ) -> SqlReferenceStore:
     """The map's references as ``localizer`` (already set up for the map) searches them: by
-    the map's VLAD vocabulary once it has one (``vlad``), else by global descriptor."""
+    the map's VLAD vocabulary once it has one (``vlad``), else by global descriptor; their
+    originals in ``blobs``."""
     vocabulary = None
     if vlad:
         indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, localizer.extractor.name))
@@ -224,4 +231,5 @@ def reference_store(
         cache,
         vocabulary,
         features_cache,
+        blobs,
     )

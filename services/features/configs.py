@@ -34,7 +34,9 @@ class FeatureConfig:
     the others keep their nearest-neighbour matches). lightglue_keypoints: each image's best
     keypoints LightGlue sees (None: all). ratio: the nearest neighbours' ratio test (LightGlue's
     first pass included). min_similarity: the nearest neighbours' least cosine similarity (None:
-    no floor). description: one line on when to choose it.
+    no floor). refine_matches: each match's reference keypoint is refined to sub-pixel on
+    the two images (``services.matching.refinement``), for extractors whose keypoints sit on
+    the pixel grid of a shrunken image. description: one line on when to choose it.
     """
 
     name: str
@@ -47,6 +49,7 @@ class FeatureConfig:
     lightglue_keypoints: int | None = None
     ratio: float = 0.95
     min_similarity: float | None = None
+    refine_matches: bool = False
 
     def __post_init__(self) -> None:
         if self.lightglue is None and (
@@ -104,6 +107,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
             "XFeat without LighterGlue: as fast as sift, below its accuracy on redkitchen",
             max_keypoints=XFEAT_KEYPOINTS,
             min_similarity=XFEAT_MIN_SIMILARITY,
+            refine_matches=True,
         ),
         FeatureConfig(
             "xfeat-lg",
@@ -112,6 +116,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
             lightglue="lighterglue-xfeat",
             lightglue_pairs=2,
             lightglue_keypoints=512,
+            refine_matches=True,
         ),
         FeatureConfig(
             "xfeat-full",
@@ -119,6 +124,7 @@ FEATURE_CONFIGS: dict[str, FeatureConfig] = {
             "XFeat with LighterGlue on every pair: ~0.6 s a query",
             lightglue="lighterglue-xfeat",
             lightglue_keypoints=512,
+            refine_matches=True,
         ),
         FeatureConfig(SIFT, SIFT, "needs no weights", max_keypoints=2048, max_side=1024, ratio=0.8),
     )

@@ -163,9 +163,19 @@ def _localize_frames(
     loaded = {ref.image_id: ref for ref in store.load_references(all_ids)}
     lap("retrieve")
     rig_frames = []
-    for query, camera, frame, rows in zip(features, cameras, frames, retrieved_rows, strict=True):
+    for query, image, camera, frame, rows in zip(
+        features, images, cameras, frames, retrieved_rows, strict=True
+    ):
         kept = [(loaded[image_id], score) for image_id, score in rows if image_id in loaded]
         observations = match(localizer.matcher, query, kept, clock.deadline.expired, spread)
+        observations = localizer.refine(
+            image.rgb,
+            (image.width, image.height),
+            observations,
+            [reference for reference, _ in kept],
+            store,
+            clock,
+        )
         rig_frames.append(RigFrame(camera, frame.cam_from_session, observations))
     lap("match")
     estimate = estimate_rig_pose(rig_frames, clock.bound(params.options))

@@ -8,15 +8,17 @@ layer), so the engine never touches SQL.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from services.confidence.model import ConfidenceModel, default_confidence_model
 from services.errors import InvalidInputError
-from services.estimators.base import FailureReason, PoseEstimator
+from services.estimators.base import FailureReason, PoseEstimator, ReferenceObservation
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
+from services.geometry.intrinsics_adaptation import rotate_points
 from services.imaging.decode import DecodedImage, decode_image, decode_image_reduced
 from services.localization.answer import LocalizationResult, out_of_time, retrieved_references
 from services.localization.clock import OutOfTimeError, StageClock
@@ -39,11 +41,17 @@ from services.localization.stages import (
 )
 from services.localization.turns import search_turns, searched_answer
 from services.matching.base import Matcher
-from services.references.store import ReferenceData, ReferenceStore
+from services.matching.refinement import (
+    refine_reference_keypoints,
+    refinement_image,
+    refinement_side,
+)
+from services.references.images import ReferenceImageCache, reference_images
+from services.references.store import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior
 from services.runtime.spare_workers import SpareWorkers
-from services.types import Float32Array, UInt8Array
+from services.types import Float32Array, FloatArray, UInt8Array
 
 logger = logging.getLogger(__name__)
 
@@ -98,14 +106,19 @@ class Localizer:
         global_descriptor: GlobalDescriptor,
         max_pixels: int,
         confidence_model: ConfidenceModel | None = None,
+        reference_images: ReferenceImageCache | None = None,
     ) -> None:
         """``confidence_model``: turns a verified pose's stats into its confidence (None: the
-        calibration shipped with the service)."""
+        calibration shipped with the service). ``reference_images``: with it, the matches
+        with each reference whose original the store keeps are refined to sub-pixel on the
+        two images (``services.matching.refinement``), the images decoded kept there; None:
+        matches stay at the keypoints."""
         self.extractor = extractor
         self.matcher = matcher
         self.global_descriptor = global_descriptor
         self.max_pixels = max_pixels
         self.confidence_model = confidence_model or default_confidence_model()
+        self.reference_images = reference_images
 
     def for_map(self, max_keypoints: int | None, max_side: int | None) -> Localizer:
         """This localizer with a map's keypoint budget and image size (None = the default).
@@ -120,7 +133,12 @@ class Localizer:
         except ValueError as exc:
             raise InvalidInputError(f"map feature options: {exc}") from None
         return Localizer(
-            extractor, self.matcher, self.global_descriptor, self.max_pixels, self.confidence_model
+            extractor,
+            self.matcher,
+            self.global_descriptor,
+            self.max_pixels,
+            self.confidence_model,
+            self.reference_images,
         )
 
     def describe_reference(
@@ -236,9 +254,49 @@ class Localizer:
             observed=features_in_upload(features, turn),
             query_depth=query.depth,
         )
+        if turn:
+            height, width = query.image.shape[:2]
+
+            def in_turned(xy: FloatArray) -> FloatArray:
+                return rotate_points(xy, turn, width, height)
+
+        observations = self.refine(
+            turned,
+            (turned.shape[1], turned.shape[0]),
+            observations,
+            references,
+            store,
+            clock,
+            in_turned if turn else None,
+        )
         clock.lap("match")  # before the matches are used: a stopped matcher matched fewer
         names = {ref.image_id: ref.name for ref in references}
         return MatchedQuery(query.camera, observations, names, turn)
+
+    def refine(
+        self,
+        rgb: UInt8Array,
+        full_size: tuple[int, int],
+        observations: list[ReferenceObservation],
+        references: list[ReferenceView],
+        store: ReferenceStore,
+        clock: StageClock,
+        query_points: Callable[[FloatArray], FloatArray] | None = None,
+    ) -> list[ReferenceObservation]:
+        """``observations`` with their reference keypoints refined on the query image ``rgb``
+        (an image of ``full_size`` (width, height), possibly decoded reduced), where the
+        configuration refines its matches (``reference_images``); ``query_points`` maps the
+        observations' query keypoints into it (None: they are in it)."""
+        if self.reference_images is None:
+            return observations
+        side = refinement_side(self.extractor.max_side)
+        return refine_reference_keypoints(
+            refinement_image(rgb, *full_size, side),
+            observations,
+            reference_images(store, references, side, self.max_pixels, self.reference_images),
+            clock.deadline.expired,
+            query_points,
+        )
 
     def estimate(
         self,

@@ -34,7 +34,9 @@ class ReferenceData:
 
 @dataclass(frozen=True)
 class ReferenceView:
-    """A stored reference image as the pipeline needs it."""
+    """A stored reference image as the pipeline needs it. ``original_key``: where the store
+    keeps the image as uploaded (``ReferenceStore.read_original``), None when it keeps none;
+    the image under a key never changes."""
 
     image_id: str
     name: str
@@ -42,6 +44,7 @@ class ReferenceView:
     cam_from_world: Rigid3d
     features: LocalFeatures
     depth: Float32Array | None
+    original_key: str | None = None
 
 
 class ReferenceStore(Protocol):
@@ -51,4 +54,9 @@ class ReferenceStore(Protocol):
 
     def load_references(self, image_ids: list[str]) -> list[ReferenceView]:
         """The references with these ids, in that order; ids deleted meanwhile are skipped."""
+        ...
+
+    def read_original(self, key: str) -> bytes | None:
+        """The image uploaded under ``key`` (a view's ``original_key``), as sent, or None
+        when it cannot be read."""
         ...

@@ -10,6 +10,8 @@ The bound is the sum of:
   ``SLLOC_EVALUATION_FEATURES``'), in proportion to the size of their files;
 - ``reference_cache``: the decoded reference features kept between requests
   (``SLLOC_REFERENCE_CACHE_MIB``);
+- ``reference_images``: the reference images kept decoded for the sub-pixel refinement of
+  matches (``SLLOC_REFERENCE_IMAGE_CACHE_MIB``);
 - ``extraction``: per localize worker, one feature extraction of a square image at the
   largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``, or a configuration's own
   when larger) by the most demanding extractor served: the feature network's activations
@@ -91,6 +93,7 @@ class MemoryInputs:
     max_keypoints: int
     max_top_k: int
     reference_cache_mib: int
+    reference_image_cache_mib: int = 0
     # the other configurations maps may be served with and self-evaluations measure:
     # (model file bytes, extractor, default longer image side) of each
     other_configurations: tuple[tuple[int, str, int], ...] = ()
@@ -147,6 +150,7 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
         "runtime": RUNTIME_MIB,
         "models": MODEL_RESIDENT_PER_FILE_MIB * sum(f for f, _, _ in configurations) / MIB,
         "reference_cache": float(i.reference_cache_mib),
+        "reference_images": float(i.reference_image_cache_mib),
         "extraction": i.workers * extraction,
         "decode": i.workers * DECODE_BYTES_PER_PIXEL * i.max_image_pixels / MIB,
         "matching": i.workers * (matcher + i.max_top_k * i.max_keypoints * 2 * feature_bytes / MIB),

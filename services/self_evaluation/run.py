@@ -156,7 +156,7 @@ def evaluate(
             raise EvaluationCancelled
         query = references[index]
         kept = held_out_map(centers, index, plan.local_map, plan.radius_m)
-        store = MemoryReferenceStore()
+        store = MemoryReferenceStore(originals.image)
         local: list[str] = []  # the image ids in it
         nearest = math.inf
         for k in kept:

@@ -66,6 +66,7 @@ def test_terms_follow_the_settings_arithmetic() -> None:
         "runtime": RUNTIME_MIB,
         "models": 0.0,  # sift loads no model
         "reference_cache": 256.0,
+        "reference_images": 0.0,  # sift's matches are not refined on the images
         "extraction": workers * EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 1024 * 1024 / 1e6,
         "decode": workers * DECODE_BYTES_PER_PIXEL * 40_000_000 / MIB,
         "matching": workers * (MATCHER_MIB + 50 * 4096 * sift_feature_bytes / MIB),
@@ -180,3 +181,9 @@ def test_every_configuration_served_is_counted() -> None:
     ).model_file_bytes()
     expected = alone["models"] + MODEL_RESIDENT_PER_FILE_MIB * aliked / MIB
     assert _bound(settings).terms["models"] == pytest.approx(expected, abs=0.1)
+
+
+def test_reference_images_count_where_a_configuration_refines_its_matches() -> None:
+    assert _bound(_settings()).terms["reference_images"] == 0  # sift alone
+    refining = _settings(evaluation_features="xfeat-lg", reference_image_cache_mib=32)
+    assert _bound(refining).terms["reference_images"] == 32

@@ -31,6 +31,7 @@ from app.usecases.images import add_reference_image
 from app.usecases.localize import LocalizeContext, localize
 from app.usecases.maps import FeatureChoice, create_map
 from app.usecases.reindex import reindex_map
+from db.blobs import FileBlobStore
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import EngineConfig, Localizers, build_localizer
@@ -113,7 +114,7 @@ def metadata_of(image: PosedImage) -> ImageMetadata:
 
 class InProcessRunner:
     """The server's use cases without HTTP: ``add_reference_image`` into a temporary SQLite
-    database and ``localize`` against it."""
+    database (the originals in a folder beside it) and ``localize`` against it."""
 
     def __init__(
         self,
@@ -135,8 +136,13 @@ class InProcessRunner:
         self.map_id = create_map(
             self.sessions, self.localizers, "eval", None, DEFAULT_ESTIMATOR, options
         ).id
+        self.blobs = FileBlobStore(Path(self._tmp.name) / "blobs")
         self._context = LocalizeContext(
-            self.sessions, self.localizers, max_top_k=1_000_000, cache=RetrievalIndexCache()
+            self.sessions,
+            self.localizers,
+            max_top_k=1_000_000,
+            cache=RetrievalIndexCache(),
+            blobs=self.blobs,
         )
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
@@ -147,6 +153,7 @@ class InProcessRunner:
             metadata_of(image).to_new_image(),
             image.image_path.read_bytes(),
             depth,
+            blobs=self.blobs,
         )
 
     def index_references(self, count: int) -> None:

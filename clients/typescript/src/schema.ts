@@ -2282,7 +2282,7 @@ export interface components {
             memory_bound_mib: number;
             /**
              * Memory Terms Mib
-             * @description The bound's terms, MiB: runtime, models, reference_cache, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)
+             * @description The bound's terms, MiB: runtime, models, reference_cache, reference_images, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)
              */
             memory_terms_mib: {
                 [key: string]: number;

@@ -1177,7 +1177,7 @@ class RuntimeOut(BaseModel):
         description="What the server's resident memory can reach with these settings: the sum of memory_terms_mib (the docs' Deploying page, Memory)"
     )
     memory_terms_mib: dict[str, float] = Field(
-        description="The bound's terms, MiB: runtime, models, reference_cache, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)"
+        description="The bound's terms, MiB: runtime, models, reference_cache, reference_images, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)"
     )
     reference_cache_mib: float = Field(description="Bound of the reference-feature cache")
     reference_cache_used_mib: float = Field(description="Decoded features it holds now")

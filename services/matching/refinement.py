@@ -1,0 +1,132 @@
+"""Sub-pixel matches: each reference keypoint moved to where the patch around its query
+keypoint aligns in the reference image (pyramidal Lucas-Kanade, OpenCV's
+``calcOpticalFlowPyrLK``), on images at up to twice the resolution the keypoints were found at.
+
+Keypoints found on a shrunken image (XFeat at 640 px) sit on that image's pixel grid: on a
+1226 px frame they are off by a pixel or two, which the structureless estimators turn into
+centimetres. Only the reference side moves, so a query keypoint matched in several references
+stays one point and the references' keypoints all align to it. A keypoint whose refinement
+fails, or moves further than ``MAX_SHIFT_PX``, keeps its matched position.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from services.estimators.base import ReferenceObservation
+from services.types import FloatArray, UInt8Array
+
+WINDOW_PX = 11  # the aligned patch's side, in pixels of the refinement images
+PYRAMID_LEVELS = 2
+MAX_SHIFT_PX = 8.0  # in pixels of the refinement images
+# how many times the extraction's longer side the images are refined at (at most their own)
+RESOLUTION_FACTOR = 2
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.01)
+
+
+@dataclass(frozen=True)
+class RefinementImage:
+    """A greyscale image at the refinement's resolution and the size of the full image its
+    keypoints are given in (a keypoint's COLMAP pixel coordinates times ``shape / full``
+    are the same point here)."""
+
+    gray: UInt8Array
+    full_width: int
+    full_height: int
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """(x, y): refinement pixels per full-size pixel."""
+        height, width = self.gray.shape
+        return width / self.full_width, height / self.full_height
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.gray.nbytes)
+
+
+def refinement_side(extraction_side: int) -> int:
+    """The longer side images are refined at, for keypoints found at ``extraction_side``."""
+    return RESOLUTION_FACTOR * extraction_side
+
+
+def refinement_image(
+    rgb: UInt8Array, full_width: int, full_height: int, side: int
+) -> RefinementImage:
+    """``rgb`` ((H, W, 3) uint8, an image of ``full_width`` × ``full_height`` possibly decoded
+    reduced) in grey, shrunk (area averaging) so that its longer side is at most ``side``
+    (never enlarged)."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+    longer = max(full_width, full_height)
+    side = min(side, max(gray.shape))
+    if longer > side:
+        width = max(1, round(full_width * side / longer))
+        height = max(1, round(full_height * side / longer))
+        if (height, width) != gray.shape:
+            gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
+    return RefinementImage(np.ascontiguousarray(gray), full_width, full_height)
+
+
+def refine_reference_keypoints(
+    query: RefinementImage,
+    observations: Sequence[ReferenceObservation],
+    reference_image: Callable[[str], RefinementImage | None],
+    stop: Callable[[], bool] = lambda: False,
+    query_points: Callable[[FloatArray], FloatArray] | None = None,
+) -> list[ReferenceObservation]:
+    """``observations`` with their reference keypoints refined on ``query``'s patches;
+    ``reference_image(image_id)`` gives a reference's image (None: its matches stay as they
+    are). ``query_points`` maps the observations' query keypoints into ``query``'s full image
+    (None: they are in it already; e.g. the upload's keypoints into the upload turned
+    upright). Refinement stops at the first reference reached once ``stop()`` is true; the
+    rest keep their matched positions."""
+    refined = []
+    for observation in observations:
+        image = (
+            None
+            if stop() or observation.num_matches == 0
+            else reference_image(observation.image_id)
+        )
+        if image is None:
+            refined.append(observation)
+            continue
+        query_xy = (
+            observation.query_xy if query_points is None else query_points(observation.query_xy)
+        )
+        refined.append(_refine(query, query_xy, observation, image))
+    return refined
+
+
+def _refine(
+    query: RefinementImage,
+    query_xy: FloatArray,
+    observation: ReferenceObservation,
+    reference: RefinementImage,
+) -> ReferenceObservation:
+    query_scale = np.array(query.scale)
+    reference_scale = np.array(reference.scale)
+    # COLMAP coordinates (top-left pixel centre at (0.5, 0.5)) to OpenCV's (at (0, 0))
+    start = (query_xy * query_scale - 0.5).astype(np.float32).reshape(-1, 1, 2)
+    guess = (observation.reference_xy * reference_scale - 0.5).astype(np.float32).reshape(-1, 1, 2)
+    moved, status, _ = cv2.calcOpticalFlowPyrLK(
+        query.gray,
+        reference.gray,
+        start,
+        guess.copy(),
+        winSize=(WINDOW_PX, WINDOW_PX),
+        maxLevel=PYRAMID_LEVELS,
+        criteria=_CRITERIA,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    moved = moved.reshape(-1, 2).astype(np.float64)
+    shift = np.linalg.norm(moved - guess.reshape(-1, 2), axis=1)
+    ok = (status.ravel() == 1) & np.isfinite(shift) & (shift < MAX_SHIFT_PX)
+    if not ok.any():
+        return observation
+    reference_xy = observation.reference_xy.copy()
+    reference_xy[ok] = (moved[ok] + 0.5) / reference_scale
+    return replace(observation, reference_xy=reference_xy)
