@@ -175,6 +175,7 @@ def _localize_frames(
             [reference for reference, _ in kept],
             store,
             clock,
+            spread=spread,
         )
         rig_frames.append(RigFrame(camera, frame.cam_from_session, observations))
     lap("match")

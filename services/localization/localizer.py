@@ -50,7 +50,7 @@ from services.references.images import ReferenceImageCache, reference_images
 from services.references.store import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior
-from services.runtime.spare_workers import SpareWorkers
+from services.runtime.spare_workers import SpareWorkers, Spread
 from services.types import Float32Array, FloatArray, UInt8Array
 
 logger = logging.getLogger(__name__)
@@ -268,6 +268,7 @@ class Localizer:
             store,
             clock,
             in_turned if turn else None,
+            spare.split if spare is not None else None,
         )
         clock.lap("match")  # before the matches are used: a stopped matcher matched fewer
         names = {ref.image_id: ref.name for ref in references}
@@ -282,11 +283,13 @@ class Localizer:
         store: ReferenceStore,
         clock: StageClock,
         query_points: Callable[[FloatArray], FloatArray] | None = None,
+        spread: Spread | None = None,
     ) -> list[ReferenceObservation]:
         """``observations`` with their reference keypoints refined on the query image ``rgb``
         (an image of ``full_size`` (width, height), possibly decoded reduced), where the
         configuration refines its matches (``reference_images``); ``query_points`` maps the
-        observations' query keypoints into it (None: they are in it)."""
+        observations' query keypoints into it (None: they are in it); ``spread``: runs the
+        references in parallel (None: one after the other)."""
         if self.reference_images is None:
             return observations
         side = refinement_side(self.extractor.max_side)
@@ -296,6 +299,7 @@ class Localizer:
             reference_images(store, references, side, self.max_pixels, self.reference_images),
             clock.deadline.expired,
             query_points,
+            spread,
         )
 
     def estimate(

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from services.estimators.base import ReferenceObservation
+from services.runtime.spare_workers import Spread
 from services.types import FloatArray, UInt8Array
 
 WINDOW_PX = 11  # the aligned patch's side, in pixels of the refinement images
@@ -77,28 +78,34 @@ def refine_reference_keypoints(
     reference_image: Callable[[str], RefinementImage | None],
     stop: Callable[[], bool] = lambda: False,
     query_points: Callable[[FloatArray], FloatArray] | None = None,
+    spread: Spread | None = None,
 ) -> list[ReferenceObservation]:
     """``observations`` with their reference keypoints refined on ``query``'s patches;
     ``reference_image(image_id)`` gives a reference's image (None: its matches stay as they
     are). ``query_points`` maps the observations' query keypoints into ``query``'s full image
     (None: they are in it already; e.g. the upload's keypoints into the upload turned
     upright). Refinement stops at the first reference reached once ``stop()`` is true; the
-    rest keep their matched positions."""
-    refined = []
-    for observation in observations:
-        image = (
-            None
-            if stop() or observation.num_matches == 0
-            else reference_image(observation.image_id)
-        )
-        if image is None:
-            refined.append(observation)
-            continue
-        query_xy = (
-            observation.query_xy if query_points is None else query_points(observation.query_xy)
-        )
-        refined.append(_refine(query, query_xy, observation, image))
-    return refined
+    rest keep their matched positions. ``spread``: runs the references in parallel runs (None:
+    one after the other)."""
+
+    def refine(run: Sequence[ReferenceObservation]) -> list[ReferenceObservation]:
+        refined = []
+        for observation in run:
+            image = (
+                None
+                if stop() or observation.num_matches == 0
+                else reference_image(observation.image_id)
+            )
+            if image is None:
+                refined.append(observation)
+                continue
+            query_xy = (
+                observation.query_xy if query_points is None else query_points(observation.query_xy)
+            )
+            refined.append(_refine(query, query_xy, observation, image))
+        return refined
+
+    return spread(refine, observations) if spread is not None else refine(observations)
 
 
 def _refine(
