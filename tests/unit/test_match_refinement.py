@@ -171,6 +171,17 @@ class TestRefineReferenceKeypoints:
         ) == [observation]
 
 
+def _described(scene: SyntheticScene) -> ReferenceData:
+    """A reference's stored description (no keypoints: only its original matters here)."""
+    features = LocalFeatures(
+        np.zeros((0, 2), np.float32),
+        np.zeros((0, 128), np.float32),
+        np.zeros(0, np.float32),
+        (scene.camera.width, scene.camera.height),
+    )
+    return ReferenceData(features, np.zeros(4, np.float32), None, "sift", "thumb")
+
+
 class TestReferenceImages:
     def test_originals_are_decoded_once_at_the_refinement_size_and_kept(self, scene) -> None:
         view_image, _ = scene.render(scene.sample_pose(np.random.default_rng(3)))
@@ -181,13 +192,7 @@ class TestReferenceImages:
             return encode_png(view_image)
 
         store = MemoryReferenceStore(original)
-        features = LocalFeatures(
-            np.zeros((0, 2), np.float32),
-            np.zeros((0, 128), np.float32),
-            np.zeros(0, np.float32),
-            (scene.camera.width, scene.camera.height),
-        )
-        data = ReferenceData(features, np.zeros(4, np.float32), None, "sift", "thumb")
+        data = _described(scene)
         store.add("a.png", scene.camera, Rigid3d.identity(), data, "a")
         store.add("b.png", scene.camera, Rigid3d.identity(), data, "b")
         views = store.load_references(["a", "b"])
@@ -205,13 +210,7 @@ class TestReferenceImages:
 
     def test_a_store_without_originals_gives_no_images(self, scene) -> None:
         store = MemoryReferenceStore()
-        features = LocalFeatures(
-            np.zeros((0, 2), np.float32),
-            np.zeros((0, 128), np.float32),
-            np.zeros(0, np.float32),
-            (scene.camera.width, scene.camera.height),
-        )
-        data = ReferenceData(features, np.zeros(4, np.float32), None, "sift", "thumb")
+        data = _described(scene)
         store.add("a.png", scene.camera, Rigid3d.identity(), data, "a")
         views = store.load_references(["a"])
         assert views[0].original_key is None
