@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 from services.confidence.model import ConfidenceModel, default_confidence_model
 from services.errors import InvalidInputError
@@ -254,12 +255,7 @@ class Localizer:
             observed=features_in_upload(features, turn),
             query_depth=query.depth,
         )
-        if turn:
-            height, width = query.image.shape[:2]
-
-            def in_turned(xy: FloatArray) -> FloatArray:
-                return rotate_points(xy, turn, width, height)
-
+        height, width = query.image.shape[:2]
         observations = self.refine(
             turned,
             (turned.shape[1], turned.shape[0]),
@@ -267,7 +263,7 @@ class Localizer:
             references,
             store,
             clock,
-            in_turned if turn else None,
+            partial(rotate_points, rotation_deg=turn, width=width, height=height) if turn else None,
             spare.split if spare is not None else None,
         )
         clock.lap("match")  # before the matches are used: a stopped matcher matched fewer
@@ -290,8 +286,8 @@ class Localizer:
         configuration refines its matches (``reference_images``); ``query_points`` maps the
         observations' query keypoints into it (None: they are in it); ``spread``: runs the
         references in parallel (None: one after the other)."""
-        if self.reference_images is None:
-            return observations
+        if self.reference_images is None or all(r.original_key is None for r in references):
+            return observations  # nothing to refine against: the query image is not prepared
         side = refinement_side(self.extractor.max_side)
         return refine_reference_keypoints(
             refinement_image(rgb, *full_size, side),
