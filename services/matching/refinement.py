@@ -7,6 +7,13 @@ Keypoints found on a shrunken image (XFeat at 640 px) sit on that image's pixel 
 centimetres. Only the reference side moves, so a query keypoint matched in several references
 stays one point and the references' keypoints all align to it. A keypoint whose refinement
 fails, or moves further than ``MAX_SHIFT_PX``, keeps its matched position.
+
+The two images of a pair may differ in size (a portrait query against landscape references,
+another camera's resolution): both are aligned on a common canvas, padded at the right and
+bottom, so that pixel coordinates stay as they are. Their detail must agree, though: a pair
+whose images hold different refinement pixels per pixel the keypoints were found at (within
+``DETAIL_TOLERANCE``; a 640 px reference refined against a 1920 px query holds half the query's)
+would align patches of different scales, and keeps its matches.
 """
 
 from __future__ import annotations
@@ -27,23 +34,36 @@ MAX_SHIFT_PX = 8.0  # in pixels of the refinement images
 # how many times the extraction's longer side the images are refined at (at most their own)
 RESOLUTION_FACTOR = 2
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.01)
+# how far apart (relative) the two images' detail may be: an 11 px patch then differs by at
+# most a pixel across
+DETAIL_TOLERANCE = 0.1
 
 
 @dataclass(frozen=True)
 class RefinementImage:
-    """A greyscale image at the refinement's resolution and the size of the full image its
+    """A greyscale image at the refinement's resolution, the size of the full image its
     keypoints are given in (a keypoint's COLMAP pixel coordinates times ``shape / full``
-    are the same point here)."""
+    are the same point here) and the longer side it was asked at (``refinement_side`` of the
+    extraction's)."""
 
     gray: UInt8Array
     full_width: int
     full_height: int
+    side: int
 
     @property
     def scale(self) -> tuple[float, float]:
         """(x, y): refinement pixels per full-size pixel."""
         height, width = self.gray.shape
         return width / self.full_width, height / self.full_height
+
+    @property
+    def detail(self) -> float:
+        """Refinement pixels per pixel of the image the keypoints were found on (the full
+        image at ``side / RESOLUTION_FACTOR``, never enlarged)."""
+        longer = max(self.full_width, self.full_height)
+        extraction = min(1.0, self.side / RESOLUTION_FACTOR / longer)
+        return float(max(self.gray.shape) / longer / extraction)
 
     @property
     def nbytes(self) -> int:
@@ -63,13 +83,13 @@ def refinement_image(
     (never enlarged)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
     longer = max(full_width, full_height)
-    side = min(side, max(gray.shape))
-    if longer > side:
-        width = max(1, round(full_width * side / longer))
-        height = max(1, round(full_height * side / longer))
+    shrunk = min(side, max(gray.shape))
+    if longer > shrunk:
+        width = max(1, round(full_width * shrunk / longer))
+        height = max(1, round(full_height * shrunk / longer))
         if (height, width) != gray.shape:
             gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
-    return RefinementImage(np.ascontiguousarray(gray), full_width, full_height)
+    return RefinementImage(np.ascontiguousarray(gray), full_width, full_height, side)
 
 
 def refine_reference_keypoints(
@@ -114,14 +134,17 @@ def _refine(
     observation: ReferenceObservation,
     reference: RefinementImage,
 ) -> ReferenceObservation:
+    if abs(reference.detail / query.detail - 1.0) > DETAIL_TOLERANCE:
+        return observation
     query_scale = np.array(query.scale)
     reference_scale = np.array(reference.scale)
+    query_gray, reference_gray = _on_one_canvas(query.gray, reference.gray)
     # COLMAP coordinates (top-left pixel centre at (0.5, 0.5)) to OpenCV's (at (0, 0))
     start = (query_xy * query_scale - 0.5).astype(np.float32).reshape(-1, 1, 2)
     guess = (observation.reference_xy * reference_scale - 0.5).astype(np.float32).reshape(-1, 1, 2)
     moved, status, _ = cv2.calcOpticalFlowPyrLK(
-        query.gray,
-        reference.gray,
+        query_gray,
+        reference_gray,
         start,
         guess.copy(),
         winSize=(WINDOW_PX, WINDOW_PX),
@@ -137,3 +160,21 @@ def _refine(
     reference_xy = observation.reference_xy.copy()
     reference_xy[ok] = (moved[ok] + 0.5) / reference_scale
     return replace(observation, reference_xy=reference_xy)
+
+
+def _on_one_canvas(first: UInt8Array, second: UInt8Array) -> tuple[UInt8Array, UInt8Array]:
+    """Both images at the size of the smallest canvas that holds either (OpenCV's optical flow
+    takes two images of one size), padded with black at the right and bottom."""
+    height = max(first.shape[0], second.shape[0])
+    width = max(first.shape[1], second.shape[1])
+
+    def padded(gray: UInt8Array) -> UInt8Array:
+        bottom, right = height - gray.shape[0], width - gray.shape[1]
+        if bottom == 0 and right == 0:
+            return gray
+        return np.asarray(
+            cv2.copyMakeBorder(gray, 0, bottom, 0, right, cv2.BORDER_CONSTANT, value=0),
+            dtype=np.uint8,
+        )
+
+    return padded(first), padded(second)

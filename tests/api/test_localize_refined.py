@@ -7,6 +7,7 @@ from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -169,3 +170,41 @@ def test_a_portrait_upload_is_refined_turned_upright(
     assert position < 0.02 and rotation < 0.2
     moved = np.concatenate(shifts)
     assert np.mean((moved > 0) & (moved <= 1.5)) > 0.3  # 0.57 here; 0.0002 when not turned
+
+
+def test_a_portrait_upload_searched_without_gravity_is_answered(
+    refining: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    """Without gravity the upload is matched as it comes, portrait against landscape
+    references: images of two shapes are refined together."""
+    map_id = _map_of(refining, reference_views[:12])
+    view = query_views[0]
+    portrait = np.ascontiguousarray(np.rot90(view.image, k=-1))
+    response = post(refining, map_id, encode_jpeg(portrait), {"camera": sensor_camera(view)})
+    assert response.status_code == 200, response.text  # type: ignore[attr-defined]
+    answer = response.json()  # type: ignore[attr-defined]
+    assert answer["localized"], answer
+
+
+def test_a_query_of_another_resolution_is_refined(
+    refining: TestClient,
+    reference_views: list[SyntheticView],
+    query_views: list[SyntheticView],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A query at 1.5 times the references' resolution, both under the extraction's longer
+    side (found at full size: the same detail): refined against references of another size."""
+    map_id = _map_of(refining, reference_views[:12])
+    shifts = _shifts(monkeypatch)
+    view = query_views[0]
+    width, height = 3 * view.camera.width // 2, 3 * view.camera.height // 2
+    image = cv2.resize(view.image, (width, height), interpolation=cv2.INTER_CUBIC)
+    camera = sensor_camera(view, factor=1)
+    camera.update(width=width, height=height, params=[1.5 * p for p in view.camera.params])
+    response = post(refining, map_id, encode_jpeg(image), {"camera": camera})
+    assert response.status_code == 200, response.text  # type: ignore[attr-defined]
+    answer = response.json()  # type: ignore[attr-defined]
+    assert answer["localized"], answer
+    assert _error(answer, view.cam_from_world)[0] < 0.02
+    moved = np.concatenate(shifts)
+    assert np.mean(moved > 0) > 0.3

@@ -141,6 +141,39 @@ class TestRefineReferenceKeypoints:
         assert np.median(np.linalg.norm(refined.reference_xy - truth, axis=1)) < 0.1
         np.testing.assert_array_equal(refined.query_xy, upload_xy)
 
+    def test_images_of_different_sizes_are_refined_on_one_canvas(self, pair, scene) -> None:
+        query_image, reference_image, query_xy, truth = pair
+        width, height = scene.camera.width, scene.camera.height
+        # the reference's right quarter cut off (as another camera's frame): the same pixels
+        # keep their coordinates, and a portrait query against a landscape reference alike
+        crop = width * 3 // 4
+        inside = truth[:, 0] < crop - 20
+        [refined] = refine_reference_keypoints(
+            refinement_image(query_image, width, height, 1280),
+            [_observation(scene.camera, Rigid3d.identity(), query_xy, _guesses(truth))],
+            lambda _: refinement_image(
+                np.ascontiguousarray(reference_image[:, :crop]), crop, height, 1280
+            ),
+        )
+        after = np.linalg.norm(refined.reference_xy - truth, axis=1)[inside]
+        assert inside.sum() > 20 and np.median(after) < 0.1
+
+    def test_images_of_different_detail_keep_their_matches(self, pair, scene) -> None:
+        query_image, reference_image, query_xy, truth = pair
+        width, height = scene.camera.width, scene.camera.height
+        # a reference uploaded at twice the size holds twice the query's pixels per pixel the
+        # keypoints were found at (both found at 640 px): its patches are of another scale
+        large = cv2.resize(reference_image, (2 * width, 2 * height), interpolation=cv2.INTER_CUBIC)
+        query = refinement_image(query_image, width, height, 1280)
+        reference = refinement_image(large, 2 * width, 2 * height, 1280)
+        assert reference.detail == pytest.approx(2 * query.detail)
+        observation = _observation(
+            scene.camera, Rigid3d.identity(), query_xy, _guesses(truth * 2.0)
+        )
+        assert refine_reference_keypoints(query, [observation], lambda _: reference) == [
+            observation
+        ]
+
     def test_keypoints_that_cannot_be_aligned_keep_their_match(self, pair, scene) -> None:
         query_image, reference_image, query_xy, truth = pair
         size = (scene.camera.width, scene.camera.height)
@@ -196,7 +229,7 @@ class TestReferenceImages:
         store.add("a.png", scene.camera, Rigid3d.identity(), data, "a")
         store.add("b.png", scene.camera, Rigid3d.identity(), data, "b")
         views = store.load_references(["a", "b"])
-        one = RefinementImage(np.zeros((240, 320), np.uint8), 640, 480).nbytes
+        one = RefinementImage(np.zeros((240, 320), np.uint8), 640, 480, 320).nbytes
         cache = ReferenceImageCache(one + one // 2)  # room for one image at 320 px
         image = reference_images(store, views, 320, 40_000_000, cache)
         first = image("a")
