@@ -10,10 +10,10 @@ fails, or moves further than ``MAX_SHIFT_PX``, keeps its matched position.
 
 The two images of a pair may differ in size (a portrait query against landscape references,
 another camera's resolution): both are aligned on a common canvas, padded at the right and
-bottom, so that pixel coordinates stay as they are. Their detail must agree, though: a pair
-whose images hold different refinement pixels per pixel the keypoints were found at (within
-``DETAIL_TOLERANCE``; a 640 px reference refined against a 1920 px query holds half the query's)
-would align patches of different scales, and keeps its matches.
+bottom, so that pixel coordinates stay as they are. Their patches must be of one scale, so a
+pair is aligned at the detail of the coarser image (refinement pixels per pixel the keypoints
+were found at: a 640 px reference holds half a 1920 px query's at 1280 px), the other shrunk to
+it.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ MAX_SHIFT_PX = 8.0  # in pixels of the refinement images
 # how many times the extraction's longer side the images are refined at (at most their own)
 RESOLUTION_FACTOR = 2
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.01)
-# how far apart (relative) the two images' detail may be: an 11 px patch then differs by at
-# most a pixel across
+# how far apart (relative) the two images' detail may be before the finer one is shrunk: an
+# 11 px patch then differs by at most a pixel across
 DETAIL_TOLERANCE = 0.1
 
 
@@ -110,6 +110,7 @@ def refine_reference_keypoints(
 
     def refine(run: Sequence[ReferenceObservation]) -> list[ReferenceObservation]:
         refined = []
+        query_at: dict[float, RefinementImage] = {}  # the query shrunk, by detail
         for observation in run:
             image = (
                 None
@@ -122,10 +123,27 @@ def refine_reference_keypoints(
             query_xy = (
                 observation.query_xy if query_points is None else query_points(observation.query_xy)
             )
-            refined.append(_refine(query, query_xy, observation, image))
+            detail = min(query.detail, image.detail)
+            if detail not in query_at:
+                query_at[detail] = _at_detail(query, detail)
+            refined.append(
+                _refine(query_at[detail], query_xy, observation, _at_detail(image, detail))
+            )
         return refined
 
     return spread(refine, observations) if spread is not None else refine(observations)
+
+
+def _at_detail(image: RefinementImage, detail: float) -> RefinementImage:
+    """``image`` shrunk (area averaging) to ``detail``; itself when it is within
+    ``DETAIL_TOLERANCE`` of it or coarser."""
+    if image.detail <= detail * (1.0 + DETAIL_TOLERANCE):
+        return image
+    factor = detail / image.detail
+    height, width = image.gray.shape
+    size = (max(1, round(width * factor)), max(1, round(height * factor)))
+    gray = np.asarray(cv2.resize(image.gray, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    return RefinementImage(gray, image.full_width, image.full_height, image.side)
 
 
 def _refine(
@@ -134,8 +152,6 @@ def _refine(
     observation: ReferenceObservation,
     reference: RefinementImage,
 ) -> ReferenceObservation:
-    if abs(reference.detail / query.detail - 1.0) > DETAIL_TOLERANCE:
-        return observation
     query_scale = np.array(query.scale)
     reference_scale = np.array(reference.scale)
     query_gray, reference_gray = _on_one_canvas(query.gray, reference.gray)

@@ -158,21 +158,42 @@ class TestRefineReferenceKeypoints:
         after = np.linalg.norm(refined.reference_xy - truth, axis=1)[inside]
         assert inside.sum() > 20 and np.median(after) < 0.1
 
-    def test_images_of_different_detail_keep_their_matches(self, pair, scene) -> None:
+    @pytest.mark.parametrize("larger", ["reference", "query"])
+    def test_images_of_different_detail_are_aligned_at_the_coarser(
+        self, pair, scene, larger: str
+    ) -> None:
+        """One image uploaded at twice the size holds twice the other's pixels per pixel the
+        keypoints were found at (both found at 640 px): it is shrunk to the other's detail,
+        so that the patches are of one scale."""
         query_image, reference_image, query_xy, truth = pair
         width, height = scene.camera.width, scene.camera.height
-        # a reference uploaded at twice the size holds twice the query's pixels per pixel the
-        # keypoints were found at (both found at 640 px): its patches are of another scale
-        large = cv2.resize(reference_image, (2 * width, 2 * height), interpolation=cv2.INTER_CUBIC)
-        query = refinement_image(query_image, width, height, 1280)
-        reference = refinement_image(large, 2 * width, 2 * height, 1280)
-        assert reference.detail == pytest.approx(2 * query.detail)
-        observation = _observation(
-            scene.camera, Rigid3d.identity(), query_xy, _guesses(truth * 2.0)
+        query_scale, reference_scale = (1.0, 2.0) if larger == "reference" else (2.0, 1.0)
+
+        def uploaded(image: UInt8Array, scale: float):
+            size = (round(scale * width), round(scale * height))
+            resized = cv2.resize(image, size, interpolation=cv2.INTER_CUBIC)
+            return refinement_image(resized, *size, 1280)
+
+        query = uploaded(query_image, query_scale)
+        reference = uploaded(reference_image, reference_scale)
+        assert max(query.detail, reference.detail) == pytest.approx(
+            2 * min(query.detail, reference.detail)
         )
-        assert refine_reference_keypoints(query, [observation], lambda _: reference) == [
-            observation
-        ]
+        reference_truth = truth * reference_scale  # COLMAP coordinates scale about the corner
+        [refined] = refine_reference_keypoints(
+            query,
+            [
+                _observation(
+                    scene.camera,
+                    Rigid3d.identity(),
+                    query_xy * query_scale,
+                    _guesses(reference_truth),
+                )
+            ],
+            lambda _: reference,
+        )
+        after = np.linalg.norm(refined.reference_xy - reference_truth, axis=1) / reference_scale
+        assert np.median(after) < 0.15  # in pixels of the image the keypoints were found on
 
     def test_keypoints_that_cannot_be_aligned_keep_their_match(self, pair, scene) -> None:
         query_image, reference_image, query_xy, truth = pair
