@@ -13,6 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
+from services.imaging.decode import decode_image
 from tests.evaluation.conftest import NUM_QUERIES, SPLIT_ARGS
 from tools import cli
 from tools.evaluation.runner import InProcessRunner
@@ -138,6 +139,47 @@ def test_a_query_that_raises_is_its_failure_and_the_run_goes_on(
     assert queries[1]["reason"] == "error: LinAlgError"
     summary = results["summaries"]["sift/e5p1"]
     assert summary["failures"] == {"error: LinAlgError": 1}
+
+
+def test_queries_resized_are_sent_with_their_camera_scaled(
+    synthetic_csv: Path, scene: SyntheticScene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--query-scale 1.5``: each query reaches the service 1.5 times the size, with a camera
+    of that size (a wrong one would cost the recall) and without depth."""
+    original = InProcessRunner.localize_each
+    sent: list[tuple[tuple[int, int], int, bool]] = []
+
+    def recording(self: InProcessRunner, image: bytes, depth: Any, params: Any, *rest: Any) -> Any:
+        height, width = decode_image(image, 100_000_000).shape[:2]
+        sent.append(((width, height), params["camera"]["width"], depth is None))
+        return original(self, image, depth, params, *rest)
+
+    monkeypatch.setattr(InProcessRunner, "localize_each", recording)
+    threshold = f"{0.01 * scene.extent},0.5"
+    code, results = run_eval(
+        synthetic_csv,
+        tmp_path,
+        "--estimators",
+        "local_tri_all,e3p1",
+        "--threshold",
+        threshold,
+        "--query-scale",
+        "1.5",
+    )
+    assert code == 0 and results["meta"]["query_scale"] == 1.5
+    size = (round(1.5 * scene.camera.width), round(1.5 * scene.camera.height))
+    assert sent == [(size, size[0], True)] * NUM_QUERIES
+    summaries = results["summaries"]
+    assert list(summaries["sift/local_tri_all"]["recall"].values()) == [1.0]
+    assert summaries["sift/e3p1"]["failures"]  # e3p1 needs the query's depth
+
+
+def test_a_query_scale_out_of_range_is_refused(
+    synthetic_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = cli.main(["eval", str(synthetic_csv), *SPLIT_ARGS, "--query-scale", "8"])
+    assert code == 2
+    assert "--query-scale must be within 0.25-4" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

@@ -105,6 +105,14 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         help="also localize the first N queries with a wrong focal length (×1.5, ×0.67 in turn)",
     )
     parser.add_argument(
+        "--query-scale",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="send every query resized F times (0.25-4), its camera scaled alike and without "
+        "depth: queries from a camera of another resolution than the map's",
+    )
+    parser.add_argument(
         "--max-keypoints", type=int, metavar="N", help="the map's keypoint budget per image"
     )
     parser.add_argument(

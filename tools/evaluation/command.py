@@ -15,7 +15,13 @@ from services.components import resolve_features
 from services.estimators.registry import estimator_names
 from services.features.configs import AUTO, feature_config_names
 from tools.evaluation.datasets import open_dataset
-from tools.evaluation.evaluate import EvalOptions, run_evaluation, write_outputs
+from tools.evaluation.evaluate import (
+    MAX_QUERY_SCALE,
+    MIN_QUERY_SCALE,
+    EvalOptions,
+    run_evaluation,
+    write_outputs,
+)
 from tools.evaluation.metrics import DEFAULT_THRESHOLDS
 from tools.evaluation.runner import HttpRunner, InProcessRunner, Runner
 from tools.evaluation.split import split_dataset
@@ -76,6 +82,11 @@ def eval_main(args: argparse.Namespace) -> int:
             raise ValueError("--max-queries must be at least 1")
         if args.wrong_focal < 0:
             raise ValueError("--wrong-focal must not be negative")
+        if not MIN_QUERY_SCALE <= args.query_scale <= MAX_QUERY_SCALE:
+            raise ValueError(
+                f"--query-scale must be within {MIN_QUERY_SCALE}-{MAX_QUERY_SCALE}, "
+                f"got {args.query_scale:g}"
+            )
         unrelated_images = _images_in(args.unrelated_images)
     except (OSError, ValueError) as exc:
         print(f"slloc eval: {exc}", file=sys.stderr)
@@ -91,6 +102,7 @@ def eval_main(args: argparse.Namespace) -> int:
         unrelated_seed=args.unrelated_seed,
         unrelated_images=unrelated_images,
         send_intrinsics=not args.no_intrinsics,
+        query_scale=args.query_scale,
     )
     map_features = {
         key: value
@@ -135,6 +147,7 @@ def eval_main(args: argparse.Namespace) -> int:
         "map_features": map_features,
         "max_error_px": args.max_error_px,
         "intrinsics": not args.no_intrinsics,
+        "query_scale": args.query_scale,
         "thresholds": thresholds,
         "seconds": time.perf_counter() - start,
     }

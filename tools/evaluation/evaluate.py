@@ -12,8 +12,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
+
 from app.schemas.geometry import CameraSchema
 from services.geometry.camera import CAMERA_MODELS, Camera
+from services.geometry.intrinsics_adaptation import scale_camera
 from services.imaging.decode import decode_image
 from tools.evaluation.confidence_curve import curve_of, curve_summary
 from tools.evaluation.datasets import PosedImage
@@ -47,6 +51,8 @@ class EvalOptions:
             camera, its focal scaled to the image's width, principal point at the centre).
         send_intrinsics: send each query's camera (False: none, the service estimates the
             focal length).
+        query_scale: send each query resized this many times, its camera scaled alike and
+            without depth (a camera of another resolution than the map's).
     """
 
     estimators: Sequence[str]
@@ -59,9 +65,11 @@ class EvalOptions:
     unrelated_seed: int = 0
     unrelated_images: Sequence[Path] = ()
     send_intrinsics: bool = True
+    query_scale: float = 1.0
 
 
 WRONG_FOCAL_SCALES = (1.5, 1 / 1.5)
+MIN_QUERY_SCALE, MAX_QUERY_SCALE = 0.25, 4.0
 
 
 @dataclass
@@ -100,8 +108,29 @@ class _Query:
     unrelated_png: bytes = b""
     wrong_intrinsics: bool = False
 
+    @property
+    def resized(self) -> bool:
+        """Sent at another size than its file's (``EvalOptions.query_scale``)."""
+        return self.posed is not None and (self.camera.width, self.camera.height) != (
+            self.posed.camera.width,
+            self.posed.camera.height,
+        )
+
     def image(self) -> bytes:
-        return self.posed.image_path.read_bytes() if self.posed is not None else self.unrelated_png
+        """The upload: the unrelated image, the query's file, or the query resized to
+        ``camera``'s size (as a PNG)."""
+        if self.posed is None:
+            return self.unrelated_png
+        data = self.posed.image_path.read_bytes()
+        if not self.resized:
+            return data
+        image = decode_image(data, 100_000_000)
+        size = (self.camera.width, self.camera.height)
+        shrink = size[0] < image.shape[1]
+        resized = cv2.resize(
+            image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC
+        )
+        return encode_png(np.asarray(resized, dtype=np.uint8))
 
 
 def scale_focal(camera: Camera, scale: float) -> Camera:
@@ -109,6 +138,14 @@ def scale_focal(camera: Camera, scale: float) -> Camera:
     focal = 1 if CAMERA_MODELS[camera.model][0] == "f" else 2
     params = tuple(v * scale for v in camera.params[:focal]) + camera.params[focal:]
     return replace(camera, params=params)
+
+
+def _scaled(camera: Camera, scale: float) -> Camera:
+    """``camera`` for its image resized ``scale`` times (itself at 1)."""
+    if scale == 1.0:
+        return camera
+    size = (max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+    return scale_camera(camera, *size)
 
 
 def _resized(camera: Camera, width: int, height: int) -> Camera:
@@ -119,11 +156,12 @@ def _resized(camera: Camera, width: int, height: int) -> Camera:
 
 def _queries(split: Split, options: EvalOptions) -> list[_Query]:
     chosen = split.queries[: options.max_queries]
-    queries = [_Query(q.name, q.camera, q) for q in chosen]
-    for i, q in enumerate(chosen[: options.wrong_focal]):
+    cameras = [_scaled(q.camera, options.query_scale) for q in chosen]
+    queries = [_Query(q.name, camera, q) for q, camera in zip(chosen, cameras, strict=True)]
+    for i, (q, camera) in enumerate(zip(chosen[: options.wrong_focal], cameras, strict=False)):
         scale = WRONG_FOCAL_SCALES[i % len(WRONG_FOCAL_SCALES)]
         name = f"{q.name} (focal ×{scale:.2f})"
-        queries.append(_Query(name, scale_focal(q.camera, scale), q, wrong_intrinsics=True))
+        queries.append(_Query(name, scale_focal(camera, scale), q, wrong_intrinsics=True))
     camera = chosen[0].camera
     for seed in range(options.unrelated_seed, options.unrelated_seed + options.unrelated):
         png = encode_png(unrelated_image(seed, camera.width, camera.height))
@@ -208,7 +246,7 @@ def _localize_all(
     estimators = list(options.estimators)
     for i, item in enumerate(queries, start=1):
         image, query = item.image(), item.posed
-        depth = _depth(query, options.use_depth) if query is not None else None
+        depth = _depth(query, options.use_depth and not item.resized) if query is not None else None
         params = localize_params(
             item.camera if options.send_intrinsics else None,
             estimators[0],
