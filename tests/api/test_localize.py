@@ -97,13 +97,17 @@ def test_low_confidence_answer_holds_its_candidate(
 ) -> None:
     """Below params.min_confidence the answer is not localized, reason low_confidence, with
     the pose found as `candidate`; the default floor answers the same query (one whose
-    confidence is below 1: no floor refuses a confidence of 1)."""
-    for view in query_views:
-        answered = _localize(client, scene_map, encode_png(view.image), {"camera": _camera(view)})
-        if answered["localized"] and answered["confidence"] < 1.0:
-            break
-    else:
+    confidence is below 1: no floor refuses a confidence of 1). The query with the lowest
+    confidence leaves the widest gap below the floor, which a repeated call on a loaded machine
+    may move a little (below)."""
+    answers = [
+        (_localize(client, scene_map, encode_png(view.image), {"camera": _camera(view)}), view)
+        for view in query_views
+    ]
+    below_one = [(a, v) for a, v in answers if a["localized"] and a["confidence"] < 1.0]
+    if not below_one:
         pytest.fail("every query localized at confidence 1.0")
+    answered, view = min(below_one, key=lambda pair: pair[0]["confidence"])
     assert answered["candidate"] is None
     refused = _localize(
         client,
