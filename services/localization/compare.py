@@ -12,6 +12,7 @@ from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.stages import MatchedQuery
 from services.localization.turns import search_turns, searched_answer
+from services.localization.widen import widen_unsure
 from services.references.store import ReferenceStore
 from services.runtime.spare_workers import SpareWorkers
 
@@ -29,9 +30,10 @@ def localize_each(
     ``localizer.localize`` with that estimator answers, from one description and matching of
     the query. Each result has the shared stage timings and its own ``estimate`` time
     (``total`` leaves the other estimators out), and each estimator gets what is left of the
-    time budget after matching. The turn search (``services.localization.turns``) goes on for
-    the estimators without a settled answer; past one attempt, every result has the shared
-    stages summed over the attempts and its own estimation time summed over its own."""
+    time budget after matching. The turn search (``services.localization.turns``) and the wider
+    retrieval (``services.localization.widen``) go on for the estimators without a settled
+    answer; past one attempt, every result has the shared stages summed over the attempts and
+    its own estimation time summed over its own."""
     clock = StageClock(params.time_budget_s)
     try:
         query, first = localizer.start(image_bytes, params, store, depth_bytes, spare, clock)
@@ -46,7 +48,7 @@ def localize_each(
         own_ms[index] += (time.perf_counter() - start) * 1000.0
         return result
 
-    results, attempts = search_turns(
+    results, attempts, upright = search_turns(
         query.frame.turns,
         first,
         lambda turn: localizer.match(query, turn, params, store, clock, spare),
@@ -54,11 +56,19 @@ def localize_each(
         len(estimators),
         clock,
     )
-    summed = clock.finish() if attempts > 1 else None
+    results, widened = widen_unsure(
+        results,
+        upright,
+        lambda matched: localizer.match_wider(query, matched, params, store, clock, spare),
+        estimate,
+        clock,
+    )
+    summed = clock.finish() if attempts > 1 or widened else None
     return [
         searched_answer(
             result,
             attempts,
+            widened,
             query.frame.adaptation,
             own_timings(summed, own) if summed else result.timings_ms,
             params.min_confidence,

@@ -41,6 +41,7 @@ from services.localization.stages import (
     retrieve,
 )
 from services.localization.turns import search_turns, searched_answer
+from services.localization.widen import widen_unsure
 from services.matching.base import Matcher
 from services.matching.refinement import (
     refine_reference_keypoints,
@@ -51,6 +52,7 @@ from services.references.images import ReferenceImageCache, reference_images
 from services.references.store import ReferenceData, ReferenceStore, ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior
+from services.retrieval.thinning import WIDER_SPACING_FACTOR
 from services.runtime.spare_workers import SpareWorkers, Spread
 from services.types import Float32Array, FloatArray, UInt8Array
 
@@ -171,8 +173,9 @@ class Localizer:
     ) -> LocalizationResult:
         """Localize the query with ``params.estimator``. The query is matched turned upright
         (``QueryFrame.turns``, best guess first); its other turns are tried while the answer
-        is unsure (``services.localization.turns``). Past one attempt, the stage timings are
-        summed over the attempts.
+        is unsure (``services.localization.turns``), then a wider spread of references
+        (``services.localization.widen``). Past one attempt, the stage timings are summed over
+        the attempts.
 
         ``spare``: the idle workers the query's extraction and matching may borrow (None: they
         run on the calling thread alone)."""
@@ -181,17 +184,28 @@ class Localizer:
             query, first = self.start(image_bytes, params, store, depth_bytes, spare, clock)
         except OutOfTimeError:
             return out_of_time(params.estimator.name, clock.finish())
-        [result], attempts = search_turns(
+
+        def estimate(_: int, matched: MatchedQuery) -> LocalizationResult:
+            return self.estimate(matched, query, params, params.estimator, clock)
+
+        results, attempts, upright = search_turns(
             query.frame.turns,
             first,
             lambda turn: self.match(query, turn, params, store, clock, spare),
-            lambda _, matched: self.estimate(matched, query, params, params.estimator, clock),
+            estimate,
             1,
             clock,
         )
-        timings = clock.finish() if attempts > 1 else result.timings_ms
+        [result], widened = widen_unsure(
+            results,
+            upright,
+            lambda matched: self.match_wider(query, matched, params, store, clock, spare),
+            estimate,
+            clock,
+        )
+        timings = clock.finish() if attempts > 1 or widened else result.timings_ms
         return searched_answer(
-            result, attempts, query.frame.adaptation, timings, params.min_confidence
+            result, attempts, widened, query.frame.adaptation, timings, params.min_confidence
         )
 
     def start(
@@ -246,29 +260,103 @@ class Localizer:
         references = store.load_references([image_id for image_id, _ in top])
         score_of = dict(top)
         clock.lap("retrieve")
+        observations = self.match_references(
+            query,
+            turned,
+            features,
+            turn,
+            [(ref, score_of[ref.image_id]) for ref in references],
+            store,
+            clock,
+            spare,
+        )
+        clock.lap("match")  # before the matches are used: a stopped matcher matched fewer
+        names = {ref.image_id: ref.name for ref in references}
+        return MatchedQuery(query.camera, observations, names, turn, features)
+
+    def match_wider(
+        self,
+        query: DecodedQuery,
+        matched: MatchedQuery,
+        params: LocalizeParams,
+        store: ReferenceStore,
+        clock: StageClock,
+        spare: SpareWorkers | None,
+    ) -> MatchedQuery | None:
+        """``matched`` again, against references retrieved at the wider spacing
+        (``WIDER_SPACING_FACTOR``); the references it already matched keep their matches.
+        None when the wider retrieval brings no other reference.
+
+        Raises:
+            OutOfTimeError: the budget ran out after a stage.
+        """
+        turned = turn_image(query.image, matched.turn)
+        index = store.retrieval_index()
+        top = retrieve(
+            index,
+            self.global_descriptor,
+            turned,
+            matched.features,
+            params.top_k,
+            params.prior,
+            WIDER_SPACING_FACTOR,
+        )
+        known = {observation.image_id: observation for observation in matched.observations}
+        new = {image_id: score for image_id, score in top if image_id not in known}
+        if not new:
+            return None
+        references = store.load_references(list(new))
+        clock.lap("retrieve")
+        observations = self.match_references(
+            query,
+            turned,
+            matched.features,
+            matched.turn,
+            [(ref, new[ref.image_id]) for ref in references],
+            store,
+            clock,
+            spare,
+        )
+        clock.lap("match")
+        found = known | {observation.image_id: observation for observation in observations}
+        ranked = [found[image_id] for image_id, _ in top if image_id in found]
+        names = matched.names | {ref.image_id: ref.name for ref in references}
+        return matched._replace(observations=ranked, names=names)
+
+    def match_references(
+        self,
+        query: DecodedQuery,
+        turned: UInt8Array,
+        features: LocalFeatures,
+        turn: int,
+        references: list[tuple[ReferenceView, float]],
+        store: ReferenceStore,
+        clock: StageClock,
+        spare: SpareWorkers | None,
+    ) -> list[ReferenceObservation]:
+        """The correspondences of the query (``features`` of the upload turned clockwise by
+        ``turn`` degrees, ``turned``) with each of ``references`` (with its retrieval score)
+        reached in the budget, refined where the configuration refines its matches."""
         observations = match(
             self.matcher,
             features,
-            [(ref, score_of[ref.image_id]) for ref in references],
+            references,
             stop=clock.deadline.expired,
             spread=spare.split if spare is not None else None,
             observed=features_in_upload(features, turn),
             query_depth=query.depth,
         )
         height, width = query.image.shape[:2]
-        observations = self.refine(
+        return self.refine(
             turned,
             (turned.shape[1], turned.shape[0]),
             observations,
-            references,
+            [ref for ref, _ in references],
             store,
             clock,
             partial(rotate_points, rotation_deg=turn, width=width, height=height) if turn else None,
             spare.split if spare is not None else None,
         )
-        clock.lap("match")  # before the matches are used: a stopped matcher matched fewer
-        names = {ref.image_id: ref.name for ref in references}
-        return MatchedQuery(query.camera, observations, names, turn)
 
     def refine(
         self,
@@ -309,7 +397,7 @@ class Localizer:
         """Estimate and verify the pose of a matched query with ``estimator``, check it
         against the query's gravity, and answer it (timed on a branch of ``clock``)."""
         clock = clock.branch()
-        camera, observations, names, turn = matched
+        camera, observations, names, turn, _ = matched
         uncertainty = None
         camera_used: Camera | None = camera if params.camera is not None else None
         if not observations:

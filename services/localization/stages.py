@@ -24,7 +24,7 @@ from services.references.store import ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.search import PositionPrior
-from services.retrieval.thinning import search_thinned
+from services.retrieval.thinning import SPACING_FACTOR, search_thinned
 from services.retrieval.vlad import encode
 from services.runtime.spare_workers import Spread
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
@@ -92,16 +92,18 @@ def retrieve(
     query: LocalFeatures,
     top_k: int,
     prior: PositionPrior | None,
+    spacing_factor: float = SPACING_FACTOR,
 ) -> list[Retrieved]:
     """The ``top_k`` references of the query (``image`` and its features ``query``), best
     first: encoded by the map's VLAD vocabulary when it has one, else by
-    ``global_descriptor``, then searched (thinned, near ``prior`` when given)."""
+    ``global_descriptor``, then searched (thinned at ``spacing_factor``, near ``prior`` when
+    given)."""
     query_global = (
         encode(query.descriptors, index.vocabulary)
         if index.vocabulary is not None
         else global_descriptor.compute(image, query)
     )
-    rows, scores = search_thinned(index, query_global, top_k, prior)
+    rows, scores = search_thinned(index, query_global, top_k, prior, spacing_factor)
     return [(index.image_ids[i], float(s)) for i, s in zip(rows, scores, strict=True)]
 
 
@@ -134,12 +136,13 @@ def match(
 class MatchedQuery(NamedTuple):
     """A query described, its references retrieved and matched (at the clockwise ``turn`` of
     the upload, keypoints back in the upload): what every estimator takes. ``names``: the
-    matched references' names by image id."""
+    matched references' names by image id; ``features``: the query's, in the turned image."""
 
     camera: Camera
     observations: list[ReferenceObservation]
     names: dict[str, str]
     turn: int
+    features: LocalFeatures
 
     @property
     def num_matches(self) -> int:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 from services.estimators.base import FailureReason
 from services.geometry.intrinsics_adaptation import CameraAdaptation
@@ -28,6 +29,15 @@ UPRIGHT_INLIERS = 200
 TURN_MATCH_GAIN = 1.5
 
 
+class TurnSearch(NamedTuple):
+    """The answers of a turn search, how many turns were matched, and the match of the turn
+    that matched most (the upright one)."""
+
+    results: list[LocalizationResult]
+    attempts: int
+    upright: MatchedQuery
+
+
 def search_turns(
     turns: Sequence[int],
     first: MatchedQuery,
@@ -35,10 +45,10 @@ def search_turns(
     estimate: Callable[[int, MatchedQuery], LocalizationResult],
     count: int,
     clock: StageClock,
-) -> tuple[list[LocalizationResult], int]:
+) -> TurnSearch:
     """The answers of ``count`` estimates (``estimate(i, matched)``, i < ``count``) over the
     ``turns`` of a query, ``first`` being its match at ``turns[0]`` (``match(turn)`` matches
-    another), and how many turns were matched.
+    another).
 
     The other turns are tried, while the budget lasts, for the answers not ``settled`` yet (a
     sideways image can give a pose from chance matches, which the confidence reads as
@@ -49,7 +59,7 @@ def search_turns(
     results = [estimate(i, first) for i in range(count)]
     clock.lap("estimate", check=False)
     attempts = 1
-    most_matches = first.num_matches
+    upright = first
     for turn in turns[1:]:
         if all(settled(r) for r in results) or clock.deadline.expired():
             break
@@ -58,14 +68,14 @@ def search_turns(
         except OutOfTimeError:
             break
         attempts += 1
-        if matched.num_matches <= TURN_MATCH_GAIN * most_matches:
+        if matched.num_matches <= TURN_MATCH_GAIN * upright.num_matches:
             continue  # no better matched than a turn already estimated: not upright
-        most_matches = matched.num_matches
+        upright = matched
         results = [
             r if settled(r) else better(r, estimate(i, matched)) for i, r in enumerate(results)
         ]
         clock.lap("estimate", check=False)
-    return results, attempts
+    return TurnSearch(results, attempts, upright)
 
 
 def settled(result: LocalizationResult) -> bool:
@@ -89,15 +99,21 @@ def better(a: LocalizationResult, b: LocalizationResult) -> LocalizationResult:
 def searched_answer(
     result: LocalizationResult,
     attempts: int,
+    widened: bool,
     adaptation: CameraAdaptation | None,
     timings_ms: dict[str, float],
     min_confidence: float,
 ) -> LocalizationResult:
     """The answer a search ends on: ``low_confidence`` below ``min_confidence``, with the
-    camera's adaptation, the timings and the number of turns matched."""
+    camera's adaptation, the timings, the number of turns matched and whether the query was
+    matched again against a wider spread of references (``services.localization.widen``)."""
     return replace(
         result.below(min_confidence),
         camera_adaptation=adaptation,
         timings_ms=timings_ms,
-        stats={**result.stats, "orientation_attempts": float(attempts)},
+        stats={
+            **result.stats,
+            "orientation_attempts": float(attempts),
+            "wider_retrieval": float(widened),
+        },
     )

@@ -11,6 +11,11 @@ camera centre lies closer to an already kept reference than ``SPACING_FACTOR`` �
 candidates' own spacing (the median distance from each candidate to its nearest other
 candidate), so the rule needs no unit: it scales with how densely the map was captured where
 the query looks.
+
+A query whose answer stays unsure is matched again against a wider spread
+(``WIDER_SPACING_FACTOR``, ``services.localization.widen``): where a map holds several passes
+through a place, the closest-spaced references retrieved first can all come from one pass
+along one line, and the estimators then disagree on the position along it.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ from services.types import Float32Array, FloatArray, IntArray
 CANDIDATES_PER_REFERENCE = 3
 # kept references lie at least this many times the candidates' median spacing apart
 SPACING_FACTOR = 1.5
+# the spacing of the second retrieval of a query whose first answer is unsure
+WIDER_SPACING_FACTOR = 3.0
 
 
 def thin_references(
@@ -32,17 +39,19 @@ def thin_references(
     scores: Float32Array,
     centers: FloatArray,
     k: int,
+    spacing_factor: float = SPACING_FACTOR,
 ) -> tuple[IntArray, Float32Array]:
-    """The first ``k`` of ``rows`` (ranked best first, with their ``scores``) that keep the
-    spacing; ``centers``: (N, 3) camera centres indexed by ``rows``. When fewer keep it, the
-    skipped ones fill up the rest in rank order (the result then has min(k, len(rows))).
+    """The first ``k`` of ``rows`` (ranked best first, with their ``scores``) that keep
+    ``spacing_factor`` × the candidates' spacing; ``centers``: (N, 3) camera centres indexed
+    by ``rows``. When fewer keep it, the skipped ones fill up the rest in rank order (the
+    result then has min(k, len(rows))).
     """
     if len(rows) <= k:
         return rows[:k], scores[:k]
     points = centers[rows]
     distances = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
     np.fill_diagonal(distances, np.inf)
-    spacing = SPACING_FACTOR * float(np.median(distances.min(axis=1)))
+    spacing = spacing_factor * float(np.median(distances.min(axis=1)))
     kept: list[int] = []
     for i in range(len(rows)):
         if not kept or distances[i, kept].min() >= spacing:
@@ -58,9 +67,14 @@ def thin_references(
 
 
 def search_thinned(
-    index: RetrievalIndex, query: Float32Array, k: int, prior: PositionPrior | None = None
+    index: RetrievalIndex,
+    query: Float32Array,
+    k: int,
+    prior: PositionPrior | None = None,
+    spacing_factor: float = SPACING_FACTOR,
 ) -> tuple[IntArray, Float32Array]:
     """``search_index`` for ``CANDIDATES_PER_REFERENCE`` × ``k`` candidates, thinned to ``k``
-    by ``thin_references``: row indices into ``index`` and their scores, best first."""
+    by ``thin_references`` at ``spacing_factor``: row indices into ``index`` and their
+    scores, best first."""
     rows, scores = search_index(index, query, CANDIDATES_PER_REFERENCE * k, prior)
-    return thin_references(rows, scores, index.centers, k)
+    return thin_references(rows, scores, index.centers, k, spacing_factor)

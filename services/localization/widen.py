@@ -1,0 +1,57 @@
+"""The wider retrieval: a query whose answer stays unsure after the turn search is matched
+again against references spread wider apart
+(``services.retrieval.thinning.WIDER_SPACING_FACTOR``), and each unsure answer keeps the more
+confident of its two.
+
+Where a map holds several passes through a place, the references retrieved first can all
+come from one pass: a short baseline along one line, on which ``e5p1`` and ``local_tri_all``
+disagree by decimetres and the confidence falls. A wider spread gives the estimators the
+baseline back. It runs only for unsure answers: a confident one keeps its references, and a
+spread kept wide for every query loses accuracy where the closest references were the right
+ones (both dev sets: ``docs/benchmarks/2026-11-29-wider-retrieval.md``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from services.estimators.base import FailureReason
+from services.localization.answer import LocalizationResult
+from services.localization.clock import OutOfTimeError, StageClock
+from services.localization.stages import MatchedQuery
+from services.localization.turns import better
+
+# an answer below this confidence is matched again against a wider spread
+SURE_CONFIDENCE = 0.5
+
+
+def widen_unsure(
+    results: list[LocalizationResult],
+    upright: MatchedQuery,
+    match_wider: Callable[[MatchedQuery], MatchedQuery | None],
+    estimate: Callable[[int, MatchedQuery], LocalizationResult],
+    clock: StageClock,
+) -> tuple[list[LocalizationResult], bool]:
+    """``results`` (the answers of the estimates ``estimate(i, matched)``) with each unsure
+    one replaced by the better (``turns.better``) of it and its estimate on
+    ``match_wider(upright)``, while the budget lasts; and whether that second match ran.
+    ``match_wider`` answers None when the wider retrieval brings no other reference (a small
+    map): nothing is estimated again."""
+    if all(sure(r) for r in results) or clock.deadline.expired():
+        return results, False
+    try:
+        wider = match_wider(upright)
+    except OutOfTimeError:
+        return results, False
+    if wider is None:
+        return results, False
+    widened = [r if sure(r) else better(r, estimate(i, wider)) for i, r in enumerate(results)]
+    clock.lap("estimate", check=False)
+    return widened, True
+
+
+def sure(result: LocalizationResult) -> bool:
+    """No other spread of references needs trying for this answer: it is localized with
+    ``SURE_CONFIDENCE`` or more, or failed for want of depth, which no reference brings."""
+    if result.reason == FailureReason.MISSING_DEPTH.value:
+        return True
+    return result.localized and result.confidence >= SURE_CONFIDENCE
