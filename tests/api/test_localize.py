@@ -97,9 +97,9 @@ def test_low_confidence_answer_holds_its_candidate(
 ) -> None:
     """Below params.min_confidence the answer is not localized, reason low_confidence, with
     the pose found as `candidate`; the default floor answers the same query (one whose
-    confidence is below 1: no floor refuses a confidence of 1). The query with the lowest
-    confidence leaves the widest gap below the floor, which a repeated call on a loaded machine
-    may move a little (below)."""
+    confidence is below 1: no floor refuses a confidence of 1). The floor asked is 1, so a
+    repeated call that ends its RANSAC or refinement on another step (a loaded machine) is
+    still below it."""
     answers = [
         (_localize(client, scene_map, encode_png(view.image), {"camera": _camera(view)}), view)
         for view in query_views
@@ -113,7 +113,7 @@ def test_low_confidence_answer_holds_its_candidate(
         client,
         scene_map,
         encode_png(view.image),
-        {"camera": _camera(view), "min_confidence": (answered["confidence"] + 1.0) / 2.0},
+        {"camera": _camera(view), "min_confidence": 1.0},
     )
     assert refused["localized"] is False and refused["reason"] == "low_confidence"
     assert refused["cam_from_world"] is None and refused["camera_center"] is None
@@ -123,7 +123,7 @@ def test_low_confidence_answer_holds_its_candidate(
         np.testing.assert_allclose(
             refused["candidate"][key], answered["cam_from_world"][key], atol=1e-3
         )
-    assert refused["confidence"] == pytest.approx(answered["confidence"], abs=1e-3)
+    assert refused["confidence"] < 1.0
 
 
 def test_unrelated_image_is_not_localized(client: TestClient, scene_map: str) -> None:

@@ -137,15 +137,15 @@ def test_joint_estimate_below_min_confidence_is_not_localized(
     images = [encode_png(v.image) for v in views]
     answered = _localize(client, scene_map, views, images)
     assert answered["localized"] is True and answered["confidence"] < 1.0
-    refused = _localize(
-        client, scene_map, views, images, min_confidence=(answered["confidence"] + 1.0) / 2.0
-    )
+    refused = _localize(client, scene_map, views, images, min_confidence=1.0)
     assert refused["localized"] is False and refused["reason"] == "low_confidence"
     assert refused["map_from_session"] is None and refused["cam_from_world"] is None
     assert all(frame["cam_from_world"] is None for frame in refused["frames"])
     first = answered["frames"][0]["cam_from_world"]
-    for key in ("rotation", "translation"):  # the joint estimate again: equal to rounding
-        np.testing.assert_allclose(refused["candidate"][key], first[key], atol=1e-6)
+    # the joint estimate again; a loaded machine may end its deadline-sliced refinement a step
+    # earlier on one call than on the other
+    for key in ("rotation", "translation"):
+        np.testing.assert_allclose(refused["candidate"][key], first[key], atol=1e-3)
 
 
 def test_one_frame_with_session_pose(
