@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 
 from fastapi import APIRouter, Depends, Request, Response
 from prometheus_client import (
@@ -30,6 +30,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app.auth import API_KEY_HEADER, RoleCheck
 from app.usecases.evaluations import Evaluator
 from db.repositories.maps import MapRepository
+from services.localization.answer import LocalizationResult
 
 logger = logging.getLogger(__name__)
 
@@ -82,6 +83,12 @@ class ServiceMetrics:
             ("estimator", "localized", "reason"),
             registry=self.registry,
         )
+        self.wider_retrievals = Counter(
+            "slloc_localize_wider_retrievals",
+            "Localize answers whose query was retrieved a second time with its references "
+            "spread wider (its first answer below confidence 0.5)",
+            registry=self.registry,
+        )
         self.registry.register(_StateCollector(state))
         # the process (process_*: CPU, resident memory, open file descriptors, start time),
         # the interpreter (python_info) and its garbage collector (python_gc_*), as the default
@@ -89,12 +96,14 @@ class ServiceMetrics:
         for collector in (PROCESS_COLLECTOR, PLATFORM_COLLECTOR, GC_COLLECTOR):
             self.registry.register(collector)
 
-    def observe_localization(
-        self, estimator: str, reason: str | None, timings_ms: Mapping[str, float]
-    ) -> None:
-        """Count one localize answer; ``timings_ms`` as in the result (0: not reached)."""
-        self.outcomes.labels(estimator, str(reason is None).lower(), reason or "none").inc()
-        for stage, ms in timings_ms.items():
+    def observe_localization(self, result: LocalizationResult) -> None:
+        """Count one localize answer: its outcome, its stages' times (a stage at 0 ms was not
+        reached) and whether its query was retrieved again wider."""
+        reason = result.reason
+        self.outcomes.labels(result.estimator, str(reason is None).lower(), reason or "none").inc()
+        if result.wider_retrieval:
+            self.wider_retrievals.inc()
+        for stage, ms in result.timings_ms.items():
             if ms > 0.0:
                 self.stage_seconds.labels(stage).observe(ms / 1000.0)
 

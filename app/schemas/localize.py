@@ -233,6 +233,12 @@ class LocalizeResult(BaseModel):
     upright_turn_deg: int = Field(
         0, description="Clockwise turn of the upload at which it was matched"
     )
+    wider_retrieval: bool = Field(
+        False,
+        description="Whether the query was retrieved a second time with its references spread "
+        "wider, its first answer being below confidence 0.5; the answer is the more confident "
+        "of the two (the docs' Models page, 'An unsure answer gets a wider spread')",
+    )
     gravity_error_deg: float | None = Field(
         None, description="Angle between the gravity hint and the pose's (with a gravity hint)"
     )
@@ -280,6 +286,7 @@ class LocalizeResult(BaseModel):
             if adaptation is not None
             else None,
             upright_turn_deg=result.upright_turn_deg,
+            wider_retrieval=result.wider_retrieval,
             gravity_error_deg=result.stats.get("gravity_error_deg"),
             world_from_cam={
                 f: FramePoseOut.from_pose(output.camera_pose(pose, adaptation), f)

@@ -56,6 +56,12 @@ class LocalizationResult:
     # the pose of a ``low_confidence`` answer, which is not localized
     candidate: Rigid3d | None = None
 
+    @property
+    def wider_retrieval(self) -> bool:
+        """Whether the query was retrieved again with its references spread wider, its first
+        answer being unsure (``services.localization.widen``)."""
+        return self.stats.get("wider_retrieval", 0.0) > 0.0
+
     def below(self, min_confidence: float) -> LocalizationResult:
         """This answer, or, when it is localized with a confidence below ``min_confidence``,
         the ``low_confidence`` answer holding its pose as ``candidate``."""

@@ -13,8 +13,9 @@ from prometheus_client.samples import Sample
 
 from app.settings import Settings
 from services.localization.localizer import Localizer
+from services.localization.widen import SURE_CONFIDENCE
 from tests.conftest import create_map, image_metadata, make_client, upload_view
-from tools.synthetic.scene import SyntheticView, encode_png
+from tools.synthetic.scene import SyntheticView, encode_png, unrelated_image
 
 LOCALIZE_ROUTE = "/v1/maps/{map_id}/localize"
 STAGES = ("decode", "extract", "retrieve", "match", "estimate", "total")
@@ -33,16 +34,43 @@ def value(samples: list[Sample], name: str, **labels: str) -> float:
     return found[0]
 
 
-def localize(client: TestClient, map_id: str, view: SyntheticView) -> dict[str, object]:
+def localize(
+    client: TestClient, map_id: str, view: SyntheticView, image: bytes | None = None
+) -> dict[str, object]:
+    """``view`` (or ``image`` in its camera) as a query."""
     params = {"camera": image_metadata(view)["camera"]}
+    upload = encode_png(view.image) if image is None else image
     response = client.post(
         f"/v1/maps/{map_id}/localize",
-        files={"image": (view.name, encode_png(view.image), "image/png")},
+        files={"image": (view.name, upload, "image/png")},
         data={"params": json.dumps(params)},
     )
     assert response.status_code == 200, response.text
     result: dict[str, object] = response.json()
     return result
+
+
+def test_queries_retrieved_again_wider_are_counted(
+    client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    """An answer that is unsure after its first retrieval (an unrelated image: not localized)
+    on a map of more references than top_k is retrieved again wider, says so and is counted;
+    a sure one is not."""
+    map_id = create_map(client)
+    for view in reference_views:
+        assert upload_view(client, map_id, view).status_code == 201
+    answers = [localize(client, map_id, view) for view in query_views[:3]]
+    unrelated = localize(client, map_id, query_views[0], encode_png(unrelated_image(0)))
+    assert unrelated["localized"] is False and unrelated["wider_retrieval"] is True
+    for answer in answers:
+        confidence = answer["confidence"]
+        assert isinstance(confidence, float)
+        sure = answer["localized"] is True and confidence >= SURE_CONFIDENCE
+        assert answer["wider_retrieval"] is not sure
+    assert any(answer["wider_retrieval"] is False for answer in answers)
+    widened = sum(answer["wider_retrieval"] is True for answer in [*answers, unrelated])
+    counted = scrape(client)["slloc_localize_wider_retrievals"]
+    assert value(counted, "slloc_localize_wider_retrievals_total") == widened
 
 
 def test_metrics_after_localize(
@@ -94,6 +122,12 @@ def test_metrics_after_localize(
 
     outcomes = metrics["slloc_localize_outcomes"]
     assert value(outcomes, "slloc_localize_outcomes_total", localized="true", reason="none") == 1
+    # 8 references, no more than top_k: a wider retrieval brings no other
+    assert result["wider_retrieval"] is False and failed["wider_retrieval"] is False
+    assert (
+        value(metrics["slloc_localize_wider_retrievals"], "slloc_localize_wider_retrievals_total")
+        == 0
+    )
     assert (
         value(outcomes, "slloc_localize_outcomes_total", localized="false", reason="no_references")
         == 1

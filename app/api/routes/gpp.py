@@ -99,7 +99,7 @@ def geopose(
         if query.hint is not None:
             request = replace(request, prior=geo.gps_prior(registration, query.hint))
         result = localize_image(context, map_id, request, image_bytes)
-    metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
+    metrics.observe_localization(result)
     answer = geo.geopose_answer(registration, result)
     if answer is None:
         raise ProblemError(

@@ -100,14 +100,14 @@ def localize(
             result = localize_image(context, map_id, request, images[0], depth_bytes)
     if frames is not None:
         joint = session_result.result
-        metrics.observe_localization(joint.estimator, joint.reason, joint.timings_ms)
+        metrics.observe_localization(joint)
         return LocalizeResult.from_session_result(
             session_result,
             body.return_inliers,
             geo.geopose_answer(registration, session_result.result),
             body.output,
         )
-    metrics.observe_localization(result.estimator, result.reason, result.timings_ms)
+    metrics.observe_localization(result)
     growth.offer(map_id, images[0], request.camera, result)
     outcomes.record(result)
     return LocalizeResult.from_result(

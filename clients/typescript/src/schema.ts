@@ -1853,6 +1853,12 @@ export interface components {
              */
             upright_turn_deg?: number;
             /**
+             * Wider Retrieval
+             * @description Whether the query was retrieved a second time with its references spread wider, its first answer being below confidence 0.5; the answer is the more confident of the two (the docs' Models page, 'An unsure answer gets a wider spread')
+             * @default false
+             */
+            wider_retrieval?: boolean;
+            /**
              * World From Cam
              * @description The pose of `output.pose_of` in the conventions `output.frames`
              */

@@ -892,6 +892,10 @@ class LocalizeResult(BaseModel):
     upright_turn_deg: int = Field(
         default=0, description="Clockwise turn of the upload at which it was matched"
     )
+    wider_retrieval: bool = Field(
+        default=False,
+        description="Whether the query was retrieved a second time with its references spread wider, its first answer being below confidence 0.5; the answer is the more confident of the two (the docs' Models page, 'An unsure answer gets a wider spread')",
+    )
     world_from_cam: dict[str, FramePoseOut] | None = Field(
         default=None, description="The pose of `output.pose_of` in the conventions `output.frames`"
     )
