@@ -208,6 +208,19 @@ def test_http_mode_gives_the_same_poses(
 
     http, local = poses(results), poses(in_process)
     assert http.keys() == local.keys()
+
+    # the same outcome for every query, the unrelated image included (a depth estimator on
+    # it: missing_depth, not a 422); the one engine number the answer carries, whether the
+    # query was retrieved again wider, only for the unrelated image (unsure: not localized)
+    def outcomes(res: dict[str, Any]) -> dict[tuple[str, str], Any]:
+        return {(q["config"].split("/")[-1], q["query"]): q for q in res["queries"]}
+
+    http_outcomes, local_outcomes = outcomes(results), outcomes(in_process)
+    for key, local_query in local_outcomes.items():
+        query = http_outcomes[key]
+        assert query["reason"] == local_query["reason"], key
+        widened = query["stats"]["wider_retrieval"]
+        assert widened == float(key[1].startswith("unrelated") and key[0] != "e3p1"), key
     for key, pose in local.items():
         if pose is None:
             assert http[key] is None, key

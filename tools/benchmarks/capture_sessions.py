@@ -228,6 +228,7 @@ def localize_queries(
                 "position_error_m": _finite(error[0]),
                 "rotation_error_deg": _finite(error[1]),
                 "total_ms": outcome.timings_ms.get("total"),
+                "wider_retrieval": bool(outcome.stats.get("wider_retrieval")),
             }
         )
     recall = {

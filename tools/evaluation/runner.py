@@ -35,6 +35,7 @@ from db.blobs import FileBlobStore
 from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import EngineConfig, Localizers, build_localizer
+from services.estimators.base import FailureReason
 from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
 from services.localization.answer import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
@@ -58,7 +59,8 @@ class QueryOutcome:
         cam_from_world: the pose as the API's ``{"rotation": [w, x, y, z], "translation"}``.
         retrieved: names of the retrieved references, best first.
         timings_ms: the answer's stages plus ``client`` (wall time seen by the evaluator).
-        stats: the engine's numbers about the estimate (in process only; the API has none).
+        stats: the engine's numbers about the estimate; over HTTP only ``wider_retrieval``
+            (1 when the answer says its query was retrieved again wider, else 0).
         estimator_used: the estimator whose answer it is (``auto`` names its choice).
     """
 
@@ -200,6 +202,20 @@ class InProcessRunner:
         self._tmp.cleanup()
 
 
+def _missing_depth() -> QueryOutcome:
+    """The outcome of a depth estimator on a query without depth, not sent."""
+    return QueryOutcome(
+        localized=False,
+        reason=FailureReason.MISSING_DEPTH.value,
+        cam_from_world=None,
+        num_inliers=0,
+        confidence=0.0,
+        retrieved=[],
+        timings_ms={},
+        stats={"wider_retrieval": 0.0},
+    )
+
+
 def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
     pose = result.cam_from_world
     return QueryOutcome(
@@ -336,6 +352,7 @@ class HttpRunner:
             confidence=float(body["confidence"]),
             retrieved=[r["name"] for r in body["retrieved"]],
             timings_ms=timings,
+            stats={"wider_retrieval": float(bool(body.get("wider_retrieval")))},
             estimator_used=body.get("estimator_used"),
         )
 
@@ -346,13 +363,17 @@ class HttpRunner:
         params: dict[str, Any],
         estimators: Sequence[str],
     ) -> list[QueryOutcome]:
-        """One request per estimator: the API localizes with one estimator at a time."""
+        """One request per estimator: the API localizes with one estimator at a time. A depth
+        estimator is not asked without the query's depth (the API refuses it with 422): its
+        outcome is ``missing_depth``, as the engine answers in process."""
         return [
             self.localize(
                 image,
                 depth if name in DEPTH_USING_ESTIMATORS else None,
                 {**params, "estimator": name},
             )
+            if depth is not None or name not in DEPTH_USING_ESTIMATORS
+            else _missing_depth()
             for name in estimators
         ]
 
