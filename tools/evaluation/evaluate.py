@@ -210,15 +210,7 @@ def run_evaluation(
 def failed_query(exc: Exception) -> QueryOutcome:
     """The outcome recorded for a query whose localize raised ``exc`` (reason
     ``error: <exception type>``)."""
-    return QueryOutcome(
-        localized=False,
-        reason=f"error: {type(exc).__name__}",
-        cam_from_world=None,
-        num_inliers=0,
-        confidence=0.0,
-        retrieved=[],
-        timings_ms={},
-    )
+    return QueryOutcome.not_localized(f"error: {type(exc).__name__}")
 
 
 def _load_references(

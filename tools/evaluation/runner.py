@@ -74,6 +74,20 @@ class QueryOutcome:
     stats: dict[str, float] = field(default_factory=dict)
     estimator_used: str | None = None
 
+    @classmethod
+    def not_localized(cls, reason: str, stats: dict[str, float] | None = None) -> QueryOutcome:
+        """An outcome with no pose, no inliers and nothing retrieved, for ``reason``."""
+        return cls(
+            localized=False,
+            reason=reason,
+            cam_from_world=None,
+            num_inliers=0,
+            confidence=0.0,
+            retrieved=[],
+            timings_ms={},
+            stats=stats or {},
+        )
+
 
 class Runner(Protocol):
     """One map of references under one feature configuration."""
@@ -200,20 +214,6 @@ class InProcessRunner:
     def close(self) -> None:
         self._engine.dispose()
         self._tmp.cleanup()
-
-
-def _missing_depth() -> QueryOutcome:
-    """The outcome of a depth estimator on a query without depth, not sent."""
-    return QueryOutcome(
-        localized=False,
-        reason=FailureReason.MISSING_DEPTH.value,
-        cam_from_world=None,
-        num_inliers=0,
-        confidence=0.0,
-        retrieved=[],
-        timings_ms={},
-        stats={"wider_retrieval": 0.0},
-    )
 
 
 def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
@@ -373,7 +373,9 @@ class HttpRunner:
                 {**params, "estimator": name},
             )
             if depth is not None or name not in DEPTH_USING_ESTIMATORS
-            else _missing_depth()
+            else QueryOutcome.not_localized(
+                FailureReason.MISSING_DEPTH.value, {"wider_retrieval": 0.0}
+            )
             for name in estimators
         ]
 
