@@ -229,6 +229,7 @@ def localize_queries(
                 "rotation_error_deg": _finite(error[1]),
                 "total_ms": outcome.timings_ms.get("total"),
                 "wider_retrieval": bool(outcome.stats.get("wider_retrieval")),
+                "retrieved": outcome.retrieved,
             }
         )
     recall = {
