@@ -42,7 +42,7 @@ def _peak() -> float:
     return memory_mb(os.getpid()) or float("nan")
 
 
-def _image(side: int, seed: int = 0) -> np.ndarray:
+def textured_image(side: int, seed: int = 0) -> np.ndarray:
     """A textured side×side RGB image (smoothed noise: keypoints everywhere)."""
     rng = np.random.default_rng(seed)
     small = rng.integers(0, 256, (max(8, side // 8), max(8, side // 8), 3), dtype=np.uint8)
@@ -62,7 +62,7 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         return _peak()
     if term == "decode":
         side = int(np.sqrt(value * 1e6))
-        ok, png = cv2.imencode(".png", _image(side))
+        ok, png = cv2.imencode(".png", textured_image(side))
         assert ok
         data = png.tobytes()
         from services.imaging.decode import decode_image
@@ -80,8 +80,8 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         return _rss() - before
     if term == "extract":
         extractor = extractor.with_budget(None, value)
-        image = _image(value)
-        extractor.extract(_image(64 * 2))  # sessions initialised before the baseline
+        image = textured_image(value)
+        extractor.extract(textured_image(64 * 2))  # sessions initialised before the baseline
         before = _rss()
         reset_peak()
         extractor.extract(image)
@@ -90,7 +90,7 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         from services.features.base import LocalFeatures
 
         rng = np.random.default_rng(1)
-        dim = extractor.extract(_image(128)).descriptors.shape[1]
+        dim = extractor.extract(textured_image(128)).descriptors.shape[1]
 
         def random_features() -> LocalFeatures:
             descriptors = rng.standard_normal((value, dim)).astype(np.float32)
