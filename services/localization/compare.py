@@ -63,17 +63,17 @@ def localize_each(
         estimate,
         clock,
     )
-    summed = clock.finish() if attempts > 1 or widened else None
+    summed = clock.finish() if attempts > 1 or any(widened) else None
     return [
         searched_answer(
             result,
             attempts,
-            widened,
+            wider,
             query.frame.adaptation,
             own_timings(summed, own) if summed else result.timings_ms,
             params.min_confidence,
         )
-        for result, own in zip(results, own_ms, strict=True)
+        for result, own, wider in zip(results, own_ms, widened, strict=True)
     ]
 
 

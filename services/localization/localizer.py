@@ -196,7 +196,7 @@ class Localizer:
             1,
             clock,
         )
-        [result], widened = widen_unsure(
+        [result], [widened] = widen_unsure(
             results,
             upright,
             lambda matched: self.match_wider(query, matched, params, store, clock, spare),

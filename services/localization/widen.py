@@ -30,23 +30,28 @@ def widen_unsure(
     match_wider: Callable[[MatchedQuery], MatchedQuery | None],
     estimate: Callable[[int, MatchedQuery], LocalizationResult],
     clock: StageClock,
-) -> tuple[list[LocalizationResult], bool]:
+) -> tuple[list[LocalizationResult], list[bool]]:
     """``results`` (the answers of the estimates ``estimate(i, matched)``) with each unsure
     one replaced by the better (``turns.better``) of it and its estimate on
-    ``match_wider(upright)``, while the budget lasts; and whether that second match ran.
-    ``match_wider`` answers None when the wider retrieval brings no other reference (a small
-    map): nothing is estimated again."""
+    ``match_wider(upright)``, while the budget lasts; and, for each, whether it was estimated
+    on that wider match. ``match_wider`` answers None when the wider retrieval brings no other
+    reference (a small map): nothing is estimated again."""
+    unchanged = [False] * len(results)
     if all(sure(r) for r in results) or clock.deadline.expired():
-        return results, False
+        return results, unchanged
     try:
         wider = match_wider(upright)
     except OutOfTimeError:
-        return results, False
+        return results, unchanged
     if wider is None:
-        return results, False
-    widened = [r if sure(r) else better(r, estimate(i, wider)) for i, r in enumerate(results)]
+        return results, unchanged
+    widened = [not sure(r) for r in results]
+    results = [
+        better(r, estimate(i, wider)) if again else r
+        for i, (r, again) in enumerate(zip(results, widened, strict=True))
+    ]
     clock.lap("estimate", check=False)
-    return widened, True
+    return results, widened
 
 
 def sure(result: LocalizationResult) -> bool:

@@ -61,7 +61,7 @@ def test_only_unsure_answers_are_estimated_again_and_keep_the_more_confident() -
         return wider_answers[i]
 
     widened, ran = widen_unsure(results, upright, match_wider, estimate, StageClock(None))
-    assert ran
+    assert ran == [False, True, True, True]  # each answer: estimated on the wider match
     assert asked == [1, 2, 3]
     assert [r.confidence for r in widened] == [0.9, 0.7, 0.3, 0.95]
 
@@ -72,7 +72,7 @@ def test_sure_answers_match_nothing_again() -> None:
 
     results = [_answer(True, SURE_CONFIDENCE), _answer(False, 0.0, reason="missing_depth")]
     widened, ran = widen_unsure(results, _matched(), match_wider, _never, StageClock(None))
-    assert not ran
+    assert ran == [False, False]
     assert widened == results
     assert sure(results[0]) and sure(results[1])
     assert not sure(_answer(True, SURE_CONFIDENCE - 0.01))
@@ -82,11 +82,11 @@ def test_no_other_reference_or_no_time_left_estimates_nothing_again() -> None:
     results = [_answer(True, 0.2)]
     for match_wider in (lambda _: None, _out_of_time):
         widened, ran = widen_unsure(results, _matched(), match_wider, _never, StageClock(None))
-        assert not ran
+        assert ran == [False]
         assert widened == results
     spent = StageClock(0.0)
     widened, ran = widen_unsure(results, _matched(), _out_of_time, _never, spent)
-    assert not ran
+    assert ran == [False]
 
 
 def test_the_wider_spacing_keeps_references_farther_apart() -> None:
