@@ -36,22 +36,22 @@ def widen_unsure(
     ``match_wider(upright)``, while the budget lasts; and, for each, whether it was estimated
     on that wider match. ``match_wider`` answers None when the wider retrieval brings no other
     reference (a small map): nothing is estimated again."""
-    unchanged = [False] * len(results)
-    if all(sure(r) for r in results) or clock.deadline.expired():
-        return results, unchanged
+    again = [not sure(r) for r in results]
+    untouched = [False] * len(results)
+    if not any(again) or clock.deadline.expired():
+        return results, untouched
     try:
         wider = match_wider(upright)
     except OutOfTimeError:
-        return results, unchanged
+        return results, untouched
     if wider is None:
-        return results, unchanged
-    widened = [not sure(r) for r in results]
+        return results, untouched
     results = [
-        better(r, estimate(i, wider)) if again else r
-        for i, (r, again) in enumerate(zip(results, widened, strict=True))
+        better(r, estimate(i, wider)) if unsure else r
+        for i, (r, unsure) in enumerate(zip(results, again, strict=True))
     ]
     clock.lap("estimate", check=False)
-    return results, widened
+    return results, again
 
 
 def sure(result: LocalizationResult) -> bool:

@@ -27,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tools.evaluation.server import memory_mb
+from tools.evaluation.server import memory_mb, reset_peak
 
 SIDES = (640, 1024, 2048)
 KEYPOINTS = (512, 1024, 2048)
@@ -68,7 +68,7 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         from services.imaging.decode import decode_image
 
         before = _rss()
-        reset_peak()
+        reset_peak(os.getpid())
         decode_image(data, 10**9)
         return _peak() - before
     config = get_feature_config(features)
@@ -83,7 +83,7 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         image = textured_image(value)
         extractor.extract(textured_image(64 * 2))  # sessions initialised before the baseline
         before = _rss()
-        reset_peak()
+        reset_peak(os.getpid())
         extractor.extract(image)
         return _peak() - before
     if term == "match":
@@ -101,15 +101,10 @@ def measure(term: str, value: int, features: str, models_dir: Path, refs: int) -
         query, references = random_features(), [random_features() for _ in range(refs)]
         matcher.match(query, references[0])  # sessions initialised before the baseline
         before = _rss()
-        reset_peak()
+        reset_peak(os.getpid())
         matcher.match_many(query, references)
         return _peak() - before
     raise ValueError(f"unknown term {term}")
-
-
-def reset_peak() -> None:
-    """Resets this process's VmHWM to its current resident size (Linux ``clear_refs`` 5)."""
-    Path(f"/proc/{os.getpid()}/clear_refs").write_text("5")
 
 
 def main() -> None:

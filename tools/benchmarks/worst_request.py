@@ -37,7 +37,7 @@ from services.geometry.rigid import Rigid3d
 from tools.benchmarks.memory_terms import textured_image
 from tools.evaluation.datasets import PosedImage
 from tools.evaluation.runner import HttpRunner
-from tools.evaluation.server import LocalServer, memory_mb
+from tools.evaluation.server import LocalServer, memory_mb, reset_peak
 
 REFERENCE_SIDE = 1024
 # the per-worker terms of the bound a localize goes through, in the order it does
@@ -95,10 +95,6 @@ def _query(pixels: int) -> tuple[bytes, bytes, Camera]:
     return _jpeg(texture), png.tobytes(), _camera(width, height)
 
 
-def _reset_peak(pid: int) -> None:
-    Path(f"/proc/{pid}/clear_refs").write_text("5")
-
-
 def build_map(env: dict[str, str], folder: Path, args: argparse.Namespace) -> str:
     """The synthetic map, its retrieval vocabulary trained; its id."""
     with LocalServer(env) as server:
@@ -144,7 +140,7 @@ def one_worker(
         added = []
         for _ in range(args.repeats):
             before = memory_mb(server.pid, "VmRSS") or float("nan")
-            _reset_peak(server.pid)
+            reset_peak(server.pid)
             outcome = runner.localize(image, depth, _params(camera, args.references))
             added.append((memory_mb(server.pid) or float("nan")) - before)
             print(

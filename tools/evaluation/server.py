@@ -40,6 +40,12 @@ def memory_mb(pid: int, field: str = "VmHWM") -> float | None:
     return None
 
 
+def reset_peak(pid: int) -> None:
+    """Resets process ``pid``'s ``VmHWM`` to its current resident size (Linux
+    ``/proc/<pid>/clear_refs`` 5)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
 class LocalServer:
     """``slloc serve`` on 127.0.0.1 and a free port, auth off, SQLite in a temporary folder;
     a context manager that waits for ``/v1/health`` and stops the process on exit."""
