@@ -86,15 +86,17 @@ def build_features(
     config: FeatureConfig, models: ModelStore, wide_threads: int | None = None
 ) -> tuple[FeatureExtractor, Matcher]:
     """The extractor and matcher of ``config``, on the sessions of ``models``.
-    ``wide_threads``: the threads of the extractor's second session, run when a request's
-    extraction borrows every idle worker (None: no second session).
+    ``wide_threads``: the threads of an extraction that borrows every idle worker: SIFT's
+    OpenCV threads, or the threads of a second session of the extractor's network (None:
+    extractions run on one worker's threads).
 
     Raises:
         ModelsMissingError: a model ``config`` needs is not built.
     """
     nearest = NearestNeighborMatcher(config.ratio, config.min_similarity)
     if config.extractor == SIFT:
-        return SiftExtractor(SiftOptions(config.max_keypoints, config.max_side)), nearest
+        options = SiftOptions(config.max_keypoints, config.max_side)
+        return SiftExtractor(options, wide_threads), nearest
     entry = models.entry(config.extractor)
     extractor = OnnxKeypointExtractor(
         models.session(config.extractor),
@@ -187,8 +189,8 @@ class EngineConfig:
         onnx: the onnxruntime sessions' options.
         global_model: the ONNX global descriptor (its contract:
             ``services/retrieval/onnx_global.py``); None: thumbnails, with VLAD retrieval.
-        wide_threads: the threads of the extractor's second session, for requests that
-            borrow every idle worker (None: none; ``build_features``).
+        wide_threads: the threads of an extraction that borrows every idle worker (None:
+            none; ``build_features``).
         reference_image_cache_mib: the reference images kept decoded for the refinement of
             matches (``services.references.images``), MiB; 0 = none kept.
     """
@@ -345,7 +347,10 @@ class Localizers:
             if name not in self.choices:
                 raise PresetUnavailableError(self.refusal(name))
             config = get_feature_config(name)
-            extractor, matcher = build_features(config, self._models)
+            # a second network session would cost the model's memory again; OpenCV's wider
+            # threads cost none
+            wide = self.engine.wide_threads if config.extractor == SIFT else None
+            extractor, matcher = build_features(config, self._models, wide)
             localizer = Localizer(
                 extractor,
                 matcher,

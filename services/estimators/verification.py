@@ -44,6 +44,9 @@ from services.types import BoolArray, FloatArray, IntArray
 
 logger = logging.getLogger(__name__)
 
+# the stat ``verify_pose`` adds to a result it checked: its verified 3D points
+VERIFIED_POINTS = "verified_points"
+
 # Two rays closer to parallel than this (sine of their angle, ~0.006°) do not triangulate.
 _MIN_SINE = 1e-4
 
@@ -390,7 +393,7 @@ def verify_pose(
         )
     stats = {
         **result.stats,
-        "verified_points": float(verified),
+        VERIFIED_POINTS: float(verified),
         "multi_reference_tracks": float(tracks),
     }
     if verified < options.verification.min_verified_points:

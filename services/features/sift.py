@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 
 import cv2
@@ -9,6 +10,7 @@ import numpy as np
 
 from services.features.base import LocalFeatures
 from services.runtime.spare_workers import SpareWorkers
+from services.runtime.threads import opencv_threads
 from services.types import UInt8Array
 
 
@@ -29,10 +31,15 @@ class SiftOptions:
 
 
 class SiftExtractor:
-    """SIFT keypoints with RootSIFT descriptors (Arandjelović & Zisserman 2012)."""
+    """SIFT keypoints with RootSIFT descriptors (Arandjelović & Zisserman 2012).
 
-    def __init__(self, options: SiftOptions | None = None) -> None:
+    ``wide_threads``: OpenCV's threads for an extraction that borrows every idle worker
+    (None: it runs on the threads of one worker). SIFT on a 640 × 480 frame takes about 75 ms
+    on one thread and 43 ms on two."""
+
+    def __init__(self, options: SiftOptions | None = None, wide_threads: int | None = None) -> None:
         self.options = options or SiftOptions()
+        self.wide_threads = wide_threads
         o = self.options
         self.max_side = o.max_side
         self.name = f"sift-rootsift-{o.max_keypoints}-{o.max_side}-c{o.contrast_threshold:g}"
@@ -49,11 +56,13 @@ class SiftExtractor:
                 self.options,
                 max_keypoints=max_keypoints or self.options.max_keypoints,
                 max_side=max_side or self.options.max_side,
-            )
+            ),
+            self.wide_threads,
         )
 
     def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
-        """``spare`` is not used: OpenCV's threads are set for the whole process."""
+        """``spare``: when every idle worker can be borrowed, OpenCV runs on their threads
+        (``wide_threads``) for this extraction."""
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         height, width = gray.shape
         scale = min(1.0, self.options.max_side / max(height, width))
@@ -65,7 +74,10 @@ class SiftExtractor:
             nfeatures=self.options.max_keypoints,
             contrastThreshold=self.options.contrast_threshold,
         )
-        cv_keypoints, descriptors = sift.detectAndCompute(gray, None)
+        threads = self.wide_threads or 0
+        lend = spare.borrow_all() if spare is not None and threads else None
+        with lend or nullcontext(False) as wide, opencv_threads(threads) if wide else nullcontext():
+            cv_keypoints, descriptors = sift.detectAndCompute(gray, None)
         if descriptors is None or len(cv_keypoints) == 0:
             return LocalFeatures(
                 np.zeros((0, 2), np.float32),

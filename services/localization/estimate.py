@@ -19,7 +19,7 @@ from services.estimators.focal import estimate_focal
 from services.estimators.options import EstimatorOptions
 from services.estimators.ransac import Deadline, DeadlinePassedError
 from services.estimators.uncertainty import PoseUncertainty, with_uncertainty
-from services.estimators.verification import verify_pose
+from services.estimators.verification import VERIFIED_POINTS, verify_pose
 from services.geometry.camera import Camera
 from services.localization.undistort import undistort_matches
 
@@ -88,8 +88,10 @@ def answer_pose(
 
     estimated = estimator.estimate(camera, references, options)
     late = spent(estimated)
+    # a pose verified already (``auto`` verifies each pose it compares) is not checked again
+    checked = late is not None or VERIFIED_POINTS in estimated.stats
     verified = (
-        verify_pose(estimated, camera, references, options, deadline) if late is None else estimated
+        estimated if checked else verify_pose(estimated, camera, references, options, deadline)
     )
     late = late or spent(verified)
     if late is not None:

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import cv2
@@ -88,3 +91,21 @@ def apply_thread_plan(plan: ThreadPlan) -> None:
         plan.workers,
         plan.threads_per_worker,
     )
+
+
+_opencv_threads_lock = threading.Lock()
+
+
+@contextmanager
+def opencv_threads(threads: int) -> Iterator[None]:
+    """OpenCV's threads set to ``threads`` for the block, then set back. The setting is the
+    process's: hold every worker slot meanwhile (``SpareWorkers.borrow_all``) so that no other
+    request computes. An OpenCV call that starts on another thread while the block's runs
+    on its threads runs on its own thread alone (OpenCV runs one parallel region at a time)."""
+    with _opencv_threads_lock:
+        before = cv2.getNumThreads()
+        cv2.setNumThreads(threads)
+        try:
+            yield
+        finally:
+            cv2.setNumThreads(before)

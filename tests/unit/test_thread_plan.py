@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import os
+import threading
 
 import cv2
+import numpy as np
 import pytest
 from threadpoolctl import threadpool_info
 
-from services.runtime.threads import ThreadPlan, apply_thread_plan, plan_threads, usable_cores
+from services.features.sift import SiftExtractor
+from services.runtime.spare_workers import SpareWorkers
+from services.runtime.threads import (
+    ThreadPlan,
+    apply_thread_plan,
+    opencv_threads,
+    plan_threads,
+    usable_cores,
+)
+from tools.synthetic.scene import SyntheticView
 
 
 class TestPlanThreads:
@@ -55,3 +66,45 @@ def test_apply_limits_opencv_and_blas() -> None:
         assert all(pool["num_threads"] == 1 for pool in threadpool_info())
     finally:
         cv2.setNumThreads(before_cv)
+
+
+def test_opencv_threads_are_set_for_the_block_then_set_back() -> None:
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        with opencv_threads(3):
+            assert cv2.getNumThreads() == 3
+        assert cv2.getNumThreads() == 1
+        with pytest.raises(RuntimeError), opencv_threads(2):
+            raise RuntimeError("the block failed")
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
+
+
+@pytest.mark.parametrize("idle", [True, False])
+def test_sift_on_borrowed_workers_finds_the_same_features(
+    reference_views: list[SyntheticView], idle: bool
+) -> None:
+    """SIFT on every worker's threads (when the request can borrow the idle workers) answers as
+    on one worker's; OpenCV's threads and the slots are back afterwards, and a busy worker is
+    not borrowed."""
+    before = cv2.getNumThreads()
+    slots = threading.BoundedSemaphore(2)
+    spare = SpareWorkers(slots, most=1)
+    slots.acquire()  # the request itself
+    if not idle:
+        slots.acquire()  # another request computing
+    image = reference_views[0].image
+    try:
+        cv2.setNumThreads(1)
+        wide = SiftExtractor(wide_threads=2).extract(image, spare)
+        assert cv2.getNumThreads() == 1
+        narrow = SiftExtractor().extract(image)
+        assert slots.acquire(blocking=False) == idle  # the borrowed slot went back
+    finally:
+        spare.shutdown()
+        cv2.setNumThreads(before)
+    assert len(wide) == len(narrow) > 500
+    np.testing.assert_array_equal(wide.keypoints, narrow.keypoints)
+    np.testing.assert_array_equal(wide.descriptors, narrow.descriptors)
