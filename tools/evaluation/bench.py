@@ -283,12 +283,13 @@ def _start(
         url, args.api_key, "slloc-bench", features={"preset": features} if features else None
     )
     stack.callback(loader.close)
-    label = features or loader.features
     start = time.perf_counter()
     for image in references:
         depth = image.depth_path.read_bytes() if image.depth_path else None
         loader.add_reference(image, depth)
     loader.index_references(len(references))  # the retrieval slloc eval measures accuracy with
+    # a map created with the defaults is labelled with the configuration it settled on
+    label = features or loader.features
     print(
         f"{label}: loaded {len(references)} references into map {loader.map_id} on {url} "
         f"in {time.perf_counter() - start:.0f} s",

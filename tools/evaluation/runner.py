@@ -299,14 +299,14 @@ class HttpRunner:
         )
 
     def index_references(self, count: int) -> None:
-        """Also waits until the map is ready (``features.state``): a map that follows its
-        self-evaluation is evaluated and may take another configuration first, which
-        ``features`` then names."""
+        """Waits until the map is ready (``features.state``) first: a map that follows its
+        self-evaluation is evaluated and may take another configuration, which ``features``
+        then names, and its vocabulary is trained on the features it settled on."""
+        self.features = self.wait_ready()
         if count >= MIN_IMAGES and not self.map_id_given:  # else evaluated as it is
             response = self._client.post(f"/v1/maps/{self.map_id}/reindex")
             if response.status_code != 409:  # 409: retrieval by an ONNX global model
                 response.raise_for_status()
-        self.features = self.wait_ready()
 
     def wait_ready(self, timeout_s: float = 3600.0, poll_s: float = 2.0) -> str:
         """Polls the map until it is neither evaluating nor re-describing its references
