@@ -20,7 +20,8 @@ from tools.evaluation.runner import InProcessRunner
 from tools.evaluation.server import LocalServer, free_port
 from tools.synthetic.scene import SyntheticScene
 
-ESTIMATORS = "e5p1,e3p1,local_tri_all"
+# auto uses the query's depth when sent and localizes without it (the unrelated image)
+ESTIMATORS = "e5p1,e3p1,local_tri_all,auto"
 
 
 def run_eval(csv_path: Path, out: Path, *extra: str) -> tuple[int, dict[str, Any]]:
@@ -56,7 +57,7 @@ def test_in_process_reaches_guaranteed_recall(
         assert summary["failures"] == {}
         assert summary["unrelated_queries"] == 1 and summary["unrelated_accepted"] == 0
         assert summary["timings_ms"]["total"]["median"] > 0
-    assert len(in_process["queries"]) == 3 * (NUM_QUERIES + 1)
+    assert len(in_process["queries"]) == len(summaries) * (NUM_QUERIES + 1)
     assert not in_process["meta"]["interrupted"]
 
 

@@ -77,6 +77,7 @@ def _row(dataset: str, figures: dict[str, Any]) -> str:
     query = figures["queries"]
     recalls = " | ".join(f"{query['recall'][recall_key(m, d)] * 100:.0f}" for m, d in THRESHOLDS)
     median = query["position_error_m"]["median"]
+    latency = query["timings_ms"].get("total", {}).get("median")  # none when none answered
     runs = ", ".join(
         f"{e['references']}→{e['recommended']} ({e['duration_s']:.0f} s)"
         for e in figures["evaluations"]
@@ -84,7 +85,7 @@ def _row(dataset: str, figures: dict[str, Any]) -> str:
     return (
         f"| {dataset} | {figures['preset']} | {recalls} "
         f"| {'–' if median is None else f'{median * 100:.1f}'} "
-        f"| {query['timings_ms']['total']['median']:.0f} | {runs or 'none'} "
+        f"| {'–' if latency is None else f'{latency:.0f}'} | {runs or 'none'} "
         f"| {figures['eval_s']:.0f} |"
     )
 

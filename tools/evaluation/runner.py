@@ -36,7 +36,11 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import EngineConfig, Localizers, build_localizer
 from services.estimators.base import FailureReason
-from services.estimators.registry import DEFAULT_ESTIMATOR, DEPTH_USING_ESTIMATORS
+from services.estimators.registry import (
+    DEFAULT_ESTIMATOR,
+    DEPTH_ESTIMATORS,
+    DEPTH_USING_ESTIMATORS,
+)
 from services.localization.answer import LocalizationResult
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES
@@ -363,16 +367,17 @@ class HttpRunner:
         params: dict[str, Any],
         estimators: Sequence[str],
     ) -> list[QueryOutcome]:
-        """One request per estimator: the API localizes with one estimator at a time. A depth
-        estimator is not asked without the query's depth (the API refuses it with 422): its
-        outcome is ``missing_depth``, as the engine answers in process."""
+        """One request per estimator: the API localizes with one estimator at a time, sending
+        the query's depth to those that use it. An estimator that needs depth is not asked
+        without it (the API refuses it with 422): its outcome is ``missing_depth``, as the
+        engine answers in process."""
         return [
             self.localize(
                 image,
                 depth if name in DEPTH_USING_ESTIMATORS else None,
                 {**params, "estimator": name},
             )
-            if depth is not None or name not in DEPTH_USING_ESTIMATORS
+            if depth is not None or name not in DEPTH_ESTIMATORS
             else QueryOutcome.not_localized(
                 FailureReason.MISSING_DEPTH.value, {"wider_retrieval": 0.0}
             )
