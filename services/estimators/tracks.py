@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.estimators.correspondences import StackedMatches
+from services.estimators.correspondences import StackedMatches, unique_points
 from services.estimators.options import EstimatorOptions
 from services.estimators.poselib_bridge import (
     estimate_absolute_pose,
@@ -71,11 +71,7 @@ def build_tracks(stacked: StackedMatches, merge_px: float = 0.0) -> Tracks:
     if n == 0:
         return Tracks(np.zeros((0, num_refs), np.int64), np.zeros(0, np.int64))
     keys = np.floor(stacked.query_xy / merge_px) if merge_px > 0 else stacked.query_xy
-    # (x, y) rows as complex numbers: a 1-D unique in the same (lexicographic) order, ~5×
-    # faster than np.unique(axis=0)
-    rows = np.ascontiguousarray(keys, dtype=np.float64).view(np.complex128).reshape(-1)
-    _, first, track_of = np.unique(rows, return_index=True, return_inverse=True)
-    track_of = track_of.reshape(-1)
+    _, first, track_of = unique_points(keys)
     match_index = np.full((first.shape[0], num_refs), -1, dtype=np.int64)
     # later matches of the same keypoint in the same reference overwrite earlier ones
     match_index[track_of, stacked.ref_index] = np.arange(n)

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
+from services.estimators.correspondences import unique_points
 from services.estimators.options import EstimatorOptions
 from services.estimators.ransac import Deadline, DeadlinePassedError
 from services.geometry.camera import Camera
@@ -304,7 +305,7 @@ def check_structure(
         return None
     _poll(deadline)
     query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
-    track_xy, track_ids = np.unique(query_xy, axis=0, return_inverse=True)
+    track_xy, _, track_ids = unique_points(query_xy)
     _poll(deadline)
     check = verify_by_reference_triangulation(
         cam_from_world.rotation,
@@ -319,12 +320,12 @@ def check_structure(
                 for i in used
             ]
         ),
-        track_ids.reshape(-1).astype(np.int64),
+        track_ids,
         max_error_px / float(np.mean(query_camera.focal_lengths)),
         np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
         deadline=deadline,
     )
-    return check, np.asarray(track_xy, dtype=np.float64)
+    return check, track_xy
 
 
 def count_verified_points(

@@ -11,6 +11,7 @@ from services.estimators.correspondences import (
     pose_sampson_errors_px,
     random_subset,
     stack_matches,
+    unique_points,
 )
 from services.estimators.options import EstimatorOptions
 from services.estimators.pose_triangulation import sampled_solver, solve_5pt
@@ -93,6 +94,23 @@ def test_tracks_group_shared_query_keypoints() -> None:
     np.testing.assert_array_equal(tracks.observed.sum(axis=1), [1, 2, 1])
     merged = build_tracks(stack_matches(cam, refs), merge_px=100.0)
     assert merged.size == 1
+
+
+def test_unique_points_is_numpys_row_unique() -> None:
+    """Distinct rows, first occurrences and each row's index as ``np.unique(axis=0)`` gives
+    them, on keypoints shared across references (repeats, equal x with different y)."""
+    rng = np.random.default_rng(5)
+    keypoints = np.round(rng.uniform(0.5, 640.5, (300, 2)), 2)
+    keypoints[:40, 0] = keypoints[40:80, 0]  # same x, another y
+    xy = keypoints[rng.integers(0, 300, 2000)]
+    points, first, inverse = unique_points(xy)
+    expected, expected_first, expected_inverse = np.unique(
+        xy, axis=0, return_index=True, return_inverse=True
+    )
+    np.testing.assert_array_equal(points, expected)
+    np.testing.assert_array_equal(first, expected_first)
+    np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+    np.testing.assert_array_equal(points[inverse], xy)
 
 
 def test_world_frame_sampson_matches_pairwise_sampson() -> None:
