@@ -177,9 +177,7 @@ def refine_on_points(
     for round_index in range(rounds):
         if deadline.expired():
             break
-        projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
-        err = np.linalg.norm(projected - query_xy, axis=1)
-        err = np.where(np.isfinite(err), err, np.inf)
+        err = reprojection_errors(pose, points3d, query_xy, query_camera)
         cap = (
             initial_px
             if round_index == 0 and initial_px is not None
@@ -192,3 +190,38 @@ def refine_on_points(
         pose = refine_absolute_pose(query_xy[inl], points3d[inl], query_camera, pose, thr / 4.0)
         used = int(inl.sum())
     return pose, used
+
+
+def refine_keeping_support(
+    pose: Rigid3d,
+    points3d: FloatArray,
+    query_xy: FloatArray,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+) -> tuple[Rigid3d, int]:
+    """``refine_on_points``, whose adaptive threshold and tight loss sharpen a RANSAC pose on
+    its best-fitting points, kept only when at least as many of the points reproject within
+    ``max_error_px`` of the refined pose as of ``pose`` (with a few dozen points the adaptive
+    threshold can fit a pose that fewer of them support). Returns the pose and the points the
+    refinement used (0 when ``pose`` is kept)."""
+    refined, used = refine_on_points(pose, points3d, query_xy, query_camera, options, deadline)
+    limit = options.ransac.max_error_px
+
+    def support(candidate: Rigid3d) -> int:
+        errors = reprojection_errors(candidate, points3d, query_xy, query_camera)
+        return int(np.count_nonzero(errors < limit))
+
+    if used == 0 or support(refined) < support(pose):
+        return pose, 0
+    return refined, used
+
+
+def reprojection_errors(
+    pose: Rigid3d, points3d: FloatArray, query_xy: FloatArray, query_camera: Camera
+) -> FloatArray:
+    """Pixel distance of each point's projection by ``pose`` from its query keypoint (inf for
+    a point behind the camera or off the image plane)."""
+    projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
+    err = np.linalg.norm(projected - query_xy, axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
