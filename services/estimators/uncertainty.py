@@ -91,16 +91,11 @@ def capped_confidence(
 ) -> float:
     """``confidence``, capped at ``options.capped_confidence`` when the 3σ uncertainty exceeds
     the limits, when the focal length was estimated and no uncertainty could be computed, or
-    when ``auto``'s other verified pose lies farther from the answer than
-    ``max_disagreement_m`` or is turned more than ``max_disagreement_deg`` from it
-    (``auto_other_position_m`` / ``auto_other_rotation_deg`` in ``stats``: on redkitchen,
-    answers whose two poses from the same matches lay that far apart were right about half
-    the time)."""
+    when ``auto``'s other verified pose is turned more than ``max_disagreement_deg`` from the
+    answer (``auto_other_rotation_deg`` in ``stats``: on redkitchen, a third of the answers
+    whose two poses from the same matches were turned that far apart were right)."""
     stats = stats or {}
-    disagree = (
-        stats.get("auto_other_position_m", 0.0) > options.max_disagreement_m
-        or stats.get("auto_other_rotation_deg", 0.0) > options.max_disagreement_deg
-    )
+    disagree = stats.get("auto_other_rotation_deg", 0.0) > options.max_disagreement_deg
     if disagree or (uncertainty is None and focal_estimated):
         return min(confidence, options.capped_confidence)
     if uncertainty is not None and (

@@ -115,13 +115,15 @@ class TestCappedConfidence:
 
     @pytest.mark.parametrize(
         ("position_m", "rotation_deg", "expected"),
-        [(0.24, 4.1, 0.5), (0.31, 1.0, 0.5), (0.12, 2.8, 0.97), (0.25, 4.0, 0.97)],
+        [(0.24, 4.1, 0.5), (0.12, 2.8, 0.97), (0.25, 4.0, 0.97), (4.0, 0.1, 0.97)],
     )
-    def test_auto_poses_farther_apart_than_the_limits_cap(
+    def test_auto_poses_turned_farther_apart_than_the_limit_cap(
         self, position_m: float, rotation_deg: float, expected: float
     ) -> None:
         small = PoseUncertainty(0.01, 0.2, 100, 1.0)
         stats = {"auto_other_position_m": position_m, "auto_other_rotation_deg": rotation_deg}
+        # positions metres apart with the rotations agreeing (E5+1 along a straight road) do
+        # not cap: the model reads the agreement
         capped = capped_confidence(0.97, small, self.OPTIONS, False, stats)
         assert capped == expected
         # without an uncertainty too, and whatever the other stats
