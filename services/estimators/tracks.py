@@ -221,7 +221,7 @@ def reprojection_errors(
     pose: Rigid3d, points3d: FloatArray, query_xy: FloatArray, query_camera: Camera
 ) -> FloatArray:
     """Pixel distance of each point's projection by ``pose`` from its query keypoint (inf for
-    a point behind the camera or off the image plane)."""
+    a point on or behind the camera's plane)."""
     projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
     err = np.linalg.norm(projected - query_xy, axis=1)
     return np.where(np.isfinite(err), err, np.inf)
