@@ -10,8 +10,9 @@ class UncertaintyOut(BaseModel):
     without intrinsics and the pose uncertainty')."""
 
     position_m: float = Field(
-        description="Root-mean-square camera-centre error predicted by the pose covariance, "
-        "in map units (metres on a metric map); 3 × this bounds the error in nearly all cases"
+        description="Root-mean-square camera-centre error predicted by the pose covariance "
+        "(the verified points' own uncertainty included), in map units (metres on a metric "
+        "map); 3 × this bounds the error in nearly all cases"
     )
     rotation_deg: float = Field(
         description="Root-mean-square rotation error predicted by the covariance, degrees"

@@ -5,8 +5,16 @@ Whatever the estimator, the pose's inlier tracks are triangulated from the refer
 keypoints give the first-order covariance of the pose at the answer
 (``services.geometry.pose_covariance``: Gauss–Newton, pixel noise estimated from the
 residuals, the focal length a free parameter when it was estimated, so its uncertainty widens
-the pose's). Reported as root-mean-square errors: ``position_m = sqrt(trace Σ_C)`` and
+the pose's). Each point carries the uncertainty of its own triangulation from the references
+(their observations at the same pixel noise): a query beyond the map's end, resting on points
+that references a metre apart saw tens of metres away, is placed along its view no better than
+those points are. Reported as root-mean-square errors: ``position_m = sqrt(trace Σ_C)`` and
 ``rotation_deg = sqrt(trace Σ_θ)``.
+
+The confidence model reads the covariance given the points (the points exact:
+``position_sigma_m``, ``rotation_sigma_deg`` in the stats), the one it was fitted on; the
+uncertainty reported and the cap use the one with the points' own uncertainty
+(``structure_position_sigma_m``, ``structure_rotation_sigma_deg``).
 """
 
 from __future__ import annotations
@@ -19,25 +27,31 @@ import numpy as np
 from services.estimators.base import EstimateResult, ReferenceObservation
 from services.estimators.options import EstimatorOptions, UncertaintyOptions
 from services.estimators.ransac import Deadline
-from services.estimators.verification import check_structure
+from services.estimators.verification import CheckedTracks, check_structure
 from services.geometry.camera import Camera
-from services.geometry.pose_covariance import pose_covariance
+from services.geometry.pose_covariance import pose_covariance, reference_point_information
 from services.geometry.projection import normalized_from_pixels
+from services.types import FloatArray
 
 
 @dataclass(frozen=True)
 class PoseUncertainty:
     """Attributes:
-    position_m: RMS camera-centre error predicted, map units (metres on a metric map).
-    rotation_deg: RMS rotation-angle error predicted, degrees.
+    position_m: RMS camera-centre error predicted, map units (metres on a metric map), the
+        points' own uncertainty included.
+    rotation_deg: RMS rotation-angle error predicted, degrees, the same.
     num_points: verified 3D points it rests on.
     sigma_px: the pixel noise estimated from their residuals.
+    given_points_position_m: the RMS camera-centre error were the points exact.
+    given_points_rotation_deg: the same for the rotation.
     """
 
     position_m: float
     rotation_deg: float
     num_points: int
     sigma_px: float
+    given_points_position_m: float
+    given_points_rotation_deg: float
 
 
 def pose_uncertainty(
@@ -48,8 +62,8 @@ def pose_uncertainty(
     focal_estimated: bool,
     deadline: Deadline | None = None,
 ) -> PoseUncertainty | None:
-    """The uncertainty of ``result``'s pose; None without a pose or with fewer than
-    ``options.uncertainty.min_points`` verified points.
+    """The uncertainty of ``result``'s pose; None without a pose, with fewer than
+    ``options.uncertainty.min_points`` verified points or when they leave it undetermined.
 
     Raises:
         DeadlinePassedError: ``deadline`` passed during the structure check.
@@ -62,23 +76,54 @@ def pose_uncertainty(
     )
     if checked is None:
         return None
-    check, track_xy = checked
+    check = checked.check
     verified = check.point_verified
     if int(verified.sum()) < options.uncertainty.min_points:
         return None
     focal = float(np.mean(query_camera.focal_lengths))
     # undistorted pixels relative to the principal point, at the mean focal length
-    centered = normalized_from_pixels(query_camera, track_xy[verified]) * focal
-    covariance = pose_covariance(
-        pose, check.points[verified], centered, focal, with_focal=focal_estimated
+    centered = normalized_from_pixels(query_camera, checked.track_xy[verified]) * focal
+    points = check.points[verified]
+    given_points = pose_covariance(pose, points, centered, focal, with_focal=focal_estimated)
+    if given_points is None:
+        return None
+    with_points = pose_covariance(
+        pose,
+        points,
+        centered,
+        focal,
+        with_focal=focal_estimated,
+        point_information=_reference_information(checked, references),
     )
-    if covariance is None:
+    if with_points is None:  # the points' own freedom leaves the pose undetermined
         return None
     return PoseUncertainty(
-        covariance.position_rms,
-        covariance.rotation_rms_deg,
-        covariance.num_points,
-        covariance.sigma_px,
+        with_points.position_rms,
+        with_points.rotation_rms_deg,
+        given_points.num_points,
+        given_points.sigma_px,
+        given_points.position_rms,
+        given_points.rotation_rms_deg,
+    )
+
+
+def _reference_information(
+    checked: CheckedTracks, references: list[ReferenceObservation]
+) -> FloatArray:
+    """(V, 3, 3) what the agreeing reference observations of each verified point tell of it
+    (``reference_point_information``), in the order of the verified points."""
+    check = checked.check
+    verified = np.flatnonzero(check.point_verified)
+    index_of = np.full(len(check.point_verified), -1, np.int64)
+    index_of[verified] = np.arange(len(verified))
+    rows = np.flatnonzero(check.correspondence_verified)
+    observing = [references[i] for i in checked.reference_of[rows]]
+    return reference_point_information(
+        check.points[verified],
+        index_of[checked.track_of[rows]],
+        np.array([r.cam_from_world.rotation for r in observing]).reshape(-1, 3, 3),
+        np.array([r.cam_from_world.translation for r in observing]).reshape(-1, 3),
+        np.array([float(np.mean(r.camera.focal_lengths)) for r in observing]),
     )
 
 
@@ -112,8 +157,10 @@ def uncertainty_stats(uncertainty: PoseUncertainty | None) -> dict[str, float]:
     if uncertainty is None:
         return {}
     return {
-        "position_sigma_m": uncertainty.position_m,
-        "rotation_sigma_deg": uncertainty.rotation_deg,
+        "position_sigma_m": uncertainty.given_points_position_m,
+        "rotation_sigma_deg": uncertainty.given_points_rotation_deg,
+        "structure_position_sigma_m": uncertainty.position_m,
+        "structure_rotation_sigma_deg": uncertainty.rotation_deg,
         "uncertainty_points": float(uncertainty.num_points),
         "uncertainty_sigma_px": uncertainty.sigma_px,
     }

@@ -283,6 +283,23 @@ def _normalized(camera: Camera, xy: FloatArray) -> FloatArray:
     return normalized_from_pixels(camera, xy)
 
 
+@dataclass(frozen=True)
+class CheckedTracks:
+    """A pose's inlier tracks checked in 3D (``check_structure``).
+
+    Attributes:
+        check: the ``StructureCheck``; its correspondences are the rows below.
+        track_xy: (T, 2) the query pixel of each track (its ``check.points`` row).
+        track_of: (K,) the track of each inlier correspondence.
+        reference_of: (K,) the index into the references of each.
+    """
+
+    check: StructureCheck
+    track_xy: FloatArray
+    track_of: IntArray
+    reference_of: IntArray
+
+
 def check_structure(
     query_camera: Camera,
     cam_from_world: Rigid3d,
@@ -290,9 +307,9 @@ def check_structure(
     inliers: list[BoolArray],
     max_error_px: float,
     deadline: Deadline | None = None,
-) -> tuple[StructureCheck, FloatArray] | None:
-    """``verify_by_reference_triangulation`` of a pose's inlier tracks, and the (T, 2) query
-    pixel of each track (its ``points`` row); None with inliers in fewer than two references.
+) -> CheckedTracks | None:
+    """``verify_by_reference_triangulation`` of a pose's inlier tracks; None with inliers in
+    fewer than two references.
 
     Query keypoints are identified across references by their exact pixel coordinates (every
     reference is matched against the same query keypoint array).
@@ -307,6 +324,7 @@ def check_structure(
     query_xy = np.concatenate([references[i].query_xy[inliers[i]] for i in used])
     track_xy, _, track_ids = unique_points(query_xy)
     _poll(deadline)
+    reference_of = np.concatenate([np.full(int(inliers[i].sum()), i, np.int64) for i in used])
     check = verify_by_reference_triangulation(
         cam_from_world.rotation,
         cam_from_world.translation,
@@ -325,7 +343,7 @@ def check_structure(
         np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
         deadline=deadline,
     )
-    return check, track_xy
+    return CheckedTracks(check, track_xy, track_ids.astype(np.int64), reference_of)
 
 
 def count_verified_points(
@@ -342,7 +360,7 @@ def count_verified_points(
     )
     if checked is None:
         return 0, 0
-    return checked[0].num_verified_points, checked[0].num_tracks
+    return checked.check.num_verified_points, checked.check.num_tracks
 
 
 def verify_pose(

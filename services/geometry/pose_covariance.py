@@ -5,8 +5,18 @@ problem at the given pose, with the pixel noise σ² estimated from the residual
 
 Parameters: a rotation perturbation ``δθ`` (radians, ``R = exp([δθ]×) R₀``: the angle of the
 rotation error is ``|δθ|``), the camera centre ``C`` (world units) and, with ``with_focal``,
-the focal length ``f`` (pixels). Points are treated as exact, so the covariance describes the
-pose given the points; errors of the points enter only through the residuals they cause.
+the focal length ``f`` (pixels).
+
+Without ``point_information`` the points are treated as exact: the covariance describes the pose
+given the points. With it, each point carries the uncertainty of its own triangulation (the
+information its reference observations give, ``reference_point_information``) and the
+covariance is that of the pose with the points estimated jointly: the points are eliminated by
+their Schur complement. Points triangulated from references close together seen from far away
+are poorly placed along their rays, and so is a pose resting on them. The pixel noise is still
+the query residuals', which already carry the points' errors: the points' errors count twice,
+and the covariance is conservative (on synthetic scenes of such points the predicted RMS
+position error is about twice the actual one; taking the points as exact predicts a sixth of
+it).
 """
 
 from __future__ import annotations
@@ -16,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.geometry.rigid import Rigid3d
-from services.types import FloatArray
+from services.types import FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -104,12 +114,49 @@ def reprojection_jacobian(
     return projected, jacobian
 
 
+def reference_point_information(
+    points3d: FloatArray,
+    point_of: IntArray,
+    rotations: FloatArray,
+    translations: FloatArray,
+    focals: FloatArray,
+) -> FloatArray:
+    """The information each point's reference observations give about it, ``Σ_k A_kᵀ A_k``
+    with ``A_k`` the Jacobian of observation k's pixel projection over the point (units of
+    pixel noise: divide by σ² for the inverse covariance).
+
+    Args:
+        points3d: (T, 3) world points.
+        point_of: (K,) the point each observation is of.
+        rotations: (K, 3, 3) ``cam_from_world`` rotation of the observing camera.
+        translations: (K, 3) its translation.
+        focals: (K,) its focal length, pixels.
+    Returns:
+        (T, 3, 3); zero for a point no observation sees (or none in front).
+    """
+    X_cam = np.einsum("kij,kj->ki", rotations, points3d[point_of]) + translations
+    z = X_cam[:, 2]
+    front = z > 1e-9
+    z = np.where(front, z, 1.0)
+    d_proj = np.zeros((len(z), 2, 3))  # ∂(u, v)/∂X_cam
+    d_proj[:, 0, 0] = d_proj[:, 1, 1] = focals / z
+    d_proj[:, 0, 2] = -focals * X_cam[:, 0] / z**2
+    d_proj[:, 1, 2] = -focals * X_cam[:, 1] / z**2
+    jacobian = (d_proj @ rotations) * front[:, None, None]  # ∂X_cam/∂X = R
+    per_observation = (np.swapaxes(jacobian, 1, 2) @ jacobian).reshape(-1, 9)
+    count = points3d.shape[0]
+    sums = [np.bincount(point_of, weights=per_observation[:, j], minlength=count) for j in range(9)]
+    information = np.stack(sums, axis=1).astype(np.float64).reshape(count, 3, 3)
+    return information
+
+
 def pose_covariance(
     cam_from_world: Rigid3d,
     points3d: FloatArray,
     centered_xy: FloatArray,
     focal: float,
     with_focal: bool = False,
+    point_information: FloatArray | None = None,
 ) -> PoseCovariance | None:
     """Covariance of the pose (and focal) at ``cam_from_world``.
 
@@ -118,6 +165,8 @@ def pose_covariance(
         centered_xy: (N, 2) observed pixels minus the principal point (undistorted).
         focal: focal length, pixels.
         with_focal: the focal length is a free parameter too.
+        point_information: (N, 3, 3) what each point's own observations tell of it
+            (``reference_point_information``); None: the points are exact.
     Returns:
         ``PoseCovariance``; None with too few points in front of the camera for the parameters
         or a singular system.
@@ -130,8 +179,15 @@ def pose_covariance(
         return None
     projected, jacobian = reprojection_jacobian(cam_from_world, points3d, focal, with_focal)
     residuals = (projected - centered_xy).reshape(-1)
+    # the noise from the query's residuals, which carry the points' errors too: applied to
+    # the references' observations as well, it counts the points' errors twice (conservative)
     sigma2 = float(residuals @ residuals) / (2 * n - p)
-    normal = jacobian.T @ jacobian
+    if point_information is None:
+        normal = jacobian.T @ jacobian
+    else:
+        per_point = jacobian.reshape(n, 2, p)
+        weighted = _observation_weights(per_point, point_information[in_front]) @ per_point
+        normal = np.tensordot(per_point, weighted, axes=([0, 1], [0, 1]))
     # scale the parameters to unit diagonal before inverting: radians, metres and pixels differ
     scale = 1.0 / np.sqrt(np.maximum(np.diag(normal), np.finfo(np.float64).tiny))
     scaled = normal * scale[:, None] * scale[None, :]
@@ -139,3 +195,25 @@ def pose_covariance(
         return None
     covariance = np.linalg.inv(scaled) * scale[:, None] * scale[None, :] * sigma2
     return PoseCovariance(covariance, float(np.sqrt(sigma2)), n)
+
+
+def _observation_weights(jacobian: FloatArray, point_information: FloatArray) -> FloatArray:
+    """(N, 2, 2) ``W_i = (I + B_i I_i⁻¹ B_iᵀ)⁻¹ = I − B_i (B_iᵀ B_i + I_i)⁻¹ B_iᵀ``: the inverse
+    covariance, in units of the pixel noise, of point i's query observation once the point's
+    own error is counted, with ``B_i = −J_i[:, 3:6]`` the Jacobian of its projection over the
+    point (``∂X_cam/∂X = −∂X_cam/∂C``) and ``I_i`` its information from the references. The
+    pose's information is ``Σ J_iᵀ W_i J_i``: the points eliminated by their Schur complement.
+    A point the references do not constrain gives nothing (``W_i = 0``)."""
+    b = -jacobian[:, :, 3:6]  # (N, 2, 3)
+    bt = np.swapaxes(b, 1, 2)
+    joint = bt @ b + point_information  # (N, 3, 3), symmetric
+    # the inverse by the adjugate (3 × 3 blocks: far cheaper than a batched solve); a
+    # determinant below 1e-12 of the diagonal's product is singular
+    adjugate = np.cross(joint[:, [1, 2, 0]], joint[:, [2, 0, 1]])  # rows: cofactors (symmetric)
+    determinant = np.einsum("ni,ni->n", joint[:, 0], adjugate[:, 0])
+    scale = np.prod(np.abs(np.diagonal(joint, axis1=1, axis2=2)), axis=1)
+    solvable = determinant > 1e-12 * scale
+    inverse = adjugate / np.where(solvable, determinant, 1.0)[:, None, None]
+    weights: FloatArray = np.eye(2) - b @ inverse @ bt
+    weights[~solvable] = 0.0
+    return weights

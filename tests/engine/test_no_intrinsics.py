@@ -63,4 +63,5 @@ def test_request_camera_is_echoed_with_uncertainty(
     dt, dr = pose_error(result.cam_from_world, view.cam_from_world)
     assert dt < 3 * result.uncertainty.position_m + 0.01
     assert dr < 3 * result.uncertainty.rotation_deg + 0.1
-    assert result.stats["position_sigma_m"] == result.uncertainty.position_m
+    assert result.stats["structure_position_sigma_m"] == result.uncertainty.position_m
+    assert result.stats["position_sigma_m"] == result.uncertainty.given_points_position_m

@@ -89,7 +89,7 @@ def test_uncertainty_covers_the_actual_error(name: str, focal_estimated: bool) -
         if result.cam_from_world is None:
             continue
         assert uncertainty is not None
-        assert result.stats["position_sigma_m"] == uncertainty.position_m
+        assert result.stats["structure_position_sigma_m"] == uncertainty.position_m
         dt, dr = pose_error(result.cam_from_world, scene.query_pose)
         within += [dt < 3 * uncertainty.position_m, dr < 3 * uncertainty.rotation_deg]
         trials += 1
@@ -101,12 +101,12 @@ class TestCappedConfidence:
     OPTIONS = UncertaintyOptions()
 
     def test_small_uncertainty_keeps_the_confidence(self) -> None:
-        small = PoseUncertainty(0.01, 0.2, 100, 1.0)
+        small = PoseUncertainty(0.01, 0.2, 100, 1.0, 0.01, 0.2)
         assert capped_confidence(0.97, small, self.OPTIONS, focal_estimated=True) == 0.97
 
     @pytest.mark.parametrize(("position_m", "rotation_deg"), [(0.09, 0.1), (0.01, 1.7)])
     def test_large_uncertainty_caps(self, position_m: float, rotation_deg: float) -> None:
-        large = PoseUncertainty(position_m, rotation_deg, 100, 1.0)
+        large = PoseUncertainty(position_m, rotation_deg, 100, 1.0, 0.01, 0.1)
         assert capped_confidence(0.97, large, self.OPTIONS, focal_estimated=False) == 0.5
 
     def test_estimated_focal_without_uncertainty_caps(self) -> None:
@@ -120,7 +120,7 @@ class TestCappedConfidence:
     def test_auto_poses_turned_farther_apart_than_the_limit_cap(
         self, position_m: float, rotation_deg: float, expected: float
     ) -> None:
-        small = PoseUncertainty(0.01, 0.2, 100, 1.0)
+        small = PoseUncertainty(0.01, 0.2, 100, 1.0, 0.01, 0.2)
         stats = {"auto_other_position_m": position_m, "auto_other_rotation_deg": rotation_deg}
         # positions metres apart with the rotations agreeing (E5+1 along a straight road) do
         # not cap: the model reads the agreement

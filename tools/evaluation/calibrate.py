@@ -241,11 +241,15 @@ def answered_confidence(model: ConfidenceModel, stats: dict[str, float], estimat
     stats have ``focal_px``)."""
     uncertainty = None
     if "position_sigma_m" in stats and "rotation_sigma_deg" in stats:
+        # answers recorded before the points' own uncertainty was reported cap on the pose's
+        # given the points
         uncertainty = PoseUncertainty(
-            stats["position_sigma_m"],
-            stats["rotation_sigma_deg"],
+            stats.get("structure_position_sigma_m", stats["position_sigma_m"]),
+            stats.get("structure_rotation_sigma_deg", stats["rotation_sigma_deg"]),
             int(stats.get("uncertainty_points", 0)),
             stats.get("uncertainty_sigma_px", 0.0),
+            stats["position_sigma_m"],
+            stats["rotation_sigma_deg"],
         )
     return capped_confidence(
         model.confidence(stats, estimator),

@@ -2500,7 +2500,7 @@ export interface components {
             num_points: number;
             /**
              * Position M
-             * @description Root-mean-square camera-centre error predicted by the pose covariance, in map units (metres on a metric map); 3 × this bounds the error in nearly all cases
+             * @description Root-mean-square camera-centre error predicted by the pose covariance (the verified points' own uncertainty included), in map units (metres on a metric map); 3 × this bounds the error in nearly all cases
              */
             position_m: number;
             /**

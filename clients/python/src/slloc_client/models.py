@@ -1296,7 +1296,7 @@ class UncertaintyOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
     num_points: int = Field(description="Verified 3D points the covariance rests on")
     position_m: float = Field(
-        description="Root-mean-square camera-centre error predicted by the pose covariance, in map units (metres on a metric map); 3 × this bounds the error in nearly all cases"
+        description="Root-mean-square camera-centre error predicted by the pose covariance (the verified points' own uncertainty included), in map units (metres on a metric map); 3 × this bounds the error in nearly all cases"
     )
     rotation_deg: float = Field(
         description="Root-mean-square rotation error predicted by the covariance, degrees"
