@@ -117,13 +117,16 @@ def _reference_information(
     index_of = np.full(len(check.point_verified), -1, np.int64)
     index_of[verified] = np.arange(len(verified))
     rows = np.flatnonzero(check.correspondence_verified)
-    observing = [references[i] for i in checked.reference_of[rows]]
+    observing = checked.reference_of[rows]
+    rotations = np.stack([r.cam_from_world.rotation for r in references])
+    translations = np.stack([r.cam_from_world.translation for r in references])
+    focals = np.array([float(np.mean(r.camera.focal_lengths)) for r in references])
     return reference_point_information(
         check.points[verified],
         index_of[checked.track_of[rows]],
-        np.array([r.cam_from_world.rotation for r in observing]).reshape(-1, 3, 3),
-        np.array([r.cam_from_world.translation for r in observing]).reshape(-1, 3),
-        np.array([float(np.mean(r.camera.focal_lengths)) for r in observing]),
+        rotations[observing],
+        translations[observing],
+        focals[observing],
     )
 
 
