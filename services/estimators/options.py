@@ -113,6 +113,9 @@ class UncertaintyOptions:
             answer was right in 31 of 31 such queries. The confidence model reads both.
         capped_confidence: the cap; also applied when no uncertainty could be computed for a
             pose whose focal length was estimated.
+        target_position_m, target_rotation_deg: what the confidence is the probability of
+            (the shipped confidence model's target): the confidence never exceeds the
+            probability the uncertainty leaves for it (``within_target_probability``).
     """
 
     min_points: int = 6
@@ -120,6 +123,8 @@ class UncertaintyOptions:
     max_rotation_3sigma_deg: float = 5.0
     max_disagreement_deg: float = 4.0
     capped_confidence: float = 0.5
+    target_position_m: float = 0.25
+    target_rotation_deg: float = 5.0
 
 
 class PoseApproxMode(StrEnum):

@@ -19,6 +19,7 @@ uncertainty reported and the cap use the one with the points' own uncertainty
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
@@ -141,17 +142,46 @@ def capped_confidence(
     the limits, when the focal length was estimated and no uncertainty could be computed, or
     when ``auto``'s other verified pose is turned more than ``max_disagreement_deg`` from the
     answer (``auto_other_rotation_deg`` in ``stats``: on redkitchen, a third of the answers
-    whose two poses from the same matches were turned that far apart were right)."""
+    whose two poses from the same matches were turned that far apart were right); and never
+    above the probability the uncertainty leaves for the confidence's target
+    (``within_target_probability``)."""
     stats = stats or {}
-    disagree = stats.get("auto_other_rotation_deg", 0.0) > options.max_disagreement_deg
-    if disagree or (uncertainty is None and focal_estimated):
-        return min(confidence, options.capped_confidence)
-    if uncertainty is not None and (
-        3.0 * uncertainty.position_m > options.max_position_3sigma_m
-        or 3.0 * uncertainty.rotation_deg > options.max_rotation_3sigma_deg
-    ):
-        return min(confidence, options.capped_confidence)
+    capped = (
+        stats.get("auto_other_rotation_deg", 0.0) > options.max_disagreement_deg
+        or (uncertainty is None and focal_estimated)
+        or (
+            uncertainty is not None
+            and (
+                3.0 * uncertainty.position_m > options.max_position_3sigma_m
+                or 3.0 * uncertainty.rotation_deg > options.max_rotation_3sigma_deg
+            )
+        )
+    )
+    if capped:
+        confidence = min(confidence, options.capped_confidence)
+    if uncertainty is not None:
+        confidence = min(confidence, within_target_probability(uncertainty, options))
     return confidence
+
+
+def within_target_probability(uncertainty: PoseUncertainty, options: UncertaintyOptions) -> float:
+    """The probability that the pose lies within ``options.target_position_m`` and
+    ``options.target_rotation_deg`` of the truth, were its errors Gaussian with the
+    uncertainty's RMS values spread evenly over three axes: the product of the two chi-square
+    (three degrees of freedom) probabilities."""
+    return _within_rms(options.target_position_m, uncertainty.position_m) * _within_rms(
+        options.target_rotation_deg, uncertainty.rotation_deg
+    )
+
+
+def _within_rms(radius: float, rms: float) -> float:
+    """P(|e| ≤ radius) for a 3D isotropic Gaussian error whose RMS length is ``rms``: the
+    chi-square CDF with three degrees of freedom at ``x = 3 radius² / rms²``,
+    ``erf(√(x/2)) − √(2x/π) e^(−x/2)``."""
+    if rms <= 0.0:
+        return 1.0
+    x = 3.0 * radius * radius / (rms * rms)
+    return math.erf(math.sqrt(x / 2.0)) - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
 
 
 def uncertainty_stats(uncertainty: PoseUncertainty | None) -> dict[str, float]:

@@ -11,7 +11,12 @@ from services.estimators.focal import estimate_focal
 from services.estimators.options import UncertaintyOptions
 from services.estimators.ransac import Deadline
 from services.estimators.registry import get_estimator
-from services.estimators.uncertainty import PoseUncertainty, capped_confidence, with_uncertainty
+from services.estimators.uncertainty import (
+    PoseUncertainty,
+    capped_confidence,
+    with_uncertainty,
+    within_target_probability,
+)
 from services.estimators.verification import verify_pose
 from services.geometry.rigid import pose_error
 from tests.estimators.conftest import TEST_OPTIONS
@@ -128,3 +133,27 @@ class TestCappedConfidence:
         assert capped == expected
         # without an uncertainty too, and whatever the other stats
         assert capped_confidence(0.97, None, self.OPTIONS, False, {**stats, "x": 1.0}) == expected
+
+    def test_never_above_what_the_uncertainty_leaves_for_the_target(self) -> None:
+        """A pose 0.6 m uncertain (RMS) is within 25 cm with probability 0.085: its
+        confidence is no more, below the default ``min_confidence`` of 0.1."""
+        wide = PoseUncertainty(0.6, 0.5, 100, 1.0, 0.05, 0.1)
+        capped = capped_confidence(0.97, wide, self.OPTIONS, focal_estimated=False)
+        assert capped == pytest.approx(within_target_probability(wide, self.OPTIONS))
+        assert 0.08 < capped < 0.09
+
+
+@pytest.mark.parametrize(("position_m", "rotation_deg"), [(0.1, 1.0), (0.3, 4.0), (0.6, 8.0)])
+def test_within_target_probability_matches_sampled_errors(
+    position_m: float, rotation_deg: float
+) -> None:
+    """Against 200,000 sampled Gaussian errors per axis of RMS / √3 (the three-axis RMS
+    lengths given): the share within 25 cm and within 5° agrees within 0.01."""
+    rng = np.random.default_rng(0)
+    position = np.linalg.norm(rng.normal(0.0, position_m / np.sqrt(3), (200_000, 3)), axis=1)
+    rotation = np.linalg.norm(rng.normal(0.0, rotation_deg / np.sqrt(3), (200_000, 3)), axis=1)
+    sampled = np.mean(position <= 0.25) * np.mean(rotation <= 5.0)
+    uncertainty = PoseUncertainty(position_m, rotation_deg, 100, 1.0, position_m, rotation_deg)
+    assert within_target_probability(uncertainty, UncertaintyOptions()) == pytest.approx(
+        sampled, abs=0.01
+    )
