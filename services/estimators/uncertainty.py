@@ -185,8 +185,10 @@ def _within_rms(radius: float, rms: float) -> float:
 
 
 def uncertainty_stats(uncertainty: PoseUncertainty | None) -> dict[str, float]:
-    """Result stats for confidence models: ``position_sigma_m``, ``rotation_sigma_deg``,
-    ``uncertainty_points``, ``uncertainty_sigma_px`` (empty without an uncertainty)."""
+    """Result stats for confidence models: ``position_sigma_m``, ``rotation_sigma_deg`` (the
+    points taken as exact), ``structure_position_sigma_m``, ``structure_rotation_sigma_deg``
+    (their own uncertainty included: the answer's), ``uncertainty_points``,
+    ``uncertainty_sigma_px`` (empty without an uncertainty)."""
     if uncertainty is None:
         return {}
     return {

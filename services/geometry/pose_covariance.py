@@ -69,6 +69,17 @@ class PoseCovariance:
         return float(np.sqrt(max(self.covariance[6, 6], 0.0)))
 
 
+def _projection_jacobian(X_cam: FloatArray, focal: float | FloatArray) -> FloatArray:
+    """(N, 2, 3) ``∂(u, v)/∂X_cam`` of the projections ``f · (x/z, y/z)`` of camera-frame
+    points (``focal``: one for all, or one per point)."""
+    z = X_cam[:, 2]
+    d_proj = np.zeros((X_cam.shape[0], 2, 3))
+    d_proj[:, 0, 0] = d_proj[:, 1, 1] = focal / z
+    d_proj[:, 0, 2] = -focal * X_cam[:, 0] / z**2
+    d_proj[:, 1, 2] = -focal * X_cam[:, 1] / z**2
+    return d_proj
+
+
 def _skew(v: FloatArray) -> FloatArray:
     """(N, 3) → (N, 3, 3) cross-product matrices."""
     zero = np.zeros(v.shape[0])
@@ -101,10 +112,7 @@ def reprojection_jacobian(
     x, y = X_cam[:, 0] / z, X_cam[:, 1] / z
     projected = focal * np.stack([x, y], axis=1)
     n = points3d.shape[0]
-    d_proj = np.zeros((n, 2, 3))  # ∂(u, v)/∂X_cam
-    d_proj[:, 0, 0] = d_proj[:, 1, 1] = focal / z
-    d_proj[:, 0, 2] = -focal * x / z
-    d_proj[:, 1, 2] = -focal * y / z
+    d_proj = _projection_jacobian(X_cam, focal)
     d_theta = d_proj @ -_skew(X_cam)  # X_cam = exp([δθ]×) R (X − C): ∂X_cam/∂δθ = −[X_cam]×
     d_center = d_proj @ -R  # ∂X_cam/∂C = −R
     blocks = [d_theta, d_center]
@@ -135,13 +143,9 @@ def reference_point_information(
         (T, 3, 3); zero for a point no observation sees (or none in front).
     """
     X_cam = np.einsum("kij,kj->ki", rotations, points3d[point_of]) + translations
-    z = X_cam[:, 2]
-    front = z > 1e-9
-    z = np.where(front, z, 1.0)
-    d_proj = np.zeros((len(z), 2, 3))  # ∂(u, v)/∂X_cam
-    d_proj[:, 0, 0] = d_proj[:, 1, 1] = focals / z
-    d_proj[:, 0, 2] = -focals * X_cam[:, 0] / z**2
-    d_proj[:, 1, 2] = -focals * X_cam[:, 1] / z**2
+    front = X_cam[:, 2] > 1e-9
+    X_cam[~front, 2] = 1.0  # no information: zeroed below
+    d_proj = _projection_jacobian(X_cam, focals)
     jacobian = (d_proj @ rotations) * front[:, None, None]  # ∂X_cam/∂X = R
     per_observation = (np.swapaxes(jacobian, 1, 2) @ jacobian).reshape(-1, 9)
     count = points3d.shape[0]

@@ -33,6 +33,25 @@ def _visible_points(pose: Rigid3d, count: int, seed: int) -> np.ndarray:
     return points[keep][:count]
 
 
+def _refined(
+    start: Rigid3d,
+    xy: np.ndarray,
+    points: np.ndarray,
+    camera: pycolmap.Camera,
+    options: pycolmap.AbsolutePoseRefinementOptions,
+) -> Rigid3d:
+    """pycolmap's refinement of the pose from ``start`` on every 2D–3D pair."""
+    out = pycolmap.refine_absolute_pose(
+        pycolmap.Rigid3d(pycolmap.Rotation3d(start.rotation), start.translation),
+        xy,
+        points,
+        np.ones(len(xy), bool),
+        camera,
+        options,
+    )
+    return Rigid3d(out["cam_from_world"].rotation.matrix(), out["cam_from_world"].translation)
+
+
 def _perturbed(pose: Rigid3d, delta: np.ndarray) -> Rigid3d:
     R = cv2.Rodrigues(delta[:3])[0] @ pose.rotation
     return Rigid3d(R, -R @ (pose.center + delta[3:6]))
@@ -72,17 +91,7 @@ def test_predicted_spread_matches_the_actual_spread(with_focal: bool) -> None:
         camera = pycolmap.Camera(
             model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0]
         )
-        out = pycolmap.refine_absolute_pose(
-            pycolmap.Rigid3d(pycolmap.Rotation3d(truth.rotation), truth.translation),
-            xy,
-            points,
-            np.ones(len(xy), bool),
-            camera,
-            options,
-        )
-        estimate = Rigid3d(
-            out["cam_from_world"].rotation.matrix(), out["cam_from_world"].translation
-        )
+        estimate = _refined(truth, xy, points, camera, options)
         focal = float(camera.params[0])
         covariance = pose_covariance(estimate, points, xy - [320.0, 240.0], focal, with_focal)
         assert covariance is not None
@@ -141,17 +150,7 @@ def test_points_own_uncertainty_covers_the_spread_of_poses_on_triangulated_point
         )
         triangulated = (homogeneous[:3] / homogeneous[3]).T
         query_xy = exact_query + rng.normal(0.0, 1.0, exact_query.shape)
-        out = pycolmap.refine_absolute_pose(
-            pycolmap.Rigid3d(pycolmap.Rotation3d(truth.rotation), truth.translation),
-            query_xy,
-            triangulated,
-            np.ones(len(points), bool),
-            camera,
-            options,
-        )
-        estimate = Rigid3d(
-            out["cam_from_world"].rotation.matrix(), out["cam_from_world"].translation
-        )
+        estimate = _refined(truth, query_xy, triangulated, camera, options)
         information = reference_point_information(
             triangulated,
             point_of,
