@@ -8,22 +8,24 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from app.errors import ProblemError
+from services.runtime.worker_slots import WorkerSlots
 
 RETRY_AFTER_S = 1
 
 
 class Admission:
-    """``workers`` requests compute at once (``slots``, held around engine work) and at most
-    ``queued`` more wait for a slot; a request beyond that is refused without waiting.
+    """``slots.workers`` requests compute at once (``slots``, held around engine work, with
+    their memory) and at most ``queued`` more wait for a slot; a request beyond that is
+    refused without waiting.
 
     Attributes:
         slots: held while a request runs the engine.
     """
 
-    def __init__(self, workers: int, queued: int) -> None:
-        self.slots = threading.BoundedSemaphore(workers)
-        self.workers = workers
-        self._capacity = workers + queued
+    def __init__(self, slots: WorkerSlots, queued: int) -> None:
+        self.slots = slots
+        self.workers = slots.workers
+        self._capacity = slots.workers + queued
         self._admitted = 0
         self._lock = threading.Lock()
 

@@ -78,21 +78,31 @@ def engine_config(
     )
 
 
-def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) -> MemoryInputs:
-    """What the memory bound depends on: the engine's model files and extractor, the keypoints
-    its LightGlue sees, the thread plan's workers and the settings' limits."""
-    config = engine.feature_config
-    lightglue_keypoints = (
-        0 if config.lightglue is None else config.lightglue_keypoints or settings.max_keypoints
-    )
+def memory_inputs(settings: Settings, engine: EngineConfig) -> MemoryInputs:
+    """What the memory bound depends on: each configuration served (the engine's, then the
+    self-evaluations'): its model files, extractor, side and the keypoints its LightGlue sees;
+    and the settings' limits."""
+
+    def configuration(name: str, files: int) -> tuple[int, str, int, int]:
+        config = get_feature_config(name)
+        lightglue = (
+            0 if config.lightglue is None else config.lightglue_keypoints or settings.max_keypoints
+        )
+        return files, config.extractor, max(config.max_side, settings.max_side), lightglue
+
     return MemoryInputs(
-        model_file_bytes=engine.model_file_bytes(),
-        extractor=config.extractor,
-        lightglue_keypoints=lightglue_keypoints,
-        workers=plan.workers,
+        configurations=(
+            configuration(engine.features, engine.model_file_bytes()),
+            *(
+                configuration(
+                    name, replace(engine, features=name, wide_threads=None).model_file_bytes()
+                )
+                for name in settings.parsed_evaluation_features()
+                if name != engine.features
+            ),
+        ),
         body_memory_mib=settings.body_memory_mib,
         max_image_pixels=settings.max_image_pixels,
-        max_side=settings.max_side,
         max_keypoints=settings.max_keypoints,
         max_top_k=settings.max_top_k,
         reference_cache_mib=settings.reference_cache_mib,
@@ -103,19 +113,11 @@ def memory_inputs(settings: Settings, engine: EngineConfig, plan: ThreadPlan) ->
             for name in (engine.features, *settings.parsed_evaluation_features())
         )
         else 0,
-        other_configurations=tuple(
-            (
-                replace(engine, features=name, wide_threads=None).model_file_bytes(),
-                get_feature_config(name).extractor,
-                get_feature_config(name).max_side,
-            )
-            for name in settings.parsed_evaluation_features()
-            if name != engine.features
-        ),
+        computing_memory_mib=settings.computing_memory_mib,
     )
 
 
-def service_memory_bound(settings: Settings, engine: EngineConfig, plan: ThreadPlan) -> MemoryBound:
+def service_memory_bound(settings: Settings, engine: EngineConfig) -> MemoryBound:
     """The bound on the server's resident memory (``services.runtime.memory``), retrieval
     indexes not included."""
-    return memory_bound(memory_inputs(settings, engine, plan))
+    return memory_bound(memory_inputs(settings, engine))

@@ -47,6 +47,7 @@ from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.spare_workers import SpareWorkers
 from services.runtime.threads import apply_thread_plan
+from services.runtime.worker_slots import WorkerSlots
 
 logger = logging.getLogger(__name__)
 
@@ -79,10 +80,12 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         )
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
         app.state.vocabulary_trainer = BackgroundTrainer()
-        app.state.admission = Admission(plan.workers, settings.max_queued)
+        app.state.memory_bound = bound = service_memory_bound(settings, served)
+        # the workers compute within the memory the bound counts for them
+        slots = WorkerSlots(plan.workers, bound.terms["computing"])
+        app.state.admission = Admission(slots, settings.max_queued)
         # a request alone matches on every worker's core: the idle slots are lent to it
-        app.state.spare_workers = SpareWorkers(app.state.admission.slots, plan.workers - 1)
-        app.state.memory_bound = bound = service_memory_bound(settings, served, plan)
+        app.state.spare_workers = SpareWorkers(slots.semaphore, plan.workers - 1)
         logger.info(
             "memory bound: %s; plus the retrieval indexes, which grow with the references "
             "(docs: deploying, Memory)",

@@ -138,6 +138,22 @@ class _StateCollector(Collector):
                 "Localize and add requests admitted at most (workers + queue); more get 503",
                 admission.capacity,
             )
+            slots = admission.slots
+            yield _gauge(
+                "slloc_computing_memory_held_mib",
+                "Memory the computing requests hold, MiB (of slloc_computing_memory_mib)",
+                slots.held_mib,
+            )
+            yield _gauge(
+                "slloc_computing_memory_mib",
+                "Memory the requests computing at once may hold together, MiB",
+                slots.memory_mib,
+            )
+            yield _gauge(
+                "slloc_computing_memory_waiting",
+                "Requests holding a worker and waiting for memory the others hold",
+                slots.waiting,
+            )
         cache = getattr(self.state, "retrieval_cache", None)
         if cache is not None:
             size = cache.size()

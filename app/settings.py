@@ -129,13 +129,22 @@ class Settings(BaseSettings):
         "it is read; a body that does not fit beside the others gets 503 with Retry-After. At "
         "least one largest body: 1.7 × (2 × SLLOC_MAX_UPLOAD_BYTES + 1 MiB)",
     )
+    computing_memory_mib: int = Field(
+        0,
+        ge=0,
+        description="Memory the localize and add requests computing at once may hold together, "
+        "MiB: each reserves what its image, depth, top_k and its map's keypoints and side need "
+        "before it computes and waits while that does not fit beside the others, so small "
+        "requests run on every worker at once and one at the limits runs alone; 0 = one "
+        "largest request's (a smaller value counts as that too)",
+    )
     max_image_pixels: int = Field(
         4096 * 3072,
         gt=0,
         description="Decoded image size limit in pixels (4096×3072: a 12 Mpx phone photo "
-        "fits), checked from the header before decoding; 413 above it. Each worker may decode "
-        "one image this large and a depth map of as many pixels at once: 12 bytes a pixel, "
-        "144 MiB at the default",
+        "fits), checked from the header before decoding; 413 above it. Decoding one image this "
+        "large with a depth map of as many pixels takes 12 bytes a pixel, 144 MiB at the "
+        "default, out of SLLOC_COMPUTING_MEMORY_MIB",
     )
     max_top_k: int = Field(
         50, gt=0, description="Largest top_k a localize request may ask for (422 above)"

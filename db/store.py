@@ -236,12 +236,13 @@ class SqlReferenceStore:
         depth = stored.get("depth")
         entry = CachedFeatures(
             LocalFeatures(
-                stored["keypoints"].astype(np.float32),
-                stored["descriptors"].astype(np.float32),
-                stored["scores"].astype(np.float32),
+                # the arrays read from the rows are already copies of their own: not copied again
+                stored["keypoints"].astype(np.float32, copy=False),
+                stored["descriptors"].astype(np.float32, copy=False),
+                stored["scores"].astype(np.float32, copy=False),
                 (camera.width, camera.height),
             ),
-            depth.astype(np.float32) if depth is not None else None,
+            depth.astype(np.float32, copy=False) if depth is not None else None,
         )
         if self.features_cache is not None:
             self.features_cache.put(self.map_id, image_id, entry, generation)

@@ -135,7 +135,7 @@ def test_pod_memory_matches_the_bound_of_the_settings_it_ships() -> None:
         **{name.removeprefix("SLLOC_").lower(): value for name, value in env.items()},
     )
     plan = thread_plan(settings)
-    bound = service_memory_bound(settings, engine_config(settings, plan=plan), plan).fixed_mib
+    bound = service_memory_bound(settings, engine_config(settings, plan=plan)).fixed_mib
     resources = container["resources"]
     assert bound <= _mib(resources["requests"]["memory"]) <= bound + 256
     assert bound <= _mib(resources["limits"]["memory"]) <= bound + 1024

@@ -40,9 +40,12 @@ class RuntimeOut(BaseModel):
     )
     memory_terms_mib: dict[str, float] = Field(
         description="The bound's terms, MiB: runtime, models, reference_cache, reference_images, "
-        "extraction, "
-        "decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the "
-        "retrieval indexes held now; they grow with the references)"
+        "computing (what the requests computing at once may hold together), bodies, "
+        "self_evaluation (sized by the settings) and retrieval_index (the retrieval indexes "
+        "held now; they grow with the references)"
+    )
+    computing_memory_held_mib: float = Field(
+        description="Memory the requests computing now hold, out of the computing term"
     )
 
 

@@ -76,6 +76,7 @@ from services.localization.answer import LocalizationResult
 from services.localization.localizer import Localizer
 from services.localization.stages import check_camera_matches, decode_depth_for
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.worker_slots import holding
 
 logger = logging.getLogger(__name__)
 
@@ -486,7 +487,8 @@ class CaptureRunner:
                 original = self.blobs.get(frame.original_key)
                 return localizer.describe_reference(original, camera).features
 
-            with self.context.slots:
+            memory = localizer.memory_mib(camera.width, camera.height, False, len(near))
+            with holding(self.context.slots, memory):
                 votes += frame_votes(
                     frame.name,
                     camera,
@@ -594,7 +596,7 @@ class CaptureRunner:
             image = self.blobs.get(frame.original_key)
             depth = self.blobs.get(frame.depth_key) if frame.depth_key else None
             camera = camera_of(frame)
-            with self.context.slots:
+            with holding(self.context.slots, localizer.upload_memory_mib(image, depth is not None)):
                 data = localizer.describe_reference(image, camera, depth)
             if frame.placed is None:
                 raise ValueError(f"frame {frame.name!r} of an aligned session has no pose")

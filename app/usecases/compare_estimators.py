@@ -9,6 +9,7 @@ from app.usecases.localize import LocalizeContext, LocalizeRequest
 from services.estimators.registry import get_estimator
 from services.localization.answer import LocalizationResult
 from services.localization.compare import localize_each
+from services.runtime.worker_slots import holding
 
 
 def localize_with_each(
@@ -28,7 +29,8 @@ def localize_with_each(
         InvalidInputError: the image, depth, camera or parameters are unusable.
     """
     localizer, params, store = context.map_engine(map_id, request)
-    with context.slots:
+    memory = localizer.upload_memory_mib(image_bytes, depth_bytes is not None, params.top_k)
+    with holding(context.slots, memory):
         return localize_each(
             localizer,
             image_bytes,

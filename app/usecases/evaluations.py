@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
@@ -38,6 +37,7 @@ from services.features.configs import get_feature_config
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.runtime.memory import EVALUATION_DESCRIBED
+from services.runtime.worker_slots import WorkerSlots
 from services.self_evaluation.run import (
     EvaluationCancelled,
     HeldOutPlan,
@@ -202,19 +202,19 @@ class Evaluator:
         sessions: sessionmaker[Session],
         localizers: Localizers,
         blobs: BlobStore,
-        slots: AbstractContextManager[object] | None = None,
+        slots: WorkerSlots | None = None,
         auto: AutoEvaluation | None = None,
         features_cache: ReferenceFeatureCache | None = None,
     ) -> None:
-        """``slots``: held around each description and held-out query (the localize
-        workers' semaphore: an evaluation computes in a worker's place, within its memory);
+        """``slots``: held around each description and held-out query with its memory (an
+        evaluation computes in a localize worker's place; None: unbounded);
         ``auto``: when maps with ``features: auto`` are evaluated on their own and what
         follows a finished evaluation (None: only evaluations asked for run);
         ``features_cache``: the served features, whence stale references the map retires
         are dropped."""
         self.sessions = sessions
         self.features_cache = features_cache
-        self.slots = slots if slots is not None else nullcontext()
+        self.slots = slots
         self.localizers = localizers
         self.auto = auto
         self.blobs = blobs

@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 import uuid
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
 from datetime import UTC, datetime
 
 import numpy as np
@@ -36,6 +35,7 @@ from services.geometry.rigid import Rigid3d
 from services.localization.answer import LocalizationResult
 from services.localization.localizer import Localizer
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.worker_slots import WorkerSlots
 
 logger = logging.getLogger(__name__)
 
@@ -51,15 +51,15 @@ class QueryGrowth:
         sessions: sessionmaker[Session],
         localizers: Localizers,
         blobs: BlobStore,
-        slots: AbstractContextManager[object] | None = None,
+        slots: WorkerSlots | None = None,
         on_added: Callable[[str, Localizer], None] | None = None,
     ) -> None:
-        """``slots``: held while a query is described (the localize workers' semaphore);
+        """``slots``: held while a query is described, with its memory (None: unbounded);
         ``on_added``: called with the map's id and its localizer after an addition."""
         self.sessions = sessions
         self.localizers = localizers
         self.blobs = blobs
-        self.slots = slots if slots is not None else nullcontext()
+        self.slots = slots
         self.on_added = on_added
         self.worker = BackgroundTrainer("query growth")
         self.added = 0  # queries added since start-up

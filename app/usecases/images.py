@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import uuid
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from datetime import datetime
 
@@ -31,6 +30,7 @@ from services.localization.localizer import Localizer
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer
+from services.runtime.worker_slots import WorkerSlots, holding
 
 logger = logging.getLogger(__name__)
 
@@ -83,18 +83,18 @@ def add_reference_image(
     image_bytes: bytes,
     depth_bytes: bytes | None = None,
     trainer: BackgroundTrainer | None = None,
-    slots: AbstractContextManager[object] = nullcontext(),
+    slots: WorkerSlots | None = None,
     preview_max_side: int = 0,
     blobs: BlobStore | None = None,
 ) -> StoredImage:
     """Describe and store a posed reference image: the row and all its features in one
     transaction, or nothing. Without a GPS position, the one in the image's EXIF is kept.
     With a ``trainer``, a retrieval vocabulary that the add makes due is trained in the
-    background, so no request waits for it. ``slots`` is held while the image is described
-    (bounds concurrent engine work). ``preview_max_side`` > 0 stores a JPEG preview of the
-    image with its longer side at most that many pixels. With ``blobs``, the image's bytes
-    as sent (and the depth's) are kept there, written before the row commits and deleted
-    again when it does not (``db/originals.py``).
+    background, so no request waits for it. ``slots`` is held while the image is described,
+    with its memory (bounds concurrent engine work; None: unbounded). ``preview_max_side``
+    > 0 stores a JPEG preview of the image with its longer side at most that many pixels.
+    With ``blobs``, the image's bytes as sent (and the depth's) are kept there, written
+    before the row commits and deleted again when it does not (``db/originals.py``).
 
     Raises:
         NotFoundError: unknown map.
@@ -117,7 +117,7 @@ def add_reference_image(
         if ImageRepository(session).name_exists(map_id, image.name):
             raise NameTakenError(taken)
         localizer = map_localizer(localizers, map_row)
-    with slots:
+    with holding(slots, localizer.upload_memory_mib(image_bytes, depth_bytes is not None)):
         data = localizer.describe_reference(image_bytes, image.camera, depth_bytes)
         preview = (
             make_preview(

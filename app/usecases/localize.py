@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -28,6 +27,7 @@ from services.retrieval.search import PositionPrior
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer, searchable_vocabulary
 from services.runtime.spare_workers import SpareWorkers
+from services.runtime.worker_slots import WorkerSlots, holding
 
 # the least confidence of a localized answer: with the calibration fitted on both dev sets,
 # held-out xfeat-lg answers turned away 1 of 241 right ones on redkitchen and none of 100 on
@@ -112,7 +112,8 @@ class LocalizeContext:
         cache: keeps maps' retrieval indexes in memory between calls.
         vlad: retrieve by the map's VLAD vocabulary once it has one (False: the localizer's
             global descriptor).
-        slots: held while the engine runs (bounds concurrent engine work).
+        slots: held while the engine runs, with the request's memory (bounds concurrent
+            engine work; None: unbounded).
         spare: the idle worker slots a request's matching may borrow (None: none lent).
         trainer: where a retrieval vocabulary found due is trained (None: before the search).
         features_cache: keeps the decoded features of references between calls.
@@ -128,7 +129,7 @@ class LocalizeContext:
     max_time_budget_s: float | None = None
     cache: RetrievalIndexCache | None = None
     vlad: bool = True
-    slots: AbstractContextManager[object] = field(default_factory=nullcontext)
+    slots: WorkerSlots | None = None
     spare: SpareWorkers | None = None
     trainer: BackgroundTrainer | None = None
     features_cache: ReferenceFeatureCache | None = None
@@ -202,7 +203,8 @@ def localize(
             f"depth: estimator {params.estimator.name} needs the query's depth map (the depth "
             "upload); the references need depth too"
         )
-    with context.slots:
+    memory = localizer.upload_memory_mib(image_bytes, depth_bytes is not None, params.top_k)
+    with holding(context.slots, memory):
         return localizer.localize(image_bytes, params, store, depth_bytes, context.spare)
 
 

@@ -17,6 +17,7 @@ from services.localization.frames import (
     align_single_frame,
     localize_frames,
 )
+from services.runtime.worker_slots import holding
 
 
 @dataclass(frozen=True)
@@ -74,5 +75,7 @@ def localize_with_session(
         QueryFrame(image, frame.camera, frame.cam_from_session)
         for image, frame in zip(images, frames, strict=True)
     ]
-    with context.slots:
+    # each frame counted as a query of its own: decoded, described and matched
+    memory = sum(localizer.upload_memory_mib(image, False, params.top_k) for image in images)
+    with holding(context.slots, memory):
         return localize_frames(localizer, query_frames, params, store, context.spare)

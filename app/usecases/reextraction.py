@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
 
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
@@ -32,6 +31,7 @@ from services.geometry.camera import Camera
 from services.localization.localizer import Localizer
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.worker_slots import WorkerSlots, holding
 
 logger = logging.getLogger(__name__)
 
@@ -127,13 +127,13 @@ class Reextractor:
         blobs: BlobStore,
         features_cache: ReferenceFeatureCache | None = None,
         on_switch: Callable[[str, Localizer], None] | None = None,
-        slots: AbstractContextManager[object] | None = None,
+        slots: WorkerSlots | None = None,
     ) -> None:
         """``on_switch(map_id, localizer)``: called after a map switched, with the
         localizer of its new options (e.g. to train its retrieval vocabulary); ``slots``:
-        held around each description (the localize workers' semaphore: a description
-        computes in a worker's place, within its memory)."""
-        self.slots = slots if slots is not None else nullcontext()
+        held around each description with its memory (a description computes in a
+        localize worker's place; None: unbounded)."""
+        self.slots = slots
         self.sessions = sessions
         self.localizers = localizers
         self.blobs = blobs
@@ -204,7 +204,7 @@ class Reextractor:
             original = read_original(self.blobs, key) if key is not None else None
             if original is None:
                 raise InvalidInputError(f"its original {key} is missing from the blob store")
-            with self.slots:
+            with holding(self.slots, localizer.upload_memory_mib(original, False)):
                 data = localizer.describe_reference(original, camera)
         except (InvalidInputError, BlobStoreError) as exc:
             logger.warning("map %s: reference %s not described again: %s", map_id, image_id, exc)

@@ -52,6 +52,8 @@ class FeatureExtractor(Protocol):
     name: str
     # the longer side images are shrunk to before detection: a larger image brings nothing
     max_side: int
+    # the most keypoints it returns of an image
+    max_keypoints: int
 
     def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
         """Features of an (H, W, 3) RGB uint8 image. ``spare``: idle workers the extraction

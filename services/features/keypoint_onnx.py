@@ -64,6 +64,7 @@ class OnnxKeypointExtractor:
         self.side_multiple = side_multiple
         self.model_name = model_name
         self.max_side = options.max_side
+        self.max_keypoints = options.max_keypoints
         self.exported_budget = exported_budget
         self.options = options
         self.name = f"{model_name}-{options.max_keypoints}-{options.max_side}"

@@ -42,6 +42,7 @@ class SiftExtractor:
         self.wide_threads = wide_threads
         o = self.options
         self.max_side = o.max_side
+        self.max_keypoints = o.max_keypoints
         self.name = f"sift-rootsift-{o.max_keypoints}-{o.max_side}-c{o.contrast_threshold:g}"
 
     def with_budget(self, max_keypoints: int | None, max_side: int | None) -> SiftExtractor:

@@ -20,7 +20,12 @@ from services.estimators.registry import DEFAULT_ESTIMATOR, get_estimator
 from services.features.base import FeatureExtractor, LocalFeatures
 from services.geometry.camera import Camera, default_camera
 from services.geometry.intrinsics_adaptation import rotate_points
-from services.imaging.decode import DecodedImage, decode_image, decode_image_reduced
+from services.imaging.decode import (
+    DecodedImage,
+    check_pixel_limit,
+    decode_image,
+    decode_image_reduced,
+)
 from services.localization.answer import LocalizationResult, out_of_time, retrieved_references
 from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.estimate import answer_pose
@@ -43,6 +48,7 @@ from services.localization.stages import (
 from services.localization.turns import search_turns, searched_answer
 from services.localization.widen import widen_unsure
 from services.matching.base import Matcher
+from services.matching.lightglue_onnx import OnnxLightGlueMatcher
 from services.matching.refinement import (
     refine_reference_keypoints,
     refinement_image,
@@ -53,6 +59,7 @@ from services.references.store import ReferenceData, ReferenceStore, ReferenceVi
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.search import PositionPrior
 from services.retrieval.thinning import WIDER_SPACING_FACTOR
+from services.runtime.memory import RequestShape, request_memory_mib
 from services.runtime.spare_workers import SpareWorkers, Spread
 from services.types import Float32Array, FloatArray, UInt8Array
 
@@ -143,6 +150,39 @@ class Localizer:
             self.confidence_model,
             self.reference_images,
         )
+
+    def memory_mib(self, width: int, height: int, depth: bool, references: int = 0) -> float:
+        """The memory a request computing with this localizer holds at its peak
+        (``services.runtime.memory.request_memory_mib``): a ``width`` × ``height`` upload
+        (with a depth map when ``depth``) decoded and described at this extractor's side and
+        keypoints, and matched against ``references`` references (0: described only)."""
+        scale = min(1.0, self.extractor.max_side / max(width, height, 1))
+        lightglue = (
+            self.matcher.lightglue_keypoints or self.extractor.max_keypoints
+            if isinstance(self.matcher, OnnxLightGlueMatcher)
+            else 0
+        )
+        return request_memory_mib(
+            RequestShape(
+                pixels=width * height,
+                depth=depth,
+                extracted_pixels=width * height * scale * scale,
+                extractor=self.extractor.name,
+                keypoints=self.extractor.max_keypoints,
+                references=references,
+                lightglue_keypoints=min(lightglue, self.extractor.max_keypoints),
+            )
+        )
+
+    def upload_memory_mib(self, image_bytes: bytes, depth: bool, references: int = 0) -> float:
+        """``memory_mib`` of the upload ``image_bytes``, its size read from its header.
+
+        Raises:
+            ImageTooLargeError: more than ``max_pixels`` pixels.
+            ImageDecodeError: not a PNG or JPEG, or a truncated header.
+        """
+        width, height = check_pixel_limit(image_bytes, self.max_pixels)
+        return self.memory_mib(width, height, depth, references)
 
     def describe_reference(
         self, image_bytes: bytes, camera: Camera, depth_bytes: bytes | None = None

@@ -12,15 +12,13 @@ The bound is the sum of:
   (``SLLOC_REFERENCE_CACHE_MIB``);
 - ``reference_images``: the reference images kept decoded for the sub-pixel refinement of
   matches (``SLLOC_REFERENCE_IMAGE_CACHE_MIB``);
-- ``extraction``: per localize worker, one feature extraction of a square image at the
-  largest ``max_side`` a map may ask for (``SLLOC_MAX_SIDE``, or a configuration's own
-  when larger) by the most demanding extractor served: the feature network's activations
-  grow with the pixels it sees, at a rate of its own;
-- ``decode``: per worker, one decoded image at the pixel limit (``SLLOC_MAX_IMAGE_PIXELS``;
-  RGB uint8) and a depth upload of as many pixels (16-bit PNG decoded to float32);
-- ``matching``: per worker, the retrieved references' features (``SLLOC_MAX_TOP_K`` ×
-  ``SLLOC_MAX_KEYPOINTS`` of the largest descriptor served) and the matcher's buffers, which
-  grow with the keypoint pairs LightGlue sees;
+- ``computing``: the memory the requests computing at once may hold together
+  (``SLLOC_COMPUTING_MEMORY_MIB``, at least one largest request's). Each computing request
+  reserves what its own shape needs (``request_memory_mib``: its decoded upload and depth, one
+  feature extraction at its map's ``max_side``, its retrieved references' features and the
+  matcher's buffers) before it computes, and waits while that does not fit beside the
+  others (``services.runtime.worker_slots``): small requests run on every worker at once, a
+  request at the limits runs alone;
 - ``bodies``: request bodies and the uploads read from them, which the server admits only
   within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
   is read and frees it when the answer is sent);
@@ -54,13 +52,17 @@ MODEL_RESIDENT_PER_FILE_MIB = 2.9
 # 655 / 2153 / 11002 (1600–2623), xfeat 52 / 123 / 493 (117–127), sift 88 / 232 / 940
 # (215–224); each the largest of its sizes. An extractor not listed counts as the largest.
 EXTRACTION_MIB_PER_MEGAPIXEL = {"aliked-n16": 2950.0, "disk": 2650.0, "xfeat": 130.0, "sift": 230.0}
-# decoded bytes per pixel: RGB uint8 (3) + a depth upload of as many pixels, its 16-bit PNG
-# (2) and float32 (4) at once; a 40 Mpx PNG decode peaked at +230 MiB = 6.0 B/px for the RGB
-# alone (the decoder's row buffers on top of the 3 B/px result; memory_terms, 2026-11-24)
-DECODE_BYTES_PER_PIXEL = 6.0 + 2.0 + 4.0
-# a reference's features per keypoint: (x, y) float32, a descriptor of float32, a score;
-# held twice while decoding from the database (stored row, float32 array)
+# decoded bytes per pixel of an image: a 40 Mpx PNG decode peaked at +230 MiB = 6.0 B/px (the
+# decoder's row buffers on top of the 3 B/px RGB result; memory_terms, 2026-11-24)
+IMAGE_DECODE_BYTES_PER_PIXEL = 6.0
+# and of a depth upload of as many pixels: its 16-bit PNG (2) and float32 (4) at once
+DEPTH_DECODE_BYTES_PER_PIXEL = 2.0 + 4.0
+# a reference's features per keypoint: (x, y) float32, a descriptor of float32, a score
 FEATURE_BYTES_PER_KEYPOINT = 8 + 4
+# copies of each retrieved reference's features a localize may hold: the stored row and its
+# float32 arrays while a batch is read from the database, and the wider retrieval's
+# references beside the first ones (services.localization.widen)
+REFERENCE_COPIES = 3
 DESCRIPTOR_DIMS = {"xfeat": 64}  # the others' descriptors: 128 floats
 # the matcher matching one query against 10 references: nearest neighbours pair by pair
 # (sift 0 / 4 / 16 MiB at 512 / 1024 / 2048 keypoints) and LightGlue on the pairs it runs on,
@@ -77,26 +79,59 @@ EVALUATION_DESCRIBED = 60
 
 
 @dataclass(frozen=True)
-class MemoryInputs:
-    """The settings the bound depends on. ``model_file_bytes``: the sizes of the ONNX files
-    the feature configuration loads; ``extractor``: its extractor's name; ``lightglue_keypoints``:
-    the keypoints LightGlue sees of each image (0: no LightGlue); ``workers``: localize workers
-    (the thread plan); ``body_memory_mib``: ``SLLOC_BODY_MEMORY_MIB``."""
+class RequestShape:
+    """What one computing request's memory depends on: the upload's ``pixels`` and whether a
+    depth map of as many comes with it, the ``extracted_pixels`` its extractor sees (the image
+    shrunk to the map's ``max_side``), the ``extractor`` (its name or family: ``sift``,
+    ``xfeat``, ``aliked-n16``, ``disk``), the ``keypoints`` of each image, the ``references``
+    it is matched against (0: described only) and the keypoints LightGlue sees of each image
+    (0: no LightGlue)."""
 
-    model_file_bytes: int
+    pixels: int
+    depth: bool
+    extracted_pixels: float
     extractor: str
-    lightglue_keypoints: int
-    workers: int
+    keypoints: int
+    references: int = 0
+    lightglue_keypoints: int = 0
+
+
+def request_memory_mib(shape: RequestShape) -> float:
+    """The peak MiB a request of ``shape`` adds while it computes: its decode, one extraction
+    and its matching, counted as one sum (they do not all peak at once, but a request at the
+    limits reaches about 0.6–0.7 of the sum: ``docs/benchmarks``, worst-case requests)."""
+    decode = shape.pixels * (
+        IMAGE_DECODE_BYTES_PER_PIXEL + (DEPTH_DECODE_BYTES_PER_PIXEL if shape.depth else 0.0)
+    )
+    extraction = _extraction_rate(shape.extractor) * shape.extracted_pixels / 1e6
+    if shape.references == 0:
+        return decode / MIB + extraction
+    references = REFERENCE_COPIES * shape.references * shape.keypoints
+    matching = (
+        MATCHER_MIB
+        + LIGHTGLUE_MIB_PER_MILLION_PAIRS * shape.lightglue_keypoints**2 / 1e6
+        + references * _feature_bytes(shape.extractor) / MIB
+    )
+    return decode / MIB + extraction + matching
+
+
+@dataclass(frozen=True)
+class MemoryInputs:
+    """The settings the bound depends on, for each configuration maps may be served with and
+    self-evaluations measure (the server's first, then ``SLLOC_EVALUATION_FEATURES``'):
+    ``configurations`` holds its model files' bytes, its extractor's family, its longer image
+    side (at least ``max_side``) and the keypoints its LightGlue sees of each image (0: no
+    LightGlue). ``computing_memory_mib``: ``SLLOC_COMPUTING_MEMORY_MIB`` (0: one largest
+    request's); ``body_memory_mib``: ``SLLOC_BODY_MEMORY_MIB``."""
+
+    configurations: tuple[tuple[int, str, int, int], ...]
     body_memory_mib: int
     max_image_pixels: int
-    max_side: int
     max_keypoints: int
     max_top_k: int
     reference_cache_mib: int
     reference_image_cache_mib: int = 0
-    # the other configurations maps may be served with and self-evaluations measure:
-    # (model file bytes, extractor, default longer image side) of each
-    other_configurations: tuple[tuple[int, str, int], ...] = ()
+    computing_memory_mib: int = 0
 
 
 @dataclass(frozen=True)
@@ -126,37 +161,62 @@ class MemoryBound:
 
 
 def _extraction_rate(extractor: str) -> float:
-    """Peak MiB per megapixel of ``extractor`` (an unknown one: the largest known)."""
-    return EXTRACTION_MIB_PER_MEGAPIXEL.get(extractor, max(EXTRACTION_MIB_PER_MEGAPIXEL.values()))
+    """Peak MiB per megapixel of ``extractor`` (a family, or a name that starts with one; an
+    unknown one: the largest known)."""
+    return next(
+        (
+            rate
+            for family, rate in EXTRACTION_MIB_PER_MEGAPIXEL.items()
+            if extractor.startswith(family)
+        ),
+        max(EXTRACTION_MIB_PER_MEGAPIXEL.values()),
+    )
+
+
+def _feature_bytes(extractor: str) -> int:
+    """Bytes of one keypoint's features (position, score, float32 descriptor)."""
+    dims = next((d for family, d in DESCRIPTOR_DIMS.items() if extractor.startswith(family)), 128)
+    return FEATURE_BYTES_PER_KEYPOINT + 4 * dims
+
+
+def largest_request_mib(inputs: MemoryInputs) -> float:
+    """The largest request the settings admit: an upload at the pixel limit with its depth,
+    extracted at a configuration's side (a square, its most pixels), matched against
+    ``max_top_k`` references of ``max_keypoints`` each, by the most demanding configuration."""
+    return max(
+        request_memory_mib(
+            RequestShape(
+                pixels=inputs.max_image_pixels,
+                depth=True,
+                extracted_pixels=float(side * side),
+                extractor=extractor,
+                keypoints=inputs.max_keypoints,
+                references=inputs.max_top_k,
+                lightglue_keypoints=lightglue,
+            )
+        )
+        for _, extractor, side, lightglue in inputs.configurations
+    )
 
 
 def memory_bound(inputs: MemoryInputs) -> MemoryBound:
-    """The bound's terms in MiB from ``inputs`` (the module docstring says what each holds)."""
+    """The bound's terms in MiB from ``inputs`` (the module docstring says what each holds).
+    Every configuration served may be loaded at once (each map's own): their models add up;
+    the requests computing at once hold at most ``computing_memory_mib``, never less than one
+    largest request."""
     i = inputs
-    # every configuration served may be loaded at once (each map's own), and a worker may
-    # extract and match with any of them: the models add up, the per-worker terms take the
-    # largest
-    served = [(i.model_file_bytes, i.extractor, i.max_side)]
-    configurations = served + [
-        (files, extractor, max(side, i.max_side))
-        for files, extractor, side in i.other_configurations
-    ]
-    extraction = max(_extraction_rate(e) * side * side / 1e6 for _, e, side in configurations)
-    feature_bytes = max(
-        FEATURE_BYTES_PER_KEYPOINT + 4 * DESCRIPTOR_DIMS.get(e, 128) for _, e, _ in configurations
-    )
-    matcher = MATCHER_MIB + LIGHTGLUE_MIB_PER_MILLION_PAIRS * i.lightglue_keypoints**2 / 1e6
     terms = {
         "runtime": RUNTIME_MIB,
-        "models": MODEL_RESIDENT_PER_FILE_MIB * sum(f for f, _, _ in configurations) / MIB,
+        "models": MODEL_RESIDENT_PER_FILE_MIB * sum(c[0] for c in i.configurations) / MIB,
         "reference_cache": float(i.reference_cache_mib),
         "reference_images": float(i.reference_image_cache_mib),
-        "extraction": i.workers * extraction,
-        "decode": i.workers * DECODE_BYTES_PER_PIXEL * i.max_image_pixels / MIB,
-        "matching": i.workers * (matcher + i.max_top_k * i.max_keypoints * 2 * feature_bytes / MIB),
+        "computing": max(float(i.computing_memory_mib), largest_request_mib(i)),
         "bodies": float(i.body_memory_mib),
-        # a self-evaluation computes in a localize worker's place (it holds a worker slot),
-        # plus the references it keeps described
-        "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * feature_bytes / MIB,
+        # the references a self-evaluation keeps described (its held-out queries compute as
+        # requests do)
+        "self_evaluation": EVALUATION_DESCRIBED
+        * i.max_keypoints
+        * max(_feature_bytes(c[1]) for c in i.configurations)
+        / MIB,
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})

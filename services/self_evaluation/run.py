@@ -12,7 +12,6 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -37,6 +36,7 @@ from services.localization.answer import LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
 from services.references.store import ReferenceData, ReferenceView
+from services.runtime.worker_slots import WorkerSlots, holding
 from services.self_evaluation.sample import held_out_map
 from services.self_evaluation.summary import HeldOutAnswer
 from services.types import FloatArray
@@ -132,16 +132,16 @@ def evaluate(
     originals: Originals,
     plan: HeldOutPlan,
     cache_capacity: int,
-    slot: AbstractContextManager[object] | None = None,
+    slots: WorkerSlots | None = None,
     stopped: Callable[[], bool] = lambda: False,
     progress: Callable[[int], None] = lambda done: None,
     votes: list[Vote] | None = None,
 ) -> list[HeldOutAnswer]:
     """Localizes each ``references[i]`` of ``sample`` against its held-out map (``plan``),
-    from its original, with its camera; ``progress(done)`` after each. ``slot`` is held
-    around each description, each held-out query and each vote (e.g. a localize worker's
-    semaphore). ``votes``: where the votes of the held-out references on those that cover
-    them are appended (None: no votes).
+    from its original, with its camera; ``progress(done)`` after each. ``slots`` are held
+    around each description, each held-out query and each vote, with its memory (the
+    localize workers'; None: unbounded). ``votes``: where the votes of the held-out
+    references on those that cover them are appended (None: no votes).
 
     Raises:
         EvaluationCancelled: ``stopped()`` turned true.
@@ -149,7 +149,6 @@ def evaluate(
     centers = centers_of(references)
     spacing = map_spacing(centers)
     described = DescribedReferences(localizer, originals, cache_capacity)
-    slot = slot if slot is not None else nullcontext()
     answers: list[HeldOutAnswer] = []
     for done, index in enumerate(sample, start=1):
         if stopped():
@@ -161,7 +160,8 @@ def evaluate(
         nearest = math.inf
         for k in kept:
             reference = references[k]
-            with slot:
+            camera = reference.camera
+            with holding(slots, localizer.memory_mib(camera.width, camera.height, False)):
                 data = described.get(reference)
             if data is not None:
                 nearest = min(nearest, float(np.linalg.norm(centers[k] - centers[index])))
@@ -173,14 +173,15 @@ def evaluate(
                     reference.image_id,
                 )
                 local.append(reference.image_id)
-        with slot:
+        width, height = query.camera.width, query.camera.height
+        with holding(slots, localizer.memory_mib(width, height, False, plan.top_k)):
             localized = _localize(localizer, query, originals, store, plan)
         if localized is not None:
             answer, result = localized
             answers.append(replace(answer, nearest_reference_m=nearest))
             evidence = best_inliers(result)
             if votes is not None and spacing is not None and _votes_for_others(answer, evidence):
-                with slot:
+                with holding(slots, localizer.memory_mib(width, height, False, len(local))):
                     others = store.load_references(local)
                     votes += _votes(localizer, described, query, others, spacing, result, evidence)
         progress(done)

@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from app.admission import Admission
 from app.errors import ProblemError
 from services.localization.localizer import Localizer
+from services.runtime.worker_slots import WorkerSlots
 from tests.conftest import create_map, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 
@@ -133,7 +134,7 @@ def test_a_refused_request_is_not_read(
 
 
 def test_queued_requests_are_admitted_up_to_the_bound() -> None:
-    admission = Admission(workers=1, queued=1)
+    admission = Admission(WorkerSlots(1, memory_mib=100.0), queued=1)
     with admission.admit(), admission.admit():
         with pytest.raises(ProblemError) as refused, admission.admit():
             pass

@@ -4,6 +4,7 @@ hits skip the decode, deletes are never served from it (issue #13)."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -18,7 +19,8 @@ from app.usecases.localize import reference_store
 from services.localization.localizer import Localizer
 from services.references.cache import ReferenceFeatureCache
 from services.runtime.threads import usable_cores
-from tests.conftest import create_map, make_client, upload_view
+from services.runtime.worker_slots import WorkerSlots
+from tests.conftest import create_map, localize_view, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
 
 
@@ -55,7 +57,7 @@ def test_health_reports_the_thread_policy(
         ) == expected
         assert runtime["reference_cache_mib"] == 64 and runtime["reference_cache_used_mib"] == 0
         assert cv2.getNumThreads() == expected[2]
-        assert c.app.state.admission.slots._value == expected[1]  # type: ignore[attr-defined]
+        assert c.app.state.admission.slots.semaphore._value == expected[1]  # type: ignore[attr-defined]
         assert runtime["idle_workers_lent"] == expected[1] - 1
 
 
@@ -175,7 +177,7 @@ def test_health_reports_the_memory_bound(tmp_path: Path, localizer: Localizer) -
         with make_client(url, localizer, **settings) as c:
             runtime = c.get("/v1/health").json()["runtime"]
             state = c.app.state  # type: ignore[attr-defined]
-            expected = service_memory_bound(state.settings, state.engine_config, state.thread_plan)
+            expected = service_memory_bound(state.settings, state.engine_config)
         terms = runtime["memory_terms_mib"]
         assert terms.pop("retrieval_index") == 0  # nothing localized yet
         assert terms == pytest.approx(expected.terms)
@@ -199,3 +201,52 @@ def test_health_counts_the_retrieval_indexes(
     assert runtime["memory_bound_mib"] == pytest.approx(
         sum(runtime["memory_terms_mib"].values()), abs=0.1
     )
+
+
+class _RecordingSlots(WorkerSlots):
+    """Worker slots that record each reservation and the memory held while it runs."""
+
+    def __init__(self, workers: int, memory_mib: float) -> None:
+        super().__init__(workers, memory_mib)
+        self.reserved: list[float] = []
+        self.held: list[float] = []
+
+    @contextmanager
+    def hold(self, mib: float) -> Iterator[None]:
+        with super().hold(mib):
+            self.reserved.append(mib)
+            self.held.append(self.held_mib)
+            yield
+
+
+def test_requests_compute_within_the_memory_their_shape_needs(
+    client: TestClient,
+    small_map: tuple[str, list[str]],
+    query_views: list[SyntheticView],
+    reference_views: list[SyntheticView],
+    localizer: Localizer,
+) -> None:
+    """A localize reserves its image's decode and extraction and its top_k references'
+    features out of the bound's computing term; an add reserves no matching; both give it
+    back when they answer."""
+    map_id, _ = small_map
+    state = client.app.state  # type: ignore[attr-defined]
+    computing = state.memory_bound.terms["computing"]
+    original = state.admission.slots
+    state.admission.slots = slots = _RecordingSlots(original.workers, computing)
+    try:
+        view = query_views[0]
+        assert localize_view(client, map_id, view).status_code == 200
+        added = upload_view(client, map_id, reference_views[5], name="added")
+        assert added.status_code == 201, added.text  # type: ignore[attr-defined]
+        runtime = client.get("/v1/health").json()["runtime"]
+    finally:
+        state.admission.slots = original
+    height, width = view.image.shape[:2]
+    assert slots.reserved == [
+        pytest.approx(localizer.memory_mib(width, height, False, 10)),  # top_k's default
+        pytest.approx(localizer.memory_mib(width, height, False)),
+    ]
+    assert slots.held == slots.reserved  # each computed alone, holding its own share
+    assert 0 < slots.reserved[1] < slots.reserved[0] < computing
+    assert runtime["computing_memory_held_mib"] == 0

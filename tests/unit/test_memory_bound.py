@@ -13,18 +13,21 @@ from app.settings import Settings
 from services.features.configs import get_feature_config
 from services.runtime.manifest import read_manifest
 from services.runtime.memory import (
-    DECODE_BYTES_PER_PIXEL,
+    DEPTH_DECODE_BYTES_PER_PIXEL,
     EVALUATION_DESCRIBED,
     EXTRACTION_MIB_PER_MEGAPIXEL,
     FEATURE_BYTES_PER_KEYPOINT,
+    IMAGE_DECODE_BYTES_PER_PIXEL,
     LIGHTGLUE_MIB_PER_MILLION_PAIRS,
     MATCHER_MIB,
     MIB,
     MODEL_RESIDENT_PER_FILE_MIB,
+    REFERENCE_COPIES,
     RUNTIME_MIB,
     MemoryBound,
+    RequestShape,
+    request_memory_mib,
 )
-from services.runtime.threads import ThreadPlan, plan_threads
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -48,73 +51,104 @@ def _settings(**values: object) -> Settings:
     return Settings(**{**base, **values})  # type: ignore[arg-type]
 
 
-def _bound(settings: Settings, plan: ThreadPlan | None = None) -> MemoryBound:
-    plan = plan or thread_plan(settings)
-    return service_memory_bound(settings, engine_config(settings, plan=plan), plan)
+def _bound(settings: Settings) -> MemoryBound:
+    return service_memory_bound(settings, engine_config(settings, plan=thread_plan(settings)))
 
 
 def _model_file_bytes(settings: Settings) -> int:
     return engine_config(settings).model_file_bytes()
 
 
+SIFT_FEATURE_BYTES = FEATURE_BYTES_PER_KEYPOINT + 4 * 128  # 524: xy, score, 128 floats
+
+
+def _largest_request(extraction_rate: float, lightglue: int, feature_bytes: int) -> float:
+    """The largest request of ``_settings()``'s limits, by hand: a 40 Mpx upload with its
+    depth, extracted at 1024², matched against 50 references of 4096 keypoints."""
+    decode = 40_000_000 * (IMAGE_DECODE_BYTES_PER_PIXEL + DEPTH_DECODE_BYTES_PER_PIXEL) / MIB
+    extraction = extraction_rate * 1024 * 1024 / 1e6
+    matching = (
+        MATCHER_MIB
+        + LIGHTGLUE_MIB_PER_MILLION_PAIRS * lightglue**2 / 1e6
+        + REFERENCE_COPIES * 50 * 4096 * feature_bytes / MIB
+    )
+    return decode + extraction + matching
+
+
 def test_terms_follow_the_settings_arithmetic() -> None:
-    settings = _settings()
-    bound = _bound(settings)
-    workers = 2
-    sift_feature_bytes = 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 128)  # 1048: xy, 128 floats, score
+    bound = _bound(_settings())
     expected = {
         "runtime": RUNTIME_MIB,
         "models": 0.0,  # sift loads no model
         "reference_cache": 256.0,
         "reference_images": 0.0,  # sift's matches are not refined on the images
-        "extraction": workers * EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 1024 * 1024 / 1e6,
-        "decode": workers * DECODE_BYTES_PER_PIXEL * 40_000_000 / MIB,
-        "matching": workers * (MATCHER_MIB + 50 * 4096 * sift_feature_bytes / MIB),
+        # one largest request, whatever the workers: the others wait for its memory
+        "computing": _largest_request(EXTRACTION_MIB_PER_MEGAPIXEL["sift"], 0, SIFT_FEATURE_BYTES),
         "bodies": 256.0,
-        # a self-evaluation's described references (it computes in a worker's place)
-        "self_evaluation": EVALUATION_DESCRIBED * 4096 * sift_feature_bytes / 2 / MIB,
+        # a self-evaluation's described references (its queries compute as requests do)
+        "self_evaluation": EVALUATION_DESCRIBED * 4096 * SIFT_FEATURE_BYTES / MIB,
     }
     assert bound.terms == pytest.approx(expected, abs=0.06)
     assert bound.fixed_mib == pytest.approx(sum(expected.values()), abs=0.5)
-    # sift's extraction at the default 1024 px cap: about 240 MiB a worker (measured 232 MiB)
-    assert 220 < bound.terms["extraction"] / workers < 260
 
 
 @pytest.mark.parametrize(
-    ("features", "low", "high"),
-    [("aliked", 3000, 3200), ("xfeat-lg", 120, 150), ("disk", 2700, 2900)],
+    ("features", "rate", "lightglue", "dims"),
+    [
+        ("aliked", "aliked-n16", 512, 128),
+        ("xfeat-lg", "xfeat", 512, 64),
+        ("disk", "disk", 4096, 128),
+    ],
 )
-def test_extraction_is_the_served_extractors(features: str, low: float, high: float) -> None:
-    """Each extractor's own rate (measured at 1024²: aliked 3092, xfeat 123, disk 2153 MiB,
-    the largest rate of its sizes counted)."""
-    bound = _bound(_settings(features=features, localize_workers=1))
-    assert low < bound.terms["extraction"] < high
+def test_computing_is_the_served_configurations_largest_request(
+    features: str, rate: str, lightglue: int, dims: int
+) -> None:
+    """Each extractor's own rate, its LightGlue's keypoints (disk's sees every keypoint a map
+    may ask for, aliked's and xfeat-lg's their best 512) and its descriptors."""
+    bound = _bound(_settings(features=features))
+    expected = _largest_request(
+        EXTRACTION_MIB_PER_MEGAPIXEL[rate], lightglue, FEATURE_BYTES_PER_KEYPOINT + 4 * dims
+    )
+    assert bound.terms["computing"] == pytest.approx(expected, abs=0.06)
 
 
-def test_matching_grows_with_the_keypoints_lightglue_sees() -> None:
-    """disk's LightGlue sees every keypoint a map may ask for, xfeat-lg's its best 512 and
-    64-float descriptors."""
-    disk = _bound(_settings(features="disk", localize_workers=1)).terms["matching"]
-    xfeat = _bound(_settings(features="xfeat-lg", localize_workers=1)).terms["matching"]
-    lightglue_disk = LIGHTGLUE_MIB_PER_MILLION_PAIRS * 4096**2 / 1e6
-    features_128 = 50 * 4096 * 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 128) / MIB
-    assert disk == pytest.approx(MATCHER_MIB + lightglue_disk + features_128, abs=0.06)
-    features_64 = 50 * 4096 * 2 * (FEATURE_BYTES_PER_KEYPOINT + 4 * 64) / MIB
-    lightglue_xfeat = LIGHTGLUE_MIB_PER_MILLION_PAIRS * 512**2 / 1e6
-    assert xfeat == pytest.approx(MATCHER_MIB + lightglue_xfeat + features_64, abs=0.06)
+def test_a_request_counts_its_own_shape() -> None:
+    """A 640 × 480 query without depth against 10 references of 2048 sift keypoints is a
+    fraction of the largest request; a description alone has no matching; the extractor's
+    family is read from its name."""
+    query = RequestShape(
+        pixels=640 * 480,
+        depth=False,
+        extracted_pixels=640 * 480,
+        extractor="sift-rootsift-2048-1024-c0.02",
+        keypoints=2048,
+        references=10,
+    )
+    mib = request_memory_mib(query)
+    extraction = EXTRACTION_MIB_PER_MEGAPIXEL["sift"] * 640 * 480 / 1e6
+    references = REFERENCE_COPIES * 10 * 2048 * SIFT_FEATURE_BYTES / MIB
+    decode = 640 * 480 * IMAGE_DECODE_BYTES_PER_PIXEL / MIB
+    assert mib == pytest.approx(decode + extraction + MATCHER_MIB + references, abs=0.01)
+    assert 100 < mib < 150
+    described = request_memory_mib(RequestShape(**{**query.__dict__, "references": 0}))
+    assert described == pytest.approx(decode + extraction, abs=0.01)
+    with_depth = request_memory_mib(RequestShape(**{**query.__dict__, "depth": True}))
+    assert with_depth - mib == pytest.approx(640 * 480 * DEPTH_DECODE_BYTES_PER_PIXEL / MIB)
+    unknown = request_memory_mib(RequestShape(**{**query.__dict__, "extractor": "new-net"}))
+    assert unknown > mib  # counted at the largest rate known
 
 
 @pytest.mark.parametrize(
     ("change", "term"),
     [
-        ({"max_side": 2048}, "extraction"),
-        ({"localize_workers": 1}, "extraction"),
-        ({"max_image_pixels": 10_000_000}, "decode"),
-        ({"max_top_k": 10}, "matching"),
-        ({"max_keypoints": 1024}, "matching"),
+        ({"max_side": 2048}, "computing"),
+        ({"max_image_pixels": 10_000_000}, "computing"),
+        ({"max_top_k": 10}, "computing"),
+        ({"max_keypoints": 1024}, "computing"),
+        ({"computing_memory_mib": 4000}, "computing"),
         ({"body_memory_mib": 512}, "bodies"),
         ({"reference_cache_mib": 0}, "reference_cache"),
-        ({"evaluation_features": "aliked"}, "extraction"),
+        ({"evaluation_features": "aliked"}, "computing"),
     ],
 )
 def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> None:
@@ -124,13 +158,13 @@ def test_each_setting_moves_its_term(change: dict[str, object], term: str) -> No
     assert after.fixed_mib != before.fixed_mib
 
 
-def test_workers_come_from_the_thread_plan() -> None:
-    settings = _settings(localize_workers=0, cpu_cores=1)
-    assert plan_threads(1).workers == 1
-    one = _bound(settings)
-    two = _bound(settings, plan_threads(2))
-    assert two.terms["extraction"] == pytest.approx(2 * one.terms["extraction"], abs=0.1)
-    assert two.terms["decode"] == pytest.approx(2 * one.terms["decode"], abs=0.2)
+def test_computing_holds_at_least_one_largest_request() -> None:
+    """A budget below the largest request counts as the largest request; the workers do not
+    multiply it."""
+    largest = _bound(_settings()).terms["computing"]
+    assert _bound(_settings(computing_memory_mib=100)).terms["computing"] == largest
+    assert _bound(_settings(localize_workers=1, cpu_cores=1)).terms["computing"] == largest
+    assert _bound(_settings(computing_memory_mib=5000)).terms["computing"] == 5000
 
 
 def test_models_term_is_the_configurations_files() -> None:
@@ -164,17 +198,17 @@ def test_retrieval_index_adds_to_the_total() -> None:
 
 def test_every_configuration_served_is_counted() -> None:
     """Maps may be served with the configurations of SLLOC_EVALUATION_FEATURES as well: their
-    models add up, and a worker's extraction and matching are the most demanding one's (an
-    xfeat-lg server that serves sift too extracts like sift at 1024 px and matches its
-    128-float descriptors)."""
+    models add up, and the largest request is the most demanding one's (an xfeat-lg server
+    that serves sift too extracts like sift at 1024 px and matches its 128-float
+    descriptors)."""
     xfeat = _settings(features="xfeat-lg")
     both = _settings(features="xfeat-lg", evaluation_features="sift")
     alone, served = _bound(xfeat).terms, _bound(both).terms
     assert served["models"] == alone["models"]  # sift loads no model
     sift = _bound(_settings()).terms
-    assert served["extraction"] == pytest.approx(sift["extraction"], abs=0.1)
+    assert served["computing"] == pytest.approx(sift["computing"], abs=0.1)
     assert served["self_evaluation"] == pytest.approx(sift["self_evaluation"], abs=0.1)
-    assert served["matching"] > alone["matching"]
+    assert served["computing"] > alone["computing"]
     settings = _settings(features="xfeat-lg", evaluation_features="aliked")
     aliked = replace(
         engine_config(settings), features="aliked", wide_threads=None

@@ -138,6 +138,7 @@ def _runtime(state: State) -> RuntimeOut:
         reference_cache_used_mib=round(stats.bytes / 2**20, 3),
         memory_bound_mib=round(bound.total_mib, 1),
         memory_terms_mib={**bound.terms, "retrieval_index": round(bound.retrieval_index_mib, 3)},
+        computing_memory_held_mib=round(state.admission.slots.held_mib, 1),
     )
 
 

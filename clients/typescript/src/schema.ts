@@ -2267,6 +2267,11 @@ export interface components {
          */
         RuntimeOut: {
             /**
+             * Computing Memory Held Mib
+             * @description Memory the requests computing now hold, out of the computing term
+             */
+            computing_memory_held_mib: number;
+            /**
              * Cores
              * @description Cores the thread policy divides
              */
@@ -2288,7 +2293,7 @@ export interface components {
             memory_bound_mib: number;
             /**
              * Memory Terms Mib
-             * @description The bound's terms, MiB: runtime, models, reference_cache, reference_images, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)
+             * @description The bound's terms, MiB: runtime, models, reference_cache, reference_images, computing (what the requests computing at once may hold together), bodies, self_evaluation (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)
              */
             memory_terms_mib: {
                 [key: string]: number;

@@ -1172,6 +1172,9 @@ class RuntimeOut(BaseModel):
     """
 
     model_config = ConfigDict(extra="allow", populate_by_name=True)
+    computing_memory_held_mib: float = Field(
+        description="Memory the requests computing now hold, out of the computing term"
+    )
     cores: int = Field(description="Cores the thread policy divides")
     idle_workers_lent: int = Field(
         description="Worker slots a request may borrow while they are idle, for its matching, a multi-frame query's extraction, and a query's ONNX extraction when all are idle (localize_workers - 1)"
@@ -1181,7 +1184,7 @@ class RuntimeOut(BaseModel):
         description="What the server's resident memory can reach with these settings: the sum of memory_terms_mib (the docs' Deploying page, Memory)"
     )
     memory_terms_mib: dict[str, float] = Field(
-        description="The bound's terms, MiB: runtime, models, reference_cache, reference_images, extraction, decode, matching, uploads, bodies (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)"
+        description="The bound's terms, MiB: runtime, models, reference_cache, reference_images, computing (what the requests computing at once may hold together), bodies, self_evaluation (sized by the settings) and retrieval_index (the retrieval indexes held now; they grow with the references)"
     )
     reference_cache_mib: float = Field(description="Bound of the reference-feature cache")
     reference_cache_used_mib: float = Field(description="Decoded features it holds now")
