@@ -98,8 +98,9 @@ class RequestShape:
 
 def request_memory_mib(shape: RequestShape) -> float:
     """The peak MiB a request of ``shape`` adds while it computes: its decode, one extraction
-    and its matching, counted as one sum (they do not all peak at once, but a request at the
-    limits reaches about 0.6–0.7 of the sum: ``docs/benchmarks``, worst-case requests)."""
+    and its matching, counted as one sum (they do not all peak at once: a request at the
+    limits reached a little over half of the sum, ``python -m tools.benchmarks.worst_request``,
+    2026-11-29)."""
     decode = shape.pixels * (
         IMAGE_DECODE_BYTES_PER_PIXEL + (DEPTH_DECODE_BYTES_PER_PIXEL if shape.depth else 0.0)
     )

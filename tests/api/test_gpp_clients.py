@@ -61,6 +61,9 @@ def served(
             assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
         response = client.put(f"/v1/maps/{map_id}/geo-registration", json=REGISTRATION_BODY)
         assert response.status_code == 200, response.text
+        # the retrieval vocabulary the adds made due is trained in the background: every test
+        # localizes against the map it leaves, not some before and some after it
+        client.app.state.vocabulary_trainer.wait(120.0)  # type: ignore[attr-defined]
         yield client, map_id
 
 
