@@ -14,10 +14,11 @@ The bound is the sum of:
   matches (``SLLOC_REFERENCE_IMAGE_CACHE_MIB``);
 - ``computing``: the memory the requests computing at once may hold together
   (``SLLOC_COMPUTING_MEMORY_MIB``, at least one largest request's). Each computing request
-  reserves what its own shape needs (``request_memory_mib``: its decoded upload and depth, one
-  feature extraction at its map's ``max_side``, its retrieved references' features and the
-  matcher's buffers) before it computes, and waits while that does not fit beside the
-  others (``services.runtime.worker_slots``): small requests run on every worker at once, a
+  reserves what its own shape needs (``request_memory_mib``: the largest of its stages, the
+  decode of its upload and depth, one feature extraction at its map's ``max_side`` and the
+  matching of its retrieved references' features, each beside the pixels it holds) before it
+  computes, and waits while that does not fit beside the others
+  (``services.runtime.worker_slots``): small requests run on every worker at once, a
   request at the limits runs alone;
 - ``bodies``: request bodies and the uploads read from them, which the server admits only
   within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
@@ -57,6 +58,11 @@ EXTRACTION_MIB_PER_MEGAPIXEL = {"aliked-n16": 2950.0, "disk": 2650.0, "xfeat": 1
 IMAGE_DECODE_BYTES_PER_PIXEL = 6.0
 # and of a depth upload of as many pixels: its 16-bit PNG (2) and float32 (4) at once
 DEPTH_DECODE_BYTES_PER_PIXEL = 2.0 + 4.0
+# bytes per pixel a query holds from its decode to its answer: its RGB pixels, and a copy
+# turned by 90°, 180° or 270° while that turn is matched (services.localization.turns)
+IMAGE_HELD_BYTES_PER_PIXEL = 3.0 + 3.0
+# and of its depth map: float32
+DEPTH_HELD_BYTES_PER_PIXEL = 4.0
 # a reference's features per keypoint: (x, y) float32, a descriptor of float32, a score
 FEATURE_BYTES_PER_KEYPOINT = 8 + 4
 # copies of each retrieved reference's features a localize may hold: the stored row and its
@@ -97,23 +103,27 @@ class RequestShape:
 
 
 def request_memory_mib(shape: RequestShape) -> float:
-    """The peak MiB a request of ``shape`` adds while it computes: its decode, one extraction
-    and its matching, counted as one sum (they do not all peak at once: a request at the
-    limits reached a little over half of the sum, ``python -m tools.benchmarks.worst_request``,
-    2026-11-29)."""
+    """The peak MiB a request of ``shape`` adds while it computes. Its stages peak one after
+    the other: the decode; then one extraction, and then the matching, each beside the pixels
+    the decode left (the image, its turned copy and the depth map are held until the answer).
+    The largest of the three is the request's (a request at the limits reached 0.85 of it,
+    ``python -m tools.benchmarks.worst_request``, 2026-11-30)."""
     decode = shape.pixels * (
         IMAGE_DECODE_BYTES_PER_PIXEL + (DEPTH_DECODE_BYTES_PER_PIXEL if shape.depth else 0.0)
     )
+    held = shape.pixels * (
+        IMAGE_HELD_BYTES_PER_PIXEL + (DEPTH_HELD_BYTES_PER_PIXEL if shape.depth else 0.0)
+    )
     extraction = _extraction_rate(shape.extractor) * shape.extracted_pixels / 1e6
     if shape.references == 0:
-        return decode / MIB + extraction
+        return max(decode / MIB, held / MIB + extraction)
     references = REFERENCE_COPIES * shape.references * shape.keypoints
     matching = (
         MATCHER_MIB
         + LIGHTGLUE_MIB_PER_MILLION_PAIRS * shape.lightglue_keypoints**2 / 1e6
         + references * _feature_bytes(shape.extractor) / MIB
     )
-    return decode / MIB + extraction + matching
+    return max(decode / MIB, held / MIB + extraction, held / MIB + matching)
 
 
 @dataclass(frozen=True)
