@@ -65,16 +65,34 @@ def test_summary_counts_failures_as_infinite_errors() -> None:
 
 def test_the_recommendation_is_the_fastest_close_to_the_best() -> None:
     accurate = summarize([_answer(0.010, latency=900.0)] * 10)
-    close = summarize([_answer(0.012, latency=200.0)] * 10)
+    close = summarize([_answer(0.0108, latency=200.0)] * 10)
     fast_but_coarse = summarize([_answer(0.030, latency=100.0)] * 10)
     failing = summarize([_answer(0.010, latency=50.0)] * 5 + [_answer(None)] * 5)
     summaries = {"a": accurate, "b": close, "c": fast_but_coarse, "d": failing}
     assert recommend(summaries) == "b"  # c's median is 3x the best, d misses half
+    # within 10 % of the best median, millimetres or not: 1.5 mm is not close to 1.0 mm
+    coarser = summarize([_answer(0.0015, latency=100.0)] * 10)
+    finer = summarize([_answer(0.0010, latency=120.0)] * 10)
+    assert recommend({"x": coarser, "s": finer}, current="x") == "s"
     assert recommend({"a": accurate}) == "a"
     assert recommend({"x": summarize([_answer(None)] * 3)}) is None
     # a map keeps its configuration while it is close to the best and about as fast as the
     # fastest of those (within 10 %)
-    about_as_fast = summarize([_answer(0.011, latency=215.0)] * 10)
+    about_as_fast = summarize([_answer(0.0105, latency=215.0)] * 10)
     assert recommend({**summaries, "e": about_as_fast}, current="e") == "e"
     assert recommend(summaries, current="a") == "b"  # 4.5x slower: moves on
     assert recommend(summaries, current="c") == "b"  # not close to the best: moves on
+
+
+def test_the_recommendation_weighs_recall_before_the_median() -> None:
+    """A configuration with the best median but a recall more than 5 points below the best
+    is out, and the median is compared among those left; when each configuration is best at
+    another threshold, the best mean recall stays in: the rule always names one."""
+    precise = summarize([_answer(0.010, latency=100.0)] * 8 + [_answer(None)] * 2)
+    complete = summarize([_answer(0.014, latency=300.0)] * 10)
+    assert recommend({"precise": precise, "complete": complete}) == "complete"
+    # (5 cm, 5°): a 90 %, b 80 %; (25 cm, 2°): a 90 %, b 100 %: neither within 5 points of
+    # the best at both; a's mean recall is the higher (0.9 against 0.87)
+    a = summarize([_answer(0.02)] * 9 + [_answer(None)])
+    b = summarize([_answer(0.02)] * 8 + [_answer(0.2)] * 2)
+    assert recommend({"a": a, "b": b}) == "a"
