@@ -118,6 +118,9 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             app.state.reference_cache,
             on_switch=switched,
             slots=app.state.admission.slots,
+            queue_evaluation=lambda session, map_id: app.state.evaluator.queue_if_due(
+                session, map_id
+            ),
         )
         app.state.reextractor.resume()
         # maps' self-evaluations; those a restart interrupted run again; maps that follow

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
@@ -103,6 +104,22 @@ def start_evaluation(
         ConflictError: the map is being evaluated, or has fewer than two references with
             their originals.
     """
+    configurations = _configurations(localizers, request)
+    with sessions.begin() as session:
+        row = _queue(session, map_id, request, configurations)
+        session.expunge(row)
+    if evaluator is not None:
+        evaluator.schedule(row.id)
+    return row
+
+
+def _configurations(localizers: Localizers, request: EvaluationRequest) -> list[str]:
+    """The configurations the request measures, checked against those the server serves.
+
+    Raises:
+        InvalidInputError: an unknown configuration or estimator, one not allowed, or one
+            whose models are not built.
+    """
     configurations = list(request.configurations or localizers.choices)
     for name in configurations:
         get_feature_config(name)  # unknown: 422
@@ -117,25 +134,31 @@ def start_evaluation(
             )
     if request.estimator is not None:
         get_estimator(request.estimator)
-    with sessions.begin() as session:
-        map_row = require_map(session, map_id)
-        lock_map_row(session, map_id)  # one of two concurrent starts sees the other's
-        repository = EvaluationRepository(session)
-        running = repository.active(map_id)
-        if running is not None:
-            raise ConflictError(f"the map is being evaluated already: evaluation {running.id}")
-        if repository.reference_count(map_id) < 2:
-            raise ConflictError(
-                "a self-evaluation needs at least two references with their originals"
-            )
-        stored = asdict(replace(request, configurations=tuple(configurations)))
-        # the map's revision, to tell when it has changed enough to be evaluated again
-        stored |= {"configurations": configurations, "revision": map_row.revision}
-        row = repository.create(map_id, stored)
-        session.expunge(row)
-    if evaluator is not None:
-        evaluator.schedule(row.id)
-    return row
+    return configurations
+
+
+def _queue(
+    session: Session, map_id: str, request: EvaluationRequest, configurations: list[str]
+) -> MapEvaluation:
+    """Stores a queued evaluation of the map in ``session``'s transaction.
+
+    Raises:
+        NotFoundError: unknown map.
+        ConflictError: the map is being evaluated, or has fewer than two references with
+            their originals.
+    """
+    map_row = require_map(session, map_id)
+    lock_map_row(session, map_id)  # one of two concurrent starts sees the other's
+    repository = EvaluationRepository(session)
+    running = repository.active(map_id)
+    if running is not None:
+        raise ConflictError(f"the map is being evaluated already: evaluation {running.id}")
+    if repository.reference_count(map_id) < 2:
+        raise ConflictError("a self-evaluation needs at least two references with their originals")
+    stored = asdict(replace(request, configurations=tuple(configurations)))
+    # the map's revision, to tell when it has changed enough to be evaluated again
+    stored |= {"configurations": configurations, "revision": map_row.revision}
+    return repository.create(map_id, stored)
 
 
 def get_evaluation(
@@ -366,6 +389,25 @@ class Evaluator:
                 while len(self.latest) > LATEST_KEPT:
                     del self.latest[next(iter(self.latest))]
             self.evaluate_if_due(map_id)  # the map may have grown while it was evaluated
+
+    def queue_if_due(self, session: Session, map_id: str) -> Callable[[], None] | None:
+        """In ``session``'s transaction, stores the evaluation ``auto`` finds the map due,
+        if any, and returns what schedules it once that transaction is committed (a map
+        that switched its references in it then reads evaluating, never ready, until that
+        evaluation ends)."""
+        if self.auto is None:
+            return None
+        map_row = session.get(Map, map_id)
+        if map_row is None or not self.auto.wanted(session, map_row):
+            return None
+        request = EvaluationRequest()
+        try:  # each refusal comes before its write: the switch stays as it was
+            row = _queue(session, map_id, request, _configurations(self.localizers, request))
+        except (NotFoundError, ConflictError, InvalidInputError) as exc:
+            logger.info("map %s: no automatic self-evaluation: %s", map_id, exc)
+            return None
+        logger.info("map %s: self-evaluation queued (features auto, the map switched)", map_id)
+        return partial(self.schedule, row.id)
 
     def evaluate_if_due(self, map_id: str) -> None:
         """Queues an evaluation of the map when ``auto`` finds one due (the map takes its

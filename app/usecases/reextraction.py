@@ -128,12 +128,17 @@ class Reextractor:
         features_cache: ReferenceFeatureCache | None = None,
         on_switch: Callable[[str, Localizer], None] | None = None,
         slots: WorkerSlots | None = None,
+        queue_evaluation: Callable[[Session, str], Callable[[], None] | None] | None = None,
     ) -> None:
         """``on_switch(map_id, localizer)``: called after a map switched, with the
         localizer of its new options (e.g. to train its retrieval vocabulary); ``slots``:
         held around each description with its memory (a description computes in a
-        localize worker's place; None: unbounded)."""
+        localize worker's place; None: unbounded); ``queue_evaluation(session, map_id)``:
+        called in the switch's own transaction, it stores the evaluation the switched map
+        is due, if any, and returns what starts it once the switch is committed (so that
+        the map never reads ready between its switch and that evaluation)."""
         self.slots = slots
+        self.queue_evaluation = queue_evaluation
         self.sessions = sessions
         self.localizers = localizers
         self.blobs = blobs
@@ -234,6 +239,9 @@ class Reextractor:
             switched = ReextractionRepository(session).switch(
                 map_id, localizer.extractor.name, localizer.global_descriptor.name
             )
+            start = self.queue_evaluation(session, map_id) if self.queue_evaluation else None
+        if start is not None:
+            start()
         if self.features_cache is not None:
             self.features_cache.discard(map_id)
         logger.info(

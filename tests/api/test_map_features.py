@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from db.models import Map, MapEvaluation
+from db.repositories.evaluations import EvaluationRepository
 from services.components import missing_models
 from tests.conftest import localize_view, make_client, upload_view
 from tests.polling import wait_until
@@ -161,6 +162,45 @@ def test_a_map_that_follows_its_evaluation_takes_the_configuration_recommended(
     auto = client.patch(f"/v1/maps/{map_id}", json={"features": {"preset": "auto"}})
     assert auto.status_code == 200 and auto.json()["features"]["auto"]
     assert auto.json()["features"]["preset"] == current
+
+
+def test_a_map_due_an_evaluation_when_it_switches_never_reads_ready_before_it(
+    client: TestClient, reference_views: list[SyntheticView]
+) -> None:
+    """The evaluation a map is due when its references switch to another configuration is
+    stored in the switch's own transaction: by the time anything after the switch runs, the
+    map already reads evaluating (it used to read ready until that evaluation was queued)."""
+    map_id = _map(client, reference_views[: AUTO_REFERENCES - 1])
+    state = client.app.state  # type: ignore[attr-defined]
+    state.evaluator.worker.wait(60.0)
+    assert _evaluations(client, map_id) == []
+    evaluating_at_switch: list[bool] = []
+    switched = state.reextractor.on_switch
+
+    def recording(switched_map: str, localizer: Any) -> None:
+        with state.sessions() as session:
+            active = EvaluationRepository(session).evaluating([switched_map])
+        evaluating_at_switch.append(switched_map in active)
+        switched(switched_map, localizer)
+
+    state.reextractor.on_switch = recording
+    # the map re-describes its references with the other configuration, following its
+    # evaluation still, and is due one as it switches
+    state.evaluator.auto.min_references = AUTO_REFERENCES - 1
+    with state.sessions.begin() as session:
+        session.execute(
+            update(Map).where(Map.id == map_id).values(pending_preset=OTHER, reextracting=True)
+        )
+    state.reextractor.schedule(map_id)
+    after = _settled(client, map_id)
+    # (a second switch may follow, to the configuration that evaluation recommends: the map
+    # was just evaluated and is not due another)
+    assert evaluating_at_switch[0], evaluating_at_switch
+    evaluations = _evaluations(client, map_id)
+    assert [e["state"] for e in evaluations] == ["done"], evaluations
+    assert evaluations[0]["result"]["served"] == OTHER
+    assert after["features"]["auto"]
+    assert after["features"]["preset"] == evaluations[0]["result"]["recommended"]
 
 
 def test_a_map_whose_configuration_is_not_served_says_so(
