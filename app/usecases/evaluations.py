@@ -393,8 +393,8 @@ class Evaluator:
     def queue_if_due(self, session: Session, map_id: str) -> Callable[[], None] | None:
         """In ``session``'s transaction, stores the evaluation ``auto`` finds the map due,
         if any, and returns what schedules it once that transaction is committed (a map
-        that switched its references in it then reads evaluating, never ready, until that
-        evaluation ends)."""
+        that switched its references in the same transaction then reads evaluating, never
+        ready, until that evaluation ends)."""
         if self.auto is None:
             return None
         map_row = session.get(Map, map_id)
@@ -406,7 +406,7 @@ class Evaluator:
         except (NotFoundError, ConflictError, InvalidInputError) as exc:
             logger.info("map %s: no automatic self-evaluation: %s", map_id, exc)
             return None
-        logger.info("map %s: self-evaluation queued (features auto, the map switched)", map_id)
+        logger.info("map %s: self-evaluation queued (features auto, the map changed)", map_id)
         return partial(self.schedule, row.id)
 
     def evaluate_if_due(self, map_id: str) -> None:
@@ -416,15 +416,13 @@ class Evaluator:
         if self.auto is None:
             return
         try:
-            with self.sessions() as session:
-                map_row = session.get(Map, map_id)
-                if map_row is None or not self.auto.wanted(session, map_row):
-                    return
-            start_evaluation(self.sessions, self.localizers, map_id, EvaluationRequest(), self)
-        except (NotFoundError, ConflictError, InvalidInputError, SQLAlchemyError) as exc:
+            with self.sessions.begin() as session:
+                start = self.queue_if_due(session, map_id)
+        except SQLAlchemyError as exc:
             logger.info("map %s: no automatic self-evaluation: %s", map_id, exc)
             return
-        logger.info("map %s: self-evaluation started (features auto, the map changed)", map_id)
+        if start is not None:
+            start()
 
     def _stopped(self, evaluation_id: str) -> bool:
         if self._stopping.is_set():
