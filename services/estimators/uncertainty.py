@@ -8,8 +8,10 @@ residuals, the focal length a free parameter when it was estimated, so its uncer
 the pose's). Each point carries the uncertainty of its own triangulation from the references
 (their observations at the same pixel noise): a query beyond the map's end, resting on points
 that references a metre apart saw tens of metres away, is placed along its view no better than
-those points are. Reported as root-mean-square errors: ``position_m = sqrt(trace Σ_C)`` and
-``rotation_deg = sqrt(trace Σ_θ)``.
+those points are. The references' poses carry the spread of ``UncertaintyOptions``
+(``reference_position_sigma_m``, ``reference_rotation_sigma_deg``): a reference's pose
+error moves every point it saw the same way. Reported as root-mean-square errors:
+``position_m = sqrt(trace Σ_C)`` and ``rotation_deg = sqrt(trace Σ_θ)``.
 
 The confidence model reads the covariance given the points (the points exact:
 ``position_sigma_m``, ``rotation_sigma_deg`` in the stats), the one it was fitted on; the
@@ -30,9 +32,8 @@ from services.estimators.options import EstimatorOptions, UncertaintyOptions
 from services.estimators.ransac import Deadline
 from services.estimators.verification import CheckedTracks, check_structure
 from services.geometry.camera import Camera
-from services.geometry.pose_covariance import pose_covariance, reference_point_information
+from services.geometry.pose_covariance import ReferenceViews, pose_covariance
 from services.geometry.projection import normalized_from_pixels
-from services.types import FloatArray
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,7 @@ def pose_uncertainty(
         centered,
         focal,
         with_focal=focal_estimated,
-        point_information=_reference_information(checked, references),
+        references=_reference_views(checked, references, options.uncertainty),
     )
     if with_points is None:  # the points' own freedom leaves the pose undetermined
         return None
@@ -108,26 +109,24 @@ def pose_uncertainty(
     )
 
 
-def _reference_information(
-    checked: CheckedTracks, references: list[ReferenceObservation]
-) -> FloatArray:
-    """(V, 3, 3) what the agreeing reference observations of each verified point tell of it
-    (``reference_point_information``), in the order of the verified points."""
+def _reference_views(
+    checked: CheckedTracks, references: list[ReferenceObservation], options: UncertaintyOptions
+) -> ReferenceViews:
+    """The agreeing reference observations of each verified point, indexed in the order of
+    the verified points, with the references' pose spread of ``options``."""
     check = checked.check
     verified = np.flatnonzero(check.point_verified)
     index_of = np.full(len(check.point_verified), -1, np.int64)
     index_of[verified] = np.arange(len(verified))
     rows = np.flatnonzero(check.correspondence_verified)
-    observing = checked.reference_of[rows]
-    rotations = np.stack([r.cam_from_world.rotation for r in references])
-    translations = np.stack([r.cam_from_world.translation for r in references])
-    focals = np.array([float(np.mean(r.camera.focal_lengths)) for r in references])
-    return reference_point_information(
-        check.points[verified],
-        index_of[checked.track_of[rows]],
-        rotations[observing],
-        translations[observing],
-        focals[observing],
+    return ReferenceViews(
+        point_of=index_of[checked.track_of[rows]],
+        camera_of=checked.reference_of[rows],
+        rotations=np.stack([r.cam_from_world.rotation for r in references]),
+        translations=np.stack([r.cam_from_world.translation for r in references]),
+        focals=np.array([float(np.mean(r.camera.focal_lengths)) for r in references]),
+        rotation_sigma_rad=math.radians(options.reference_rotation_sigma_deg),
+        position_sigma=options.reference_position_sigma_m,
     )
 
 

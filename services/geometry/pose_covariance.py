@@ -7,16 +7,22 @@ Parameters: a rotation perturbation ``δθ`` (radians, ``R = exp([δθ]×) R₀`
 rotation error is ``|δθ|``), the camera centre ``C`` (world units) and, with ``with_focal``,
 the focal length ``f`` (pixels).
 
-Without ``point_information`` the points are treated as exact: the covariance describes the pose
-given the points. With it, each point carries the uncertainty of its own triangulation (the
-information its reference observations give, ``reference_point_information``) and the
-covariance is that of the pose with the points estimated jointly: the points are eliminated by
-their Schur complement. Points triangulated from references close together seen from far away
-are poorly placed along their rays, and so is a pose resting on them. The pixel noise is still
-the query residuals', which already carry the points' errors: the points' errors count twice,
-and the covariance is conservative (on synthetic scenes of such points the predicted RMS
-position error is about twice the actual one; taking the points as exact predicts a sixth of
-it).
+Without ``references`` the points are treated as exact: the covariance describes the pose
+given the points. With them, each point carries the uncertainty of its own triangulation (the
+references' observations of it) and the covariance is that of the pose with the points
+estimated jointly: the points are eliminated by their Schur complement. Points triangulated
+from references close together seen from far away are poorly placed along their rays, and so
+is a pose resting on them. The pixel noise is still the query residuals', which already carry
+the points' errors: the points' errors count twice, and the covariance is conservative (on
+synthetic scenes of such points the predicted RMS position error is about twice the actual
+one; taking the points as exact predicts a sixth of it).
+
+The references' own poses are known only so well (a survey's, an SfM model's, a GNSS/INS
+track's errors): with a prior spread on them (``ReferenceViews.rotation_sigma_rad``,
+``position_sigma``) each reference's pose is a parameter too, eliminated with the points. A
+reference turned by a twentieth of a degree moves every point it saw the same way, an error
+no count of points averages out; points seen tens of metres away under a fraction of a degree
+magnify it.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.geometry.rigid import Rigid3d
-from services.types import FloatArray, IntArray
+from services.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -122,36 +128,37 @@ def reprojection_jacobian(
     return projected, jacobian
 
 
-def reference_point_information(
-    points3d: FloatArray,
-    point_of: IntArray,
-    rotations: FloatArray,
-    translations: FloatArray,
-    focals: FloatArray,
-) -> FloatArray:
-    """The information each point's reference observations give about it, ``Σ_k A_kᵀ A_k``
-    with ``A_k`` the Jacobian of observation k's pixel projection over the point (units of
-    pixel noise: divide by σ² for the inverse covariance).
+# the references whose pose errors the covariance counts, those that observe the most points:
+# a query rests on its top-k retrieved references (10 by default); bounds the cost with many
+MAX_UNCERTAIN_REFERENCES = 10
 
-    Args:
-        points3d: (T, 3) world points.
+
+@dataclass(frozen=True)
+class ReferenceViews:
+    """The references' observations of the points and how well their poses are known.
+
+    Attributes:
         point_of: (K,) the point each observation is of.
-        rotations: (K, 3, 3) ``cam_from_world`` rotation of the observing camera.
-        translations: (K, 3) its translation.
-        focals: (K,) its focal length, pixels.
-    Returns:
-        (T, 3, 3); zero for a point no observation sees (or none in front).
+        camera_of: (K,) the reference camera that made it.
+        rotations: (C, 3, 3) each reference camera's ``cam_from_world`` rotation.
+        translations: (C, 3) its translation.
+        focals: (C,) its focal length, pixels.
+        rotation_sigma_rad: the standard deviation of each reference's rotation error about
+            each axis, radians (0: the rotations are exact).
+        position_sigma: the same for each reference's camera centre along each axis, map units.
     """
-    X_cam = np.einsum("kij,kj->ki", rotations, points3d[point_of]) + translations
-    front = X_cam[:, 2] > 1e-9
-    X_cam[~front, 2] = 1.0  # no information: zeroed below
-    d_proj = _projection_jacobian(X_cam, focals)
-    jacobian = (d_proj @ rotations) * front[:, None, None]  # ∂X_cam/∂X = R
-    per_observation = (np.swapaxes(jacobian, 1, 2) @ jacobian).reshape(-1, 9)
-    count = points3d.shape[0]
-    sums = [np.bincount(point_of, weights=per_observation[:, j], minlength=count) for j in range(9)]
-    information = np.stack(sums, axis=1).astype(np.float64).reshape(count, 3, 3)
-    return information
+
+    point_of: IntArray
+    camera_of: IntArray
+    rotations: FloatArray
+    translations: FloatArray
+    focals: FloatArray
+    rotation_sigma_rad: float = 0.0
+    position_sigma: float = 0.0
+
+    @property
+    def poses_uncertain(self) -> bool:
+        return self.rotation_sigma_rad > 0.0 and self.position_sigma > 0.0
 
 
 def pose_covariance(
@@ -160,7 +167,7 @@ def pose_covariance(
     centered_xy: FloatArray,
     focal: float,
     with_focal: bool = False,
-    point_information: FloatArray | None = None,
+    references: ReferenceViews | None = None,
 ) -> PoseCovariance | None:
     """Covariance of the pose (and focal) at ``cam_from_world``.
 
@@ -169,55 +176,130 @@ def pose_covariance(
         centered_xy: (N, 2) observed pixels minus the principal point (undistorted).
         focal: focal length, pixels.
         with_focal: the focal length is a free parameter too.
-        point_information: (N, 3, 3) what each point's own observations tell of it
-            (``reference_point_information``); None: the points are exact.
+        references: the references' observations of the points (``point_of`` indexes
+            ``points3d``) and their poses' spread; None: the points are exact.
     Returns:
         ``PoseCovariance``; None with too few points in front of the camera for the parameters
         or a singular system.
     """
     in_front = cam_from_world.apply(points3d)[:, 2] > 1e-9
-    points3d, centered_xy = points3d[in_front], centered_xy[in_front]
     p = 7 if with_focal else 6
-    n = int(points3d.shape[0])
+    n = int(in_front.sum())
     if 2 * n <= p + 1:
         return None
-    projected, jacobian = reprojection_jacobian(cam_from_world, points3d, focal, with_focal)
-    residuals = (projected - centered_xy).reshape(-1)
+    projected, jacobian = reprojection_jacobian(
+        cam_from_world, points3d[in_front], focal, with_focal
+    )
+    residuals = (projected - centered_xy[in_front]).reshape(-1)
     # the noise from the query's residuals, which carry the points' errors too: applied to
     # the references' observations as well, it counts the points' errors twice (conservative)
     sigma2 = float(residuals @ residuals) / (2 * n - p)
-    if point_information is None:
+    if references is None:
         normal = jacobian.T @ jacobian
     else:
-        per_point = jacobian.reshape(n, 2, p)
-        weighted = _observation_weights(per_point, point_information[in_front]) @ per_point
-        normal = np.tensordot(per_point, weighted, axes=([0, 1], [0, 1]))
+        normal = _pose_information(
+            jacobian.reshape(n, 2, p), points3d[in_front], in_front, references, sigma2
+        )
     # scale the parameters to unit diagonal before inverting: radians, metres and pixels differ
     scale = 1.0 / np.sqrt(np.maximum(np.diag(normal), np.finfo(np.float64).tiny))
     scaled = normal * scale[:, None] * scale[None, :]
     if not np.all(np.isfinite(scaled)) or np.linalg.cond(scaled) > 1e12:
         return None
     covariance = np.linalg.inv(scaled) * scale[:, None] * scale[None, :] * sigma2
-    return PoseCovariance(covariance, float(np.sqrt(sigma2)), n)
+    return PoseCovariance(covariance[:p, :p], float(np.sqrt(sigma2)), n)
 
 
-def _observation_weights(jacobian: FloatArray, point_information: FloatArray) -> FloatArray:
-    """(N, 2, 2) ``W_i = (I + B_i I_i⁻¹ B_iᵀ)⁻¹ = I − B_i (B_iᵀ B_i + I_i)⁻¹ B_iᵀ``: the inverse
-    covariance, in units of the pixel noise, of point i's query observation once the point's
-    own error is counted, with ``B_i = −J_i[:, 3:6]`` the Jacobian of its projection over the
-    point (``∂X_cam/∂X = −∂X_cam/∂C``) and ``I_i`` its information from the references. The
-    pose's information is ``Σ J_iᵀ W_i J_i``: the points eliminated by their Schur complement.
-    A point the references do not constrain gives nothing (``W_i = 0``)."""
-    b = -jacobian[:, :, 3:6]  # (N, 2, 3)
-    bt = np.swapaxes(b, 1, 2)
-    joint = bt @ b + point_information  # (N, 3, 3), symmetric
-    # the inverse by the adjugate (3 × 3 blocks: far cheaper than a batched solve); a
-    # determinant below 1e-12 of the diagonal's product is singular
-    adjugate = np.cross(joint[:, [1, 2, 0]], joint[:, [2, 0, 1]])  # rows: cofactors (symmetric)
-    determinant = np.einsum("ni,ni->n", joint[:, 0], adjugate[:, 0])
-    scale = np.prod(np.abs(np.diagonal(joint, axis1=1, axis2=2)), axis=1)
+def _pose_information(
+    query_jacobian: FloatArray,
+    points3d: FloatArray,
+    in_front: BoolArray,
+    references: ReferenceViews,
+    sigma2: float,
+) -> FloatArray:
+    """The information, in units of the pixel noise, on the query's parameters and (when their
+    poses are uncertain) the ``(δθ, C)`` of the ``MAX_UNCERTAIN_REFERENCES`` references that
+    observe the most points after eliminating the points: ``S = H_pp − Σ_i H_pi H_ii⁻¹ H_ip``
+    over the points i, each point's ``H_ii`` its query observation's ``B_iᵀ B_i`` plus its
+    reference observations', with ``B_i = −J_i[:, 3:6]`` the query projection's Jacobian over
+    the point (``∂X_cam/∂X = −∂X_cam/∂C``). The query's parameters come first. A point whose
+    ``H_ii`` is singular (the references do not constrain it) is left out with all its
+    observations. The references' prior, ``σ² / σ_ref²`` in these units, keeps the system
+    determined; the other references' poses are taken as exact.
+
+    Args:
+        query_jacobian: (N, 2, p) the query's projection Jacobian of the points in front of it.
+        points3d: (N, 3) those points.
+        in_front: which of ``references``' points they are.
+    """
+    n, _, p = query_jacobian.shape
+    index_of = np.cumsum(in_front) - 1
+    seen = in_front[references.point_of]
+    point_of = index_of[references.point_of[seen]]
+    camera_of = references.camera_of[seen]
+    rotations = references.rotations[camera_of]
+    X_cam = np.einsum("kij,kj->ki", rotations, points3d[point_of])
+    X_cam += references.translations[camera_of]
+    front = X_cam[:, 2] > 1e-9
+    X_cam[~front, 2] = 1.0  # no information: zeroed below
+    d_proj = _projection_jacobian(X_cam, references.focals[camera_of]) * front[:, None, None]
+    over_point = d_proj @ rotations  # ∂X_cam/∂X = R
+    b = -query_jacobian[:, :, 3:6]
+    point_information = np.swapaxes(b, 1, 2) @ b
+    point_information += _sum_by(point_of, np.swapaxes(over_point, 1, 2) @ over_point, n)
+    inverse, solvable = _inverse_3x3(point_information)
+    uncertain = np.zeros(0, np.int64)
+    if references.poses_uncertain:
+        kept = solvable[point_of]
+        observed = np.bincount(camera_of[kept], minlength=len(references.rotations))
+        uncertain = np.argsort(-observed, kind="stable")[:MAX_UNCERTAIN_REFERENCES]
+        uncertain = uncertain[observed[uncertain] > 0]
+    size = p + 6 * len(uncertain)
+    normal = np.zeros((size, size))
+    normal[:p, :p] = np.einsum("nai,naj->ij", query_jacobian[solvable], query_jacobian[solvable])
+    coupling = np.zeros((n, size, 3))  # H_pi: each parameter against each point
+    coupling[:, :p] = np.swapaxes(query_jacobian, 1, 2) @ b
+    if len(uncertain):
+        slot = np.full(len(references.rotations), -1, np.int64)
+        slot[uncertain] = np.arange(len(uncertain))
+        rows = np.flatnonzero((slot[camera_of] >= 0) & solvable[point_of])
+        slot_of, point_of = slot[camera_of[rows]], point_of[rows]
+        # each reference's projection Jacobian over its own rotation and centre
+        over_pose = np.concatenate(
+            [d_proj[rows] @ -_skew(X_cam[rows]), d_proj[rows] @ -rotations[rows]], axis=2
+        )
+        blocks = _sum_by(slot_of, np.swapaxes(over_pose, 1, 2) @ over_pose, len(uncertain))
+        prior = np.diag(
+            sigma2 / np.repeat([references.rotation_sigma_rad, references.position_sigma], 3) ** 2
+        )
+        for c in range(len(uncertain)):
+            block = slice(p + 6 * c, p + 6 * c + 6)
+            normal[block, block] = blocks[c] + prior
+        # a reference observes a point once: each (point, slot) pair is its own entry
+        per_observation = np.swapaxes(over_pose, 1, 2) @ over_point[rows]  # (K, 6, 3)
+        flat = coupling.reshape(n * size, 3)
+        targets = (point_of * size + p + 6 * slot_of)[:, None] + np.arange(6)
+        flat += _sum_by(targets.reshape(-1), per_observation.reshape(-1, 1, 3), n * size)[:, 0]
+    coupling = coupling[solvable]
+    normal -= np.tensordot(coupling @ inverse[solvable], coupling, axes=([0, 2], [0, 2]))
+    return normal
+
+
+def _sum_by(index: IntArray, values: FloatArray, count: int) -> FloatArray:
+    """(K, a, b) values summed by ``index`` into (count, a, b) (``np.bincount`` per entry: far
+    faster than ``np.add.at``)."""
+    flat = values.reshape(len(values), -1)
+    sums = [np.bincount(index, weights=flat[:, j], minlength=count) for j in range(flat.shape[1])]
+    return np.stack(sums, axis=1).astype(np.float64).reshape(count, *values.shape[1:])
+
+
+def _inverse_3x3(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(N, 3, 3) symmetric matrices → their inverses by the adjugate (far cheaper than a
+    batched solve) and which are solvable: a determinant below 1e-12 of the diagonal's product
+    is singular (its inverse left zero)."""
+    adjugate = np.cross(matrices[:, [1, 2, 0]], matrices[:, [2, 0, 1]])  # rows: cofactors
+    determinant = np.einsum("ni,ni->n", matrices[:, 0], adjugate[:, 0])
+    scale = np.prod(np.abs(np.diagonal(matrices, axis1=1, axis2=2)), axis=1)
     solvable = determinant > 1e-12 * scale
     inverse = adjugate / np.where(solvable, determinant, 1.0)[:, None, None]
-    weights: FloatArray = np.eye(2) - b @ inverse @ bt
-    weights[~solvable] = 0.0
-    return weights
+    inverse[~solvable] = 0.0
+    return inverse, solvable

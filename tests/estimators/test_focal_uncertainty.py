@@ -136,7 +136,7 @@ class TestCappedConfidence:
 
     def test_never_above_what_the_uncertainty_leaves_for_the_target(self) -> None:
         """A pose 0.6 m uncertain (RMS) is within 25 cm with probability 0.085: its
-        confidence is no more, below the default ``min_confidence`` of 0.1."""
+        confidence is no more, below the default ``min_confidence``."""
         wide = PoseUncertainty(0.6, 0.5, 100, 1.0, 0.05, 0.1)
         capped = capped_confidence(0.97, wide, self.OPTIONS, focal_estimated=False)
         assert capped == pytest.approx(within_target_probability(wide, self.OPTIONS))

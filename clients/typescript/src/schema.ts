@@ -1763,7 +1763,7 @@ export interface components {
             /**
              * Min Confidence
              * @description A pose less confident than this is not an answer: localized: false, reason low_confidence, the pose as `candidate`. 0 answers every verified pose
-             * @default 0.1
+             * @default 0.3
              */
             min_confidence?: number;
             output?: components["schemas"]["OutputIn"];

@@ -823,7 +823,7 @@ class LocalizeParamsIn(BaseModel):
         default=None, description="Inlier threshold in pixels (default 12)"
     )
     min_confidence: float = Field(
-        default=0.1,
+        default=0.3,
         description="A pose less confident than this is not an answer: localized: false, reason low_confidence, the pose as `candidate`. 0 answers every verified pose",
     )
     output: OutputIn | None = Field(default=None)
