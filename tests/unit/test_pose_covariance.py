@@ -144,6 +144,16 @@ def _triangulated(references: list[Rigid3d], seen: list[np.ndarray], focal: floa
     return (homogeneous[:3] / homogeneous[3]).T
 
 
+def _seen_by_all(poses: list[Rigid3d], candidates: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` candidate points inside every pose's 600 × 440 px view (500 px
+    focal length)."""
+    visible = np.ones(len(candidates), bool)
+    for pose in poses:
+        xy = _project(pose, candidates, 500.0)
+        visible &= (np.abs(xy[:, 0]) < 300) & (np.abs(xy[:, 1]) < 220)
+    return candidates[visible][:count]
+
+
 def _ahead_of_two_references(seed: int) -> tuple[list[Rigid3d], Rigid3d, np.ndarray]:
     """Two references a metre apart along their view, the query 5 m ahead of them on the same
     line (a query beyond a map's end), and 120 points 12–40 m away that all three see."""
@@ -153,11 +163,7 @@ def _ahead_of_two_references(seed: int) -> tuple[list[Rigid3d], Rigid3d, np.ndar
     candidates = np.column_stack(
         [rng.uniform(-12, 12, 4000), rng.uniform(-4, 4, 4000), rng.uniform(12, 40, 4000)]
     )
-    visible = np.ones(len(candidates), bool)
-    for pose in (*references, truth):
-        xy = _project(pose, candidates, 500.0)
-        visible &= (np.abs(xy[:, 0]) < 300) & (np.abs(xy[:, 1]) < 220)
-    return references, truth, candidates[visible][:120]
+    return references, truth, _seen_by_all([*references, truth], candidates, 120)
 
 
 def test_points_own_uncertainty_covers_the_spread_of_poses_on_triangulated_points() -> None:
@@ -227,11 +233,7 @@ def test_references_pose_errors_are_covered_when_counted() -> None:
     candidates = np.column_stack(
         [rng.uniform(-6, 6, 2000), rng.uniform(-3, 3, 2000), rng.uniform(5, 15, 2000)]
     )
-    visible = np.ones(len(candidates), bool)
-    for pose in (*references, truth):
-        xy = _project(pose, candidates, focal)
-        visible &= (np.abs(xy[:, 0]) < 300) & (np.abs(xy[:, 1]) < 220)
-    points = candidates[visible][:150]
+    points = _seen_by_all([*references, truth], candidates, 150)
     exact = [_project(pose, points, focal) for pose in references]
     exact_query = _project(truth, points, focal)
     camera = pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[focal, 0, 0])
