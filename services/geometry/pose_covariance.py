@@ -158,6 +158,7 @@ class ReferenceViews:
 
     @property
     def poses_uncertain(self) -> bool:
+        """Whether the references' poses are parameters (both spreads positive)."""
         return self.rotation_sigma_rad > 0.0 and self.position_sigma > 0.0
 
 
@@ -292,7 +293,7 @@ def _sum_by(index: IntArray, values: FloatArray, count: int) -> FloatArray:
     return np.stack(sums, axis=1).astype(np.float64).reshape(count, *values.shape[1:])
 
 
-def _inverse_3x3(matrices: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _inverse_3x3(matrices: FloatArray) -> tuple[FloatArray, BoolArray]:
     """(N, 3, 3) symmetric matrices → their inverses by the adjugate (far cheaper than a
     batched solve) and which are solvable: a determinant below 1e-12 of the diagonal's product
     is singular (its inverse left zero)."""
