@@ -99,6 +99,14 @@ def _skew(v: FloatArray) -> FloatArray:
     )
 
 
+def _over_pose(d_proj: FloatArray, X_cam: FloatArray, rotation: FloatArray) -> FloatArray:
+    """(N, 2, 6) the projections' Jacobian over the observing camera's ``(δθ, C)``, from
+    ``d_proj`` = ∂(u, v)/∂X_cam (``_projection_jacobian``): ``X_cam = exp([δθ]×) R (X − C)``
+    gives ``∂X_cam/∂δθ = −[X_cam]×`` and ``∂X_cam/∂C = −R`` (``rotation``: one, or one per
+    point)."""
+    return np.concatenate([d_proj @ -_skew(X_cam), d_proj @ -rotation], axis=2)
+
+
 def reprojection_jacobian(
     cam_from_world: Rigid3d, points3d: FloatArray, focal: float, with_focal: bool
 ) -> tuple[FloatArray, FloatArray]:
@@ -119,9 +127,7 @@ def reprojection_jacobian(
     projected = focal * np.stack([x, y], axis=1)
     n = points3d.shape[0]
     d_proj = _projection_jacobian(X_cam, focal)
-    d_theta = d_proj @ -_skew(X_cam)  # X_cam = exp([δθ]×) R (X − C): ∂X_cam/∂δθ = −[X_cam]×
-    d_center = d_proj @ -R  # ∂X_cam/∂C = −R
-    blocks = [d_theta, d_center]
+    blocks = [_over_pose(d_proj, X_cam, R)]
     if with_focal:
         blocks.append(np.stack([x, y], axis=1)[:, :, None])
     jacobian = np.concatenate(blocks, axis=2).reshape(2 * n, -1)
@@ -264,10 +270,7 @@ def _pose_information(
         slot[uncertain] = np.arange(len(uncertain))
         rows = np.flatnonzero((slot[camera_of] >= 0) & solvable[point_of])
         slot_of, point_of = slot[camera_of[rows]], point_of[rows]
-        # each reference's projection Jacobian over its own rotation and centre
-        over_pose = np.concatenate(
-            [d_proj[rows] @ -_skew(X_cam[rows]), d_proj[rows] @ -rotations[rows]], axis=2
-        )
+        over_pose = _over_pose(d_proj[rows], X_cam[rows], rotations[rows])
         blocks = _sum_by(slot_of, np.swapaxes(over_pose, 1, 2) @ over_pose, len(uncertain))
         prior = np.diag(
             sigma2 / np.repeat([references.rotation_sigma_rad, references.position_sigma], 3) ** 2
