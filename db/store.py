@@ -128,12 +128,14 @@ class SqlReferenceStore:
         version = 0 if vocabulary is None else vocabulary.version
         if not rows:
             return empty_index(vocabulary)
+        poses = [pose_of(image) for image, _ in rows]
         return RetrievalIndex(
             image_ids=[image.id for image, _ in rows],
             descriptors=np.stack([from_row(array) for _, array in rows]).astype(np.float32),
-            centers=np.stack([pose_of(image).center for image, _ in rows]),
+            centers=np.stack([pose.center for pose in poses]),
             vocabulary=None if vocabulary is None else vocabulary.vocabulary,
             vocabulary_version=version,
+            axes=np.stack([pose.rotation[2] for pose in poses]),
         )
 
     def _references(self) -> tuple[ColumnElement[bool], ...]:

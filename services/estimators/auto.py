@@ -22,6 +22,11 @@ the other, or fewer than ``MIN_POINT_INLIER_SHARE`` of its triangulated points f
 triangulated structure went wrong (on redkitchen: four queries where ``local_tri_all`` was
 0.4–1 m off with 11–16 % fewer inliers than ``e5p1``; with XFeat, a median share of 0.50 where
 ``local_tri_all`` alone missed (10 cm, 10°), 0.83 where both poses made it).
+A pose of local triangulation whose points do not fit it is no answer on its own either: with
+no other verified pose the query is not localized (``no_consensus``). On redkitchen (queries
+0–499 against a map of frames 500–999, ``xfeat-lg``) one such pose of eight was right, six lay
+1.5 m off at confidences up to 0.98; the fallback, run in their place, answered one of those
+queries 1.5 m off too, so it is not run (``docs/benchmarks/2026-11-30-track-retrieval.md``).
 
 When two or more poses verified, the answer's stats carry how far the others lie from it
 (``agreement_stats``: ``auto_other_position_m``, ``auto_other_rotation_deg``, the largest over
@@ -229,7 +234,7 @@ class AutoEstimator:
             results[name] = verify_pose(found, query_camera, references, budget, deadline)
         attempts = {"auto_attempts": float(len(results))}
         verified = self._verified(results)
-        if verified:
+        if self._fit(results):
             name, why = choose(verified)
             failed = [f"{n} {r.failure_reason}" for n, r in results.items() if n not in verified]
             tried = f"; failed: {', '.join(failed)}" if failed else ""
@@ -243,14 +248,31 @@ class AutoEstimator:
         first = results.get(first_name) or EstimateResult.failure(
             FailureReason.TIME_BUDGET_EXCEEDED, references
         )
+        if first.cam_from_world is not None:  # local triangulation's, its points unfit
+            first = EstimateResult.failure(FailureReason.NO_CONSENSUS, references, first.stats)
+        unfit = [
+            f"; {name}: {point_inlier_share(r):.0%} of its triangulated points fit its pose"
+            for name, r in verified.items()
+        ]
         return replace(
             first,
             stats=first.stats | attempts,
             estimator_used=first_name,
             estimator_reason=f"{plan.reason}; no estimator localized "
-            f"({', '.join(results) or 'none ran'})",
+            f"({', '.join(results) or 'none ran'}){''.join(unfit)}",
         )
 
     @staticmethod
     def _verified(results: dict[str, EstimateResult]) -> dict[str, EstimateResult]:
         return {name: r for name, r in results.items() if r.cam_from_world is not None}
+
+    @classmethod
+    def _fit(cls, results: dict[str, EstimateResult]) -> dict[str, EstimateResult]:
+        """The verified poses but local triangulation's when fewer than
+        ``MIN_POINT_INLIER_SHARE`` of its triangulated points fit it: its structure went
+        wrong, and alone it is no answer."""
+        return {
+            name: r
+            for name, r in cls._verified(results).items()
+            if name != TRIANGULATION or point_inlier_share(r) >= MIN_POINT_INLIER_SHARE
+        }

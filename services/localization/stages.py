@@ -24,7 +24,7 @@ from services.references.store import ReferenceView
 from services.retrieval.base import GlobalDescriptor
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.search import PositionPrior
-from services.retrieval.thinning import SPACING_FACTOR, search_thinned
+from services.retrieval.thinning import search_thinned
 from services.retrieval.vlad import encode
 from services.runtime.spare_workers import Spread
 from services.types import Float32Array, FloatArray, IntArray, UInt8Array
@@ -92,12 +92,12 @@ def retrieve(
     query: LocalFeatures,
     top_k: int,
     prior: PositionPrior | None,
-    spacing_factor: float = SPACING_FACTOR,
+    spacing_factor: float | None = None,
 ) -> list[Retrieved]:
     """The ``top_k`` references of the query (``image`` and its features ``query``), best
     first: encoded by the map's VLAD vocabulary when it has one, else by
-    ``global_descriptor``, then searched (thinned at ``spacing_factor``, near ``prior`` when
-    given)."""
+    ``global_descriptor``, then searched (thinned at ``spacing_factor``, None: the rule of
+    ``search_thinned``; near ``prior`` when given)."""
     query_global = (
         encode(query.descriptors, index.vocabulary)
         if index.vocabulary is not None

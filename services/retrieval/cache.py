@@ -140,6 +140,7 @@ class RetrievalIndexCache:
             nbytes=sum(
                 index.descriptors.nbytes
                 + index.centers.nbytes
+                + (0 if index.axes is None else index.axes.nbytes)
                 + (0 if index.ann is None else index.ann.index.nbytes())
                 for index in indexes
             ),
@@ -168,10 +169,14 @@ def _catch_up(
             [np.asarray(keep, np.int64), np.full(len(added.image_ids), -1, np.int64)]
         )
         ann = ann.updated(previous_rows, descriptors)
+    axes = None
+    if index.axes is not None and (added.axes is not None or not added.image_ids):
+        axes = np.concatenate([index.axes[keep], *([added.axes] if added.axes is not None else [])])
     return replace(
         index,
         image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
         descriptors=descriptors,
         centers=np.concatenate([c for _, c in parts]),
         ann=ann,
+        axes=axes,
     )

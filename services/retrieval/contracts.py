@@ -36,6 +36,7 @@ class RetrievalIndex:
             vectors; the query is encoded with it); None: the localizer's global descriptor.
         vocabulary_version: its version (0 without one).
         ann: an approximate index over ``descriptors`` (large maps); None: exact search.
+        axes: (N, 3) float64 optical axes in world axes (None: not known).
     """
 
     image_ids: list[str]
@@ -44,9 +45,12 @@ class RetrievalIndex:
     vocabulary: Vocabulary | None = None
     vocabulary_version: int = 0
     ann: AnnView | None = None
+    axes: FloatArray | None = None
 
 
-EMPTY_INDEX = RetrievalIndex([], np.zeros((0, 1), np.float32), np.zeros((0, 3)))
+EMPTY_INDEX = RetrievalIndex(
+    [], np.zeros((0, 1), np.float32), np.zeros((0, 3)), axes=np.zeros((0, 3))
+)
 
 
 def empty_index(vocabulary: VocabularyState | None) -> RetrievalIndex:

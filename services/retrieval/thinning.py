@@ -12,6 +12,15 @@ candidates' own spacing (the median distance from each candidate to its nearest 
 candidate), so the rule needs no unit: it scales with how densely the map was captured where
 the query looks.
 
+References on a track they look along (a vehicle's frames: ``TRACK_NEIGHBOURS`` candidates
+nearest the first-ranked one in forward motion, ``services.estimators.position_conditioning``)
+are no near-copies of each other: each step moves the camera into the scene, and the ones
+around the first-ranked share the most of its view. There a candidate is skipped only closer
+than ``TRACK_SPACING_FACTOR`` × the spacing, which keeps a track of even spacing whole. At the
+handheld factor the track lost every other reference near the query and appearance filled
+the slots with frames from elsewhere along the road (kitti05: more than half of the ten
+retrieved lay over 15 m from the query; ``docs/benchmarks/2026-11-30-track-retrieval.md``).
+
 A query whose answer stays unsure is matched again against a wider spread
 (``WIDER_SPACING_FACTOR``, ``services.localization.widen``): where a map holds several passes
 through a place, the closest-spaced references retrieved first can all come from one pass
@@ -22,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.estimators.position_conditioning import reference_layout
 from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.search import PositionPrior, search_index
 from services.types import Float32Array, FloatArray, IntArray
@@ -32,6 +42,10 @@ CANDIDATES_PER_REFERENCE = 3
 SPACING_FACTOR = 1.5
 # the spacing of the second retrieval of a query whose first answer is unsure
 WIDER_SPACING_FACTOR = 3.0
+# on a track looked along: below 1, references of even spacing are all kept
+TRACK_SPACING_FACTOR = 0.75
+# the candidates nearest the first-ranked (itself included) whose layout tells a track
+TRACK_NEIGHBOURS = 5
 
 
 def thin_references(
@@ -66,15 +80,28 @@ def thin_references(
     return rows[order], scores[order]
 
 
+def on_track(centers: FloatArray, axes: FloatArray) -> bool:
+    """Whether the ``TRACK_NEIGHBOURS`` of these (N, 3) centres nearest the first (itself
+    included), with their (N, 3) optical axes, lie on a line they look along."""
+    nearest = np.argsort(np.linalg.norm(centers - centers[0], axis=1))[:TRACK_NEIGHBOURS]
+    layout = reference_layout(centers[nearest], axes[nearest], np.ones(len(nearest)))
+    return layout.forward_motion
+
+
 def search_thinned(
     index: RetrievalIndex,
     query: Float32Array,
     k: int,
     prior: PositionPrior | None = None,
-    spacing_factor: float = SPACING_FACTOR,
+    spacing_factor: float | None = None,
 ) -> tuple[IntArray, Float32Array]:
     """``search_index`` for ``CANDIDATES_PER_REFERENCE`` × ``k`` candidates, thinned to ``k``
-    by ``thin_references`` at ``spacing_factor``: row indices into ``index`` and their
-    scores, best first."""
+    by ``thin_references`` at ``spacing_factor`` (None: ``SPACING_FACTOR``, or
+    ``TRACK_SPACING_FACTOR`` where the candidates around the first-ranked lie ``on_track``):
+    row indices into ``index`` and their scores, best first."""
     rows, scores = search_index(index, query, CANDIDATES_PER_REFERENCE * k, prior)
+    if spacing_factor is None:
+        axes = index.axes
+        track = axes is not None and len(rows) > 1 and on_track(index.centers[rows], axes[rows])
+        spacing_factor = TRACK_SPACING_FACTOR if track else SPACING_FACTOR
     return thin_references(rows, scores, index.centers, k, spacing_factor)

@@ -1,4 +1,4 @@
-"""Issue 15: configurations where epipolar constraints leave the query's position unobservable
+"""Configurations where epipolar constraints leave the query's position unobservable
 (a street driven forward, references on the line through the query) or badly conditioned (a
 narrow reference baseline), and the pure-rotation case that is not degenerate. ``e5p1`` and
 ``essential_5pt`` must say ``degenerate_geometry`` or be right, never confidently wrong;
@@ -244,3 +244,58 @@ def test_auto_reports_the_first_failure_when_all_fail(scene: SyntheticCorrespond
     assert result.failure_reason is FailureReason.DEGENERATE_GEOMETRY
     assert result.estimator_used == "e5p1"
     assert result.estimator_reason and "no estimator localized" in result.estimator_reason
+
+
+class _UnfitTriangulation:
+    """Local triangulation's pose with a quarter of its triangulated points fitting it."""
+
+    name = "local_tri_all"
+    needs_depth = False
+
+    def estimate(
+        self,
+        query_camera: Camera,
+        references: list[ReferenceObservation],
+        options: EstimatorOptions,
+    ) -> EstimateResult:
+        result = get_estimator("local_tri_all").estimate(query_camera, references, options)
+        unfit = {"points_triangulated": 400.0, "points_inliers": 100.0}
+        return replace(result, stats=result.stats | unfit)
+
+
+def test_local_triangulation_whose_points_do_not_fit_is_no_answer_alone(
+    scene: SyntheticCorrespondences,
+) -> None:
+    """E5+1 fails and local triangulation's points do not fit its pose: the query is not
+    localized, the reason says why, and the fallback is not run in its place."""
+    refs = [replace(ref, query_depth=None, reference_depth=None) for ref in scene.references]
+    candidates = {
+        "e5p1": _AlwaysDegenerate(),
+        "local_tri_all": _UnfitTriangulation(),
+        "motion_averaging": get_estimator("motion_averaging"),
+    }
+    result = AutoEstimator(candidates).estimate(scene.query_camera, refs, TEST_OPTIONS)
+    assert result.cam_from_world is None
+    assert result.failure_reason is FailureReason.DEGENERATE_GEOMETRY
+    assert result.stats["auto_attempts"] == 2.0
+    assert result.estimator_reason and "25% of its triangulated points" in result.estimator_reason
+    with_e5p1 = AutoEstimator({**candidates, "e5p1": get_estimator("e5p1")})
+    result = with_e5p1.estimate(scene.query_camera, refs, TEST_OPTIONS)
+    assert result.estimator_used == "e5p1" and result.cam_from_world is not None
+
+
+def test_on_a_street_unfit_local_triangulation_alone_is_no_consensus(
+    streets: list[SyntheticCorrespondences],
+) -> None:
+    """Forward motion runs local triangulation first: unfit and alone, it is no answer."""
+    scene = streets[0]
+    failing = _AlwaysDegenerate()
+    candidates = {
+        "e5p1": failing,
+        "local_tri_all": _UnfitTriangulation(),
+        "motion_averaging": failing,
+    }
+    result = AutoEstimator(candidates).estimate(scene.query_camera, scene.references, TEST_OPTIONS)
+    assert result.cam_from_world is None
+    assert result.failure_reason is FailureReason.NO_CONSENSUS
+    assert result.estimator_used == "local_tri_all"

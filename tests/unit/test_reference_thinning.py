@@ -1,11 +1,14 @@
-"""Near-duplicate references thinned out of the retrieved set (issue #13)."""
+"""Near-duplicate references thinned out of the retrieved set, and references on a track looked
+along kept."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from services.retrieval.thinning import thin_references
+from services.retrieval.cache import RetrievalIndexCache
+from services.retrieval.contracts import RetrievalIndex
+from services.retrieval.thinning import SPACING_FACTOR, on_track, search_thinned, thin_references
 
 
 def _ranked(count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -54,3 +57,86 @@ def test_no_more_candidates_than_asked_for_are_returned_as_they_are() -> None:
     kept, kept_scores = thin_references(rows, scores, rng.normal(size=(8, 3)), k=5)
     np.testing.assert_array_equal(kept, rows)
     np.testing.assert_array_equal(kept_scores, scores)
+
+
+def _index(centers: np.ndarray, axes: np.ndarray | None) -> RetrievalIndex:
+    """References ranked by their row for the query ``QUERY``: row i at angle 0.01·i."""
+    angles = 0.01 * np.arange(len(centers))
+    descriptors = np.zeros((len(centers), 4), np.float32)
+    descriptors[:, 0], descriptors[:, 1] = np.cos(angles), np.sin(angles)
+    ids = [f"r{i}" for i in range(len(centers))]
+    return RetrievalIndex(ids, descriptors, centers, axes=axes)
+
+
+QUERY = np.array([1.0, 0.0, 0.0, 0.0], np.float32)
+
+
+def _line(count: int, spacing: float, along: int) -> np.ndarray:
+    centers = np.zeros((count, 3))
+    centers[:, along] = np.arange(count) * spacing
+    return centers
+
+
+def test_a_track_looked_along_keeps_every_reference_near_the_first() -> None:
+    # a vehicle's frames 2.3 m apart along z, looking along z
+    centers = _line(30, 2.3, along=2)
+    forward = np.tile([0.0, 0.0, 1.0], (30, 1))
+    assert on_track(centers, forward)
+    kept, _ = search_thinned(_index(centers, forward), QUERY, k=10)
+    np.testing.assert_array_equal(kept, np.arange(10))
+
+
+def test_a_line_looked_across_is_thinned_as_near_copies() -> None:
+    # frames along x looking along z (a sideways sweep): not a track
+    centers = _line(30, 0.03, along=0)
+    forward = np.tile([0.0, 0.0, 1.0], (30, 1))
+    assert not on_track(centers, forward)
+    kept, _ = search_thinned(_index(centers, forward), QUERY, k=10)
+    np.testing.assert_array_equal(kept, np.arange(0, 20, 2))
+
+
+def test_without_axes_or_with_a_factor_given_the_track_rule_does_not_apply() -> None:
+    centers = _line(30, 2.3, along=2)
+    forward = np.tile([0.0, 0.0, 1.0], (30, 1))
+    every_other = np.arange(0, 20, 2)
+    kept, _ = search_thinned(_index(centers, None), QUERY, k=10)
+    np.testing.assert_array_equal(kept, every_other)
+    kept, _ = search_thinned(_index(centers, forward), QUERY, k=10, spacing_factor=SPACING_FACTOR)
+    np.testing.assert_array_equal(kept, every_other)
+
+
+def test_the_retrieval_cache_keeps_each_references_axis_through_adds_and_deletes() -> None:
+    source = _AxesSource(["a", "b", "c"])
+    cache = RetrievalIndexCache()
+    index = cache.index(source)
+    assert index.axes is not None
+    np.testing.assert_array_equal(index.axes[:, 0], [0, 1, 2])
+    source.ids, source.rev = ["a", "c", "d"], 2
+    index = cache.index(source)
+    assert index.image_ids == ["a", "c", "d"] and index.axes is not None
+    np.testing.assert_array_equal(index.axes[:, 0], [0, 2, 3])
+
+
+class _AxesSource:
+    """A map whose reference ``x`` has the axis (ord(x) - ord("a"), 0, 0)."""
+
+    map_id, feature_model, descriptor_model = "map", "features", "descriptors"
+
+    def __init__(self, ids: list[str]) -> None:
+        self.ids, self.rev = ids, 1
+
+    def revision(self) -> int:
+        return self.rev
+
+    def reference_ids(self) -> list[str]:
+        return list(self.ids)
+
+    def vocabulary(self) -> None:
+        return None
+
+    def load_index(self, vocabulary: object, only_ids: list[str] | None = None) -> RetrievalIndex:
+        ids = sorted(self.ids if only_ids is None else only_ids)
+        axes = np.array([[ord(i) - ord("a"), 0.0, 0.0] for i in ids])
+        return RetrievalIndex(
+            ids, np.ones((len(ids), 4), np.float32), np.zeros((len(ids), 3)), axes=axes
+        )
