@@ -170,8 +170,8 @@ def _catch_up(
         )
         ann = ann.updated(previous_rows, descriptors)
     axes = None
-    if index.axes is not None and (added.axes is not None or not added.image_ids):
-        axes = np.concatenate([index.axes[keep], *([added.axes] if added.axes is not None else [])])
+    if index.axes is not None and added.axes is not None:
+        axes = np.concatenate([index.axes[keep], added.axes])
     return replace(
         index,
         image_ids=[index.image_ids[i] for i in keep] + added.image_ids,
