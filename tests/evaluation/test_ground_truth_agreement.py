@@ -1,6 +1,6 @@
 """``tools/benchmarks/ground_truth``: on a rendered scene, whose poses are exact, the relative
-rotation from the images agrees with the ground truth's, and a ground truth turned by a known
-angle is read as that far off."""
+pose from the images agrees with the ground truth's, and a ground truth turned or moved by a
+known amount is read as that far off."""
 
 from __future__ import annotations
 
@@ -31,6 +31,14 @@ def _turned(image: PosedImage, degrees: float) -> PosedImage:
     return replace(image, cam_from_world=Rigid3d(turn @ pose.rotation, turn @ pose.translation))
 
 
+def _moved(image: PosedImage, offset: np.ndarray) -> PosedImage:
+    """``image`` with its ground-truth camera centre moved by ``offset`` (world frame)."""
+    pose = image.cam_from_world
+    return replace(
+        image, cam_from_world=Rigid3d(pose.rotation, -pose.rotation @ (pose.center + offset))
+    )
+
+
 def test_exact_poses_agree_and_a_turned_one_is_read(
     reference_views: list[SyntheticView], tmp_path: Path
 ) -> None:
@@ -40,10 +48,28 @@ def test_exact_poses_agree_and_a_turned_one_is_read(
 
     found = compare(query, reference, features, matcher)
     assert found is not None
-    inliers, exact = found
+    inliers, exact, direction = found
     assert inliers >= MIN_INLIERS
     assert exact < 0.1
+    assert direction < 0.5
 
     turned = compare(query, _turned(reference, 3.0), features, matcher)
     assert turned is not None
     assert abs(turned[1] - 3.0) < 0.1
+
+
+def test_a_moved_centre_is_read_as_a_turned_direction_of_travel(
+    reference_views: list[SyntheticView], tmp_path: Path
+) -> None:
+    images = [_posed(view, tmp_path) for view in reference_views[:8]]
+    query, reference = images[0], nearest(images[0], images[1:], 1)[0]
+    features, matcher = FeatureCache(SiftExtractor()), NearestNeighborMatcher(0.8)
+    baseline = reference.cam_from_world.center - query.cam_from_world.center
+    across = np.cross(baseline, query.cam_from_world.rotation[2])
+    offset = np.linalg.norm(baseline) * np.tan(np.radians(10.0)) * across / np.linalg.norm(across)
+
+    found = compare(query, _moved(reference, offset), features, matcher)
+    assert found is not None
+    _, rotation, direction = found
+    assert rotation < 0.1
+    assert abs(direction - 10.0) < 1.0

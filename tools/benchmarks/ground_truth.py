@@ -1,13 +1,18 @@
 """How far a dataset's ground truth agrees with its images.
 
 For each query of a split and each of its nearest references by ground truth, the relative
-rotation estimated from the two images (a feature configuration's matches, PoseLib's relative
-pose with the dataset's intrinsics) is compared with the one the ground-truth poses give. An
-evaluation cannot score rotations more finely than this disagreement: an estimator that agrees
-with the images is counted that far off.
+pose estimated from the two images (a feature configuration's matches, PoseLib's relative
+pose with the dataset's intrinsics) is compared with the one the ground-truth poses give: the
+angle between the two rotations, and the angle between the two directions of travel (the
+baseline's direction, which the images fix up to scale; read only for pairs at least
+``MIN_BASELINE_M`` apart). An evaluation cannot score answers more finely than this
+disagreement: an estimator that agrees with the images is counted that far off. A position
+error ``e`` across a baseline ``b`` turns the direction by about ``atan(e / b)``.
 
-Prints each query's pairs, then the median / p90 disagreement over all pairs, and for pairs
+Prints each query's pairs, then the median / p90 disagreements over all pairs, and for pairs
 whose frames are near in the sequence (index gap ≤ ``--near-gap``) and far apart.
+
+Each pair prints as ``rotation / direction disagreement (inliers, turn, baseline)``.
 
 Run from the repository root:
 ``.venv/bin/python -m tools.benchmarks.ground_truth [DATASET] [--references RULE]
@@ -34,6 +39,7 @@ from tools.evaluation.split import split_dataset
 
 REDKITCHEN = Path("../shared/datasets/redkitchen")
 MIN_INLIERS = 100  # fewer: the image-based rotation is too loose to judge the ground truth by
+MIN_BASELINE_M = 0.1  # shorter: the direction of travel is too loose to judge
 METRES_PER_RADIAN = 0.5  # nearest references: centre distance plus this per radian of turn
 
 
@@ -42,8 +48,11 @@ class Pair:
     query: int  # dataset indices
     reference: int
     turn_deg: float  # the ground truth's relative rotation
+    baseline_m: float  # the ground truth's distance between the two centres
     inliers: int
     disagreement_deg: float  # image-based relative rotation against the ground truth's
+    direction_deg: float  # image-based direction of travel against the ground truth's; nan
+    # below MIN_BASELINE_M
 
 
 def nearest(query: PosedImage, references: list[PosedImage], k: int) -> list[PosedImage]:
@@ -81,9 +90,10 @@ class FeatureCache:
 
 def compare(
     query: PosedImage, reference: PosedImage, features: FeatureCache, matcher: Matcher
-) -> tuple[int, float] | None:
-    """Inliers and the disagreement (°) of the image-based relative rotation with the ground
-    truth's, or None below ``MIN_INLIERS``."""
+) -> tuple[int, float, float] | None:
+    """Inliers and the disagreements (°) of the image-based relative rotation and direction of
+    travel with the ground truth's (the direction nan below ``MIN_BASELINE_M``), or None below
+    ``MIN_INLIERS``."""
     q, r = features(query), features(reference)
     matches = matcher.match(q, r)
     if len(matches) < MIN_INLIERS:
@@ -98,8 +108,14 @@ def compare(
     )
     if info["num_inliers"] < MIN_INLIERS:
         return None
-    truth = _relative(query, reference).rotation
-    return int(info["num_inliers"]), rotation_error_deg(pose.R, truth)
+    truth = _relative(query, reference)
+    direction = float("nan")
+    if np.linalg.norm(truth.translation) >= MIN_BASELINE_M:
+        cosine = np.dot(pose.t, truth.translation) / (
+            np.linalg.norm(pose.t) * np.linalg.norm(truth.translation)
+        )
+        direction = float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+    return int(info["num_inliers"]), rotation_error_deg(pose.R, truth.rotation), direction
 
 
 def _summary(label: str, pairs: list[Pair]) -> str:
@@ -107,11 +123,20 @@ def _summary(label: str, pairs: list[Pair]) -> str:
         return f"{label}: no pairs"
     values = np.array([p.disagreement_deg for p in pairs])
     turns = np.array([p.turn_deg for p in pairs])
-    return (
+    text = (
         f"{label}: {len(pairs)} pairs (ground-truth turn median {np.median(turns):.0f}°), "
-        f"disagreement median {np.median(values):.2f}°, p90 {np.percentile(values, 90):.2f}°, "
-        f"max {values.max():.2f}°"
+        f"rotation disagreement median {np.median(values):.2f}°, "
+        f"p90 {np.percentile(values, 90):.2f}°, max {values.max():.2f}°"
     )
+    directions = np.array([p.direction_deg for p in pairs if not np.isnan(p.direction_deg)])
+    if len(directions):
+        baselines = np.array([p.baseline_m for p in pairs if not np.isnan(p.direction_deg)])
+        text += (
+            f"; direction of travel ({len(directions)} pairs, baseline median "
+            f"{np.median(baselines):.2f} m) median {np.median(directions):.2f}°, "
+            f"p90 {np.percentile(directions, 90):.2f}°, max {directions.max():.2f}°"
+        )
+    return text
 
 
 def main() -> None:
@@ -139,12 +164,14 @@ def main() -> None:
             found = compare(query, reference, features, matcher)
             if found is None:
                 continue
-            turn = rotation_error_deg(_relative(query, reference).rotation, np.eye(3))
-            pair = Pair(index[query.name], index[reference.name], turn, *found)
+            relative = _relative(query, reference)
+            turn = rotation_error_deg(relative.rotation, np.eye(3))
+            baseline = float(np.linalg.norm(relative.translation))
+            pair = Pair(index[query.name], index[reference.name], turn, baseline, *found)
             pairs.append(pair)
             line.append(
-                f"{reference.name} {pair.disagreement_deg:.2f}° "
-                f"({pair.inliers} inliers, turn {turn:.0f}°)"
+                f"{reference.name} {pair.disagreement_deg:.2f}° / {pair.direction_deg:.1f}° "
+                f"({pair.inliers} inliers, turn {turn:.0f}°, {baseline:.2f} m)"
             )
         print(f"{query.name}: " + (" | ".join(line) or "no pair"), flush=True)
     near = [p for p in pairs if abs(p.query - p.reference) <= args.near_gap]
