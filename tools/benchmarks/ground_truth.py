@@ -51,8 +51,7 @@ class Pair:
     baseline_m: float  # the ground truth's distance between the two centres
     inliers: int
     disagreement_deg: float  # image-based relative rotation against the ground truth's
-    direction_deg: float  # image-based direction of travel against the ground truth's; nan
-    # below MIN_BASELINE_M
+    direction_deg: float  # the same for the direction of travel; nan below MIN_BASELINE_M
 
 
 def nearest(query: PosedImage, references: list[PosedImage], k: int) -> list[PosedImage]:
@@ -128,11 +127,12 @@ def _summary(label: str, pairs: list[Pair]) -> str:
         f"rotation disagreement median {np.median(values):.2f}°, "
         f"p90 {np.percentile(values, 90):.2f}°, max {values.max():.2f}°"
     )
-    directions = np.array([p.direction_deg for p in pairs if not np.isnan(p.direction_deg)])
-    if len(directions):
-        baselines = np.array([p.baseline_m for p in pairs if not np.isnan(p.direction_deg)])
+    judged = [p for p in pairs if not np.isnan(p.direction_deg)]
+    if judged:
+        directions = np.array([p.direction_deg for p in judged])
+        baselines = np.array([p.baseline_m for p in judged])
         text += (
-            f"; direction of travel ({len(directions)} pairs, baseline median "
+            f"; direction of travel ({len(judged)} pairs, baseline median "
             f"{np.median(baselines):.2f} m) median {np.median(directions):.2f}°, "
             f"p90 {np.percentile(directions, 90):.2f}°, max {directions.max():.2f}°"
         )
