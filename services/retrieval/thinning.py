@@ -12,6 +12,14 @@ candidates' own spacing (the median distance from each candidate to its nearest 
 candidate), so the rule needs no unit: it scales with how densely the map was captured where
 the query looks.
 
+That spacing is the map's, not the depth of the scene, so by position alone a sparse map
+would lose the references next to the first-ranked, which lie nearest the query. A near-copy
+also looks the same way: a closer candidate is skipped only where its optical axis lies
+within ``NEAR_COPY_TURN_DEG`` of the kept one's. A handheld capture turns as it moves, more
+between frames captured further apart (redkitchen: a median 1.1–1.4° between neighbouring map
+frames at one frame in 5, 5.2–6.6° at one in 25;
+``docs/benchmarks/2026-11-30-map-density.md``).
+
 References on a track they look along (a vehicle's frames: ``TRACK_NEIGHBOURS`` candidates
 nearest the first-ranked one in forward motion, ``services.estimators.position_conditioning``)
 are no near-copies of each other: each step moves the camera into the scene, and the ones
@@ -36,6 +44,8 @@ from services.retrieval.contracts import RetrievalIndex
 from services.retrieval.search import PositionPrior, search_index
 from services.types import Float32Array, FloatArray, IntArray
 
+# a closer candidate is no near-copy of a kept one where their optical axes differ by more
+NEAR_COPY_TURN_DEG = 3.0
 # candidates searched per reference asked for
 CANDIDATES_PER_REFERENCE = 3
 # kept references lie at least this many times the candidates' median spacing apart
@@ -54,11 +64,14 @@ def thin_references(
     centers: FloatArray,
     k: int,
     spacing_factor: float = SPACING_FACTOR,
+    axes: FloatArray | None = None,
 ) -> tuple[IntArray, Float32Array]:
     """The first ``k`` of ``rows`` (ranked best first, with their ``scores``) that keep
-    ``spacing_factor`` × the candidates' spacing; ``centers``: (N, 3) camera centres indexed
-    by ``rows``. When fewer keep it, the skipped ones fill up the rest in rank order (the
-    result then has min(k, len(rows))).
+    ``spacing_factor`` × the candidates' spacing from each other; ``centers``: (N, 3) camera
+    centres indexed by ``rows``. With ``axes`` ((N, 3) optical axes, the same indexing), a
+    candidate closer than that is kept all the same where it looks more than
+    ``NEAR_COPY_TURN_DEG`` away from each kept one that close. When fewer than ``k`` are kept,
+    the skipped ones fill up the rest in rank order (the result then has min(k, len(rows))).
     """
     if len(rows) <= k:
         return rows[:k], scores[:k]
@@ -66,9 +79,13 @@ def thin_references(
     distances = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
     np.fill_diagonal(distances, np.inf)
     spacing = spacing_factor * float(np.median(distances.min(axis=1)))
+    close = distances < spacing
+    if axes is not None:
+        directions = axes[rows]
+        close &= directions @ directions.T > np.cos(np.radians(NEAR_COPY_TURN_DEG))
     kept: list[int] = []
     for i in range(len(rows)):
-        if not kept or distances[i, kept].min() >= spacing:
+        if not close[i, kept].any():
             kept.append(i)
             if len(kept) == k:
                 break
@@ -100,8 +117,9 @@ def search_thinned(
     ``TRACK_SPACING_FACTOR`` where the candidates around the first-ranked lie ``on_track``):
     row indices into ``index`` and their scores, best first."""
     rows, scores = search_index(index, query, CANDIDATES_PER_REFERENCE * k, prior)
+    axes = None
     if spacing_factor is None:
         axes = index.axes
         track = axes is not None and len(rows) > 1 and on_track(index.centers[rows], axes[rows])
         spacing_factor = TRACK_SPACING_FACTOR if track else SPACING_FACTOR
-    return thin_references(rows, scores, index.centers, k, spacing_factor)
+    return thin_references(rows, scores, index.centers, k, spacing_factor, axes)

@@ -1,5 +1,5 @@
-"""Near-duplicate references thinned out of the retrieved set, and references on a track looked
-along kept."""
+"""Near-duplicate references thinned out of the retrieved set; references on a track looked
+along, and close ones looking elsewhere, kept."""
 
 from __future__ import annotations
 
@@ -8,7 +8,13 @@ import pytest
 
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.contracts import RetrievalIndex
-from services.retrieval.thinning import SPACING_FACTOR, on_track, search_thinned, thin_references
+from services.retrieval.thinning import (
+    NEAR_COPY_TURN_DEG,
+    SPACING_FACTOR,
+    on_track,
+    search_thinned,
+    thin_references,
+)
 
 
 def _ranked(count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +98,30 @@ def test_a_line_looked_across_is_thinned_as_near_copies() -> None:
     forward = np.tile([0.0, 0.0, 1.0], (30, 1))
     assert not on_track(centers, forward)
     kept, _ = search_thinned(_index(centers, forward), QUERY, k=10)
+    np.testing.assert_array_equal(kept, np.arange(0, 20, 2))
+
+
+def _turning(count: int, degrees_per_frame: float) -> np.ndarray:
+    """Optical axes turning about y from z by ``degrees_per_frame`` a frame."""
+    angles = np.radians(degrees_per_frame) * np.arange(count)
+    return np.stack([np.sin(angles), np.zeros(count), np.cos(angles)], axis=1)
+
+
+@pytest.mark.parametrize(
+    ("turn", "expected"),
+    [(2 * NEAR_COPY_TURN_DEG, np.arange(10)), (NEAR_COPY_TURN_DEG / 2, np.arange(0, 20, 2))],
+)
+def test_close_frames_that_look_elsewhere_are_no_near_copies(
+    turn: float, expected: np.ndarray
+) -> None:
+    # a sideways sweep, 3 cm between frames, the camera turning as it goes
+    centers = _line(30, 0.03, along=0)
+    axes = _turning(30, turn)
+    assert not on_track(centers, axes)
+    kept, _ = search_thinned(_index(centers, axes), QUERY, k=10)
+    np.testing.assert_array_equal(kept, expected)
+    # the wider retrieval spreads by position alone
+    kept, _ = search_thinned(_index(centers, axes), QUERY, k=10, spacing_factor=SPACING_FACTOR)
     np.testing.assert_array_equal(kept, np.arange(0, 20, 2))
 
 
