@@ -114,8 +114,10 @@ def search_thinned(
 ) -> tuple[IntArray, Float32Array]:
     """``search_index`` for ``CANDIDATES_PER_REFERENCE`` × ``k`` candidates, thinned to ``k``
     by ``thin_references`` at ``spacing_factor`` (None: ``SPACING_FACTOR``, or
-    ``TRACK_SPACING_FACTOR`` where the candidates around the first-ranked lie ``on_track``):
-    row indices into ``index`` and their scores, best first."""
+    ``TRACK_SPACING_FACTOR`` where the candidates around the first-ranked lie ``on_track``; by
+    these rules a closer candidate looking elsewhere is kept, see ``thin_references``; a
+    factor given spreads by position alone): row indices into ``index`` and their scores, best
+    first."""
     rows, scores = search_index(index, query, CANDIDATES_PER_REFERENCE * k, prior)
     axes = None
     if spacing_factor is None:
