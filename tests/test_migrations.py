@@ -98,3 +98,42 @@ def test_map_default_estimator_is_the_services() -> None:
 
     default = Map.__table__.c.default_estimator.default
     assert default is not None and getattr(default, "arg", None) == DEFAULT_ESTIMATOR
+
+
+def test_maps_described_at_sifts_old_budget_keep_it(database_url: str) -> None:
+    """Upgrading past SIFT's budget change pins 2048 keypoints on the maps whose references
+    SIFT described at that default, and only on those: a map with a budget of its own, a map
+    of another extractor and an empty map keep theirs."""
+    engine = make_engine(database_url)
+    upgrade(engine, "0014")
+    maps = {"old_sift": None, "own_budget": 1000, "xfeat": None, "empty": None}
+    described = {
+        "old_sift": "sift-rootsift-2048-1024-c0.02",
+        "own_budget": "sift-rootsift-1000-1024-c0.02",
+        "xfeat": "xfeat-1024-640",
+    }
+    with engine.begin() as conn:
+        for name, budget in maps.items():
+            conn.execute(
+                text(
+                    "INSERT INTO maps (id, name, default_estimator, max_keypoints, created_at) "
+                    "VALUES (:id, :id, 'auto', :budget, CURRENT_TIMESTAMP)"
+                ),
+                {"id": name, "budget": budget},
+            )
+        for name, model in described.items():
+            conn.execute(
+                text(
+                    "INSERT INTO reference_images (id, map_id, name, camera_model, width, "
+                    "height, camera_params, qw, qx, qy, qz, tx, ty, tz, num_keypoints, "
+                    "has_depth, feature_model, descriptor_model, created_at) VALUES (:id, "
+                    ":id, 'a.jpg', 'PINHOLE', 640, 480, '[500, 500, 320, 240]', 1, 0, 0, 0, "
+                    "0, 0, 0, 100, false, :model, 'thumbnail', CURRENT_TIMESTAMP)"
+                ),
+                {"id": name, "model": model},
+            )
+    upgrade(engine)
+    with engine.connect() as conn:
+        budgets = dict(conn.execute(text("SELECT id, max_keypoints FROM maps")).all())
+    engine.dispose()
+    assert budgets == {"old_sift": 2048, "own_budget": 1000, "xfeat": None, "empty": None}

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from services.features.base import LocalFeatures
+from services.features.configs import SIFT_KEYPOINTS
 from services.runtime.spare_workers import SpareWorkers
 from services.runtime.threads import opencv_threads
 from services.types import UInt8Array
@@ -25,7 +26,7 @@ class SiftOptions:
     doubles the keypoints and raised redkitchen recall at (10 cm, 10°) from 80 % to 88 %
     (`slloc eval ../shared/datasets/redkitchen`)."""
 
-    max_keypoints: int = 2048
+    max_keypoints: int = SIFT_KEYPOINTS
     max_side: int = 1024
     contrast_threshold: float = 0.02
 

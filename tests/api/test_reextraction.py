@@ -21,7 +21,7 @@ from tests.polling import wait_until
 from tools.synthetic.scene import SyntheticView
 
 REFERENCES = 12
-NEW_BUDGET = 300  # SIFT's default budget is 2048 keypoints
+NEW_BUDGET = 300  # SIFT's default budget is 4096 keypoints
 
 
 @pytest.fixture

@@ -44,7 +44,7 @@ BUILDS = {
     "aliked-nn": ("aliked-n16-1024-640", "mnn-ratio-0.95"),
     "disk": ("disk-1024-640", "lightglue-disk-top3+mnn-ratio-0.95"),
     "disk-fast": ("disk-1024-640", "mnn-ratio-0.95"),
-    "sift": ("sift-rootsift-2048-1024-c0.02", "mnn-ratio-0.8"),
+    "sift": ("sift-rootsift-4096-1024-c0.02", "mnn-ratio-0.8"),
     "xfeat": ("xfeat-2048-640", "mnn-ratio-0.95-cos-0.82"),
     "xfeat-lg": ("xfeat-1024-640", "lighterglue-xfeat-512kp-top2+mnn-ratio-0.95"),
     "xfeat-full": ("xfeat-1024-640", "lighterglue-xfeat-512kp-all+mnn-ratio-0.95"),
