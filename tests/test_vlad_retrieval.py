@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 
 from app.schemas.images import ImageMetadata
@@ -22,11 +23,12 @@ from db.vocabulary import STAGED_PREFIX, SqlVocabularyStore
 from services.components import Localizers
 from services.geometry.rigid import rotation_error_deg
 from services.localization.localizer import Localizer
+from services.retrieval import vlad_index
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES, NUM_CENTERS
 from services.retrieval.search import top_k
 from services.retrieval.training import BackgroundTrainer
-from services.retrieval.vlad import encode
+from services.retrieval.vlad import encode, train_vocabulary
 from services.retrieval.vlad_index import VladIndexer
 from tests.conftest import create_map, image_metadata, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png
@@ -253,3 +255,51 @@ def test_background_training_yields_to_an_explicit_one(
         kinds = set(session.scalars(select(FeatureArray.kind)).all())
         assert not any(k.startswith(STAGED_PREFIX) for k in kinds)
     engine.dispose()
+
+
+def test_training_reads_a_few_references_at_a_time(
+    database_url: str,
+    localizer: Localizer,
+    localizers: Localizers,
+    reference_views: list[SyntheticView],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A vocabulary's training and encoding read the stored descriptors a few references at
+    a time (what the memory bound's ``vocabulary`` term counts), and train the vocabulary
+    that all the descriptors read at once would."""
+    read, sample = 4, 1000
+    monkeypatch.setattr(vlad_index, "VOCABULARY_READ", read)
+    monkeypatch.setattr(vlad_index, "ENCODE_BATCH", read)
+    monkeypatch.setattr(vlad_index, "VOCABULARY_SAMPLE", sample)
+    engine = make_engine(database_url)
+    upgrade(engine)
+    sessions = make_session_factory(engine)
+    with sessions.begin() as session:
+        map_id = MapRepository(session).create("batches", None).id
+    ids = []
+    for view in reference_views:
+        image = ImageMetadata.model_validate(image_metadata(view)).to_new_image()
+        ids.append(
+            add_reference_image(sessions, localizers, map_id, image, encode_png(view.image)).id
+        )
+    reads: list[int] = []
+
+    class Recording(SqlVocabularyStore):
+        def descriptors(self, image_ids: list[str]) -> dict[str, np.ndarray]:
+            reads.append(len(image_ids))
+            return super().descriptors(image_ids)
+
+    store = Recording(sessions, map_id, localizer.extractor.name)
+    report = VladIndexer(store).train()
+    trained = store.published()
+    everything = SqlVocabularyStore(sessions, map_id, localizer.extractor.name).descriptors(ids)
+    engine.dispose()
+    assert report.trained_images == report.encoded_images == len(ids)
+    # counted, sampled, encoded: three passes over the references, a few at a time
+    assert max(reads) == read and sum(reads) == 3 * len(ids)
+    assert sum(d.shape[0] for d in everything.values()) > sample  # the sample is drawn
+    at_once = train_vocabulary(
+        [everything[i] for i in ids], num_centers=report.num_centers, max_points=sample
+    )
+    assert trained is not None
+    np.testing.assert_array_equal(trained.vocabulary.centers, at_once.centers)

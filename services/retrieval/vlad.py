@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.runtime.memory import VOCABULARY_SAMPLE
 from services.types import Float32Array, IntArray
 
 
@@ -47,6 +48,16 @@ def _nearest(points: Float32Array, centers: Float32Array) -> IntArray:
     distance: Float32Array = (centers * centers).sum(axis=1)[None, :] - 2.0 * (points @ centers.T)
     labels: IntArray = np.argmin(distance, axis=1).astype(np.int64)
     return labels
+
+
+def sample_rows(total: int, max_points: int, rng: np.random.Generator) -> IntArray | None:
+    """The sorted rows of ``total`` descriptors (all of a map's sampled references, one after
+    the other) that k-means trains on: ``max_points`` of them drawn at random, or None (all)
+    when there are no more."""
+    if total <= max_points:
+        return None
+    rows: IntArray = np.sort(rng.choice(total, max_points, replace=False))
+    return rows
 
 
 def kmeans(
@@ -119,7 +130,8 @@ def train_vocabulary(
     num_centers: int = 16,
     dimension: int | None = None,
     seed: int = 0,
-    max_points: int = 100_000,
+    max_points: int = VOCABULARY_SAMPLE,
+    rng: np.random.Generator | None = None,
 ) -> Vocabulary:
     """Train a vocabulary from the local descriptors of a map's images.
 
@@ -133,11 +145,16 @@ def train_vocabulary(
         seed: seeds the descriptor sample and k-means; the same inputs and seed give the
             same vocabulary.
         max_points: descriptors sampled for k-means.
+        rng: the generator to sample and seed k-means with instead of ``seed``'s (for
+            ``images`` already sampled with it by ``sample_rows``).
     """
-    rng = np.random.default_rng(seed)
-    points = np.concatenate([d for d in images if d.shape[0]], axis=0).astype(np.float32)
-    if points.shape[0] > max_points:
-        points = points[np.sort(rng.choice(points.shape[0], max_points, replace=False))]
+    rng = np.random.default_rng(seed) if rng is None else rng
+    points = np.concatenate([d for d in images if d.shape[0]], axis=0).astype(
+        np.float32, copy=False
+    )
+    rows = sample_rows(points.shape[0], max_points, rng)
+    if rows is not None:
+        points = points[rows]
     centers = kmeans(points, num_centers, rng)
     empty = np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
     usable = min(dimension or 0, len(images) - 1, centers.size)

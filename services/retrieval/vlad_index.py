@@ -3,10 +3,12 @@ stored descriptors, encoding every reference with it, and publishing it, over a 
 protocol (the database implements it).
 
 Nothing here reads images. Training samples the stored descriptors of up to
-``TRAINING_IMAGES`` references; a new version is staged beside the published one and published
-at once when every reference has its vector, so retrieval keeps the previous index (or the
-global descriptors) until then. References added after a publication are encoded with the
-published vocabulary the next time the index is read; deleting references never needs training.
+``TRAINING_IMAGES`` references, reading ``VOCABULARY_READ`` of them at a time and keeping an
+even share of ``VOCABULARY_SAMPLE`` descriptors from each; a new version is staged beside the
+published one and published at once when every reference has its vector, so retrieval keeps
+the previous index (or the global descriptors) until then. References added after a
+publication are encoded with the published vocabulary the next time the index is read;
+deleting references never needs training.
 """
 
 from __future__ import annotations
@@ -21,12 +23,16 @@ import numpy as np
 from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
 from services.retrieval.policy import TRAINING_IMAGES, num_centers, training_due
 from services.retrieval.training import BackgroundTrainer
-from services.retrieval.vlad import encode, train_vocabulary
+from services.retrieval.vlad import encode, sample_rows, train_vocabulary
+from services.runtime.memory import VOCABULARY_READ, VOCABULARY_SAMPLE
 from services.types import Float32Array
 
 logger = logging.getLogger(__name__)
 
-ENCODE_BATCH = 200  # references encoded per storage transaction
+# references read and encoded per storage transaction: their descriptors are held at once
+# (SIFT's 4096 keypoints: 2 MiB a reference)
+ENCODE_BATCH = VOCABULARY_READ
+VOCABULARY_SEED = 0
 
 
 @dataclass(frozen=True)
@@ -97,15 +103,17 @@ class VladIndexer:
         ids = self.store.reference_ids()
         rng = np.random.default_rng(0)
         picked = [ids[i] for i in np.sort(rng.permutation(len(ids))[:TRAINING_IMAGES])]
-        stored = self.store.descriptors(picked) if picked else {}
-        descriptors = [stored[i] for i in picked if i in stored]  # in insertion order
+        sampling = np.random.default_rng(VOCABULARY_SEED)
+        descriptors, total = self._training_sample(picked, sampling)
         centers = num_centers(descriptors[0].shape[1]) if descriptors else 1
-        if sum(d.shape[0] for d in descriptors) < centers:
+        if total < centers:
             raise VocabularyError(
                 f"map {self.store.map_id} has too few {self.store.feature_model} descriptors to "
                 f"train a vocabulary ({len(ids)} reference images)"
             )
-        vocabulary = train_vocabulary(descriptors, num_centers=centers)
+        # k-means goes on with the generator that drew the sample: the vocabulary is the one
+        # train_vocabulary makes from all the descriptors at once
+        vocabulary = train_vocabulary(descriptors, num_centers=centers, rng=sampling)
 
         def encoder(d: Float32Array) -> Float32Array:
             return encode(d, vocabulary)
@@ -130,6 +138,34 @@ class VladIndexer:
         return ReindexReport(
             state.version, int(vocabulary.centers.shape[0]), state.trained_images, len(ids), seconds
         )
+
+    def _training_sample(
+        self, picked: list[str], rng: np.random.Generator
+    ) -> tuple[list[Float32Array], int]:
+        """The descriptors of the picked references (in insertion order) k-means trains on,
+        drawn with ``rng`` as ``train_vocabulary`` draws them from all at once, and their
+        number before sampling. The descriptors are read ``VOCABULARY_READ`` references at a
+        time, twice: to count them, then to keep the drawn rows."""
+        counts: dict[str, int] = {}
+        for first in range(0, len(picked), VOCABULARY_READ):
+            stored = self.store.descriptors(picked[first : first + VOCABULARY_READ])
+            counts.update({i: d.shape[0] for i, d in stored.items()})
+        kept = [i for i in picked if i in counts]
+        total = sum(counts[i] for i in kept)
+        rows = sample_rows(total, VOCABULARY_SAMPLE, rng)
+        if rows is None:
+            rows = np.arange(total)
+        starts = np.cumsum([0, *(counts[i] for i in kept)])
+        bounds = np.searchsorted(rows, starts)  # each reference's share of the drawn rows
+        sample: list[Float32Array] = []
+        for first in range(0, len(kept), VOCABULARY_READ):
+            batch = kept[first : first + VOCABULARY_READ]
+            stored = self.store.descriptors(batch)
+            for n, i in enumerate(batch, start=first):
+                if i in stored:  # else deleted since it was counted
+                    mine = rows[bounds[n] : bounds[n + 1]] - starts[n]
+                    sample.append(np.ascontiguousarray(stored[i][mine]))
+        return sample, total
 
     def encode_stale(self, state: VocabularyState) -> int:
         """Encode, in batches, the references whose vector is missing or of another version;

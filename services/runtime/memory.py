@@ -23,6 +23,9 @@ The bound is the sum of:
 - ``bodies``: request bodies and the uploads read from them, which the server admits only
   within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
   is read and frees it when the answer is sent);
+- ``self_evaluation``: the references a self-evaluation keeps described;
+- ``vocabulary``: one training of a map's retrieval vocabulary, which reads the stored
+  descriptors ``VOCABULARY_READ`` references at a time and keeps a sample of them;
 - ``retrieval_index``: the retrieval indexes of the maps localized against, which grow with
   the references stored (a descriptor per reference) and have no setting: the service shows
   their present size.
@@ -82,6 +85,14 @@ LIGHTGLUE_MIB_PER_MILLION_PAIRS = 90.0
 JSON_BODY_FACTOR = 1.7
 # references a self-evaluation keeps described between its held-out queries
 EVALUATION_DESCRIBED = 60
+# a map's retrieval vocabulary (services.retrieval.vlad_index): the references whose stored
+# descriptors its training and its encoding read at once, and the descriptors its k-means
+# samples from them
+VOCABULARY_READ = 25
+VOCABULARY_SAMPLE = 100_000
+# copies of the sample a training holds: the per-reference samples, their concatenation, and
+# k-means' distances and assignments beside them
+VOCABULARY_SAMPLE_COPIES = 3
 
 
 @dataclass(frozen=True)
@@ -228,6 +239,14 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
         "self_evaluation": EVALUATION_DESCRIBED
         * i.max_keypoints
         * max(_feature_bytes(c[1]) for c in i.configurations)
+        / MIB,
+        # one vocabulary training at a time: a batch of references read, or its sample
+        "vocabulary": max(
+            VOCABULARY_READ * i.max_keypoints * max(_feature_bytes(c[1]) for c in i.configurations),
+            VOCABULARY_SAMPLE_COPIES
+            * VOCABULARY_SAMPLE
+            * max(_feature_bytes(c[1]) for c in i.configurations),
+        )
         / MIB,
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})

@@ -91,6 +91,9 @@ def test_terms_follow_the_settings_arithmetic() -> None:
         "bodies": 256.0,
         # a self-evaluation's described references (its queries compute as requests do)
         "self_evaluation": EVALUATION_DESCRIBED * 4096 * SIFT_FEATURE_BYTES / MIB,
+        # a vocabulary's training: its sample of 100 000 descriptors, three times, is more
+        # than 25 references of 4096 keypoints read at once
+        "vocabulary": 3 * 100_000 * SIFT_FEATURE_BYTES / MIB,
     }
     assert bound.terms == pytest.approx(expected, abs=0.06)
     assert bound.fixed_mib == pytest.approx(sum(expected.values()), abs=0.5)
