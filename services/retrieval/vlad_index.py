@@ -3,12 +3,12 @@ stored descriptors, encoding every reference with it, and publishing it, over a 
 protocol (the database implements it).
 
 Nothing here reads images. Training samples the stored descriptors of up to
-``TRAINING_IMAGES`` references, reading ``VOCABULARY_READ`` of them at a time and keeping an
-even share of ``VOCABULARY_SAMPLE`` descriptors from each; a new version is staged beside the
-published one and published at once when every reference has its vector, so retrieval keeps
-the previous index (or the global descriptors) until then. References added after a
-publication are encoded with the published vocabulary the next time the index is read;
-deleting references never needs training.
+``TRAINING_IMAGES`` references, reading ``VOCABULARY_READ`` of them at a time and drawing
+``VOCABULARY_SAMPLE`` of their descriptors as if all were read at once; a new version is
+staged beside the published one and published at once when every reference has its vector,
+so retrieval keeps the previous index (or the global descriptors) until then. References
+added after a publication are encoded with the published vocabulary the next time the index
+is read; deleting references never needs training.
 """
 
 from __future__ import annotations
