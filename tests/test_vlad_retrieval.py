@@ -269,7 +269,6 @@ def test_training_reads_a_few_references_at_a_time(
     that all the descriptors read at once would."""
     read, sample = 4, 1000
     monkeypatch.setattr(vlad_index, "VOCABULARY_READ", read)
-    monkeypatch.setattr(vlad_index, "ENCODE_BATCH", read)
     monkeypatch.setattr(vlad_index, "VOCABULARY_SAMPLE", sample)
     engine = make_engine(database_url)
     upgrade(engine)

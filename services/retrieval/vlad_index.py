@@ -29,9 +29,6 @@ from services.types import Float32Array
 
 logger = logging.getLogger(__name__)
 
-# references read and encoded per storage transaction: their descriptors are held at once
-# (SIFT's 4096 keypoints: 2 MiB a reference)
-ENCODE_BATCH = VOCABULARY_READ
 VOCABULARY_SEED = 0
 
 
@@ -119,8 +116,10 @@ class VladIndexer:
             return encode(d, vocabulary)
 
         tag = uuid.uuid4().hex[:8]
-        for first in range(0, len(ids), ENCODE_BATCH):
-            batch = ids[first : first + ENCODE_BATCH]
+        # encoded and staged a transaction per VOCABULARY_READ references, whose descriptors
+        # are held at once (SIFT's 4096 keypoints: 2 MiB a reference)
+        for first in range(0, len(ids), VOCABULARY_READ):
+            batch = ids[first : first + VOCABULARY_READ]
             stored = self.store.descriptors(batch)
             self.store.stage({i: encoder(d) for i, d in stored.items()}, tag)
         state = self.store.publish(vocabulary, tag, len(ids), previous, encoder, yield_to_newer)
@@ -171,7 +170,7 @@ class VladIndexer:
         """Encode, in batches, the references whose vector is missing or of another version;
         returns how many were written."""
         written = 0
-        while ids := self.store.stale_ids(state.version, ENCODE_BATCH):
+        while ids := self.store.stale_ids(state.version, VOCABULARY_READ):
             stored = self.store.descriptors(ids)
             dim = int(state.vocabulary.centers.shape[1])
             vectors = {

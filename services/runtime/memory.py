@@ -227,6 +227,7 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
     the requests computing at once hold at most ``computing_memory_mib``, never less than one
     largest request."""
     i = inputs
+    widest = max(_feature_bytes(c[1]) for c in i.configurations)  # bytes of a keypoint
     terms = {
         "runtime": RUNTIME_MIB,
         "models": MODEL_RESIDENT_PER_FILE_MIB * sum(c[0] for c in i.configurations) / MIB,
@@ -236,17 +237,12 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
         "bodies": float(i.body_memory_mib),
         # the references a self-evaluation keeps described (its held-out queries compute as
         # requests do)
-        "self_evaluation": EVALUATION_DESCRIBED
-        * i.max_keypoints
-        * max(_feature_bytes(c[1]) for c in i.configurations)
-        / MIB,
+        "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * widest / MIB,
         # one vocabulary training at a time: a batch of references read, or its sample
         "vocabulary": max(
-            VOCABULARY_READ * i.max_keypoints * max(_feature_bytes(c[1]) for c in i.configurations),
-            VOCABULARY_SAMPLE_COPIES
-            * VOCABULARY_SAMPLE
-            * max(_feature_bytes(c[1]) for c in i.configurations),
+            VOCABULARY_READ * i.max_keypoints, VOCABULARY_SAMPLE_COPIES * VOCABULARY_SAMPLE
         )
+        * widest
         / MIB,
     }
     return MemoryBound({name: round(mib, 1) for name, mib in terms.items()})
