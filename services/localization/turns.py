@@ -23,6 +23,12 @@ SEARCH_CONFIDENCE = 0.5  # an answer below it lets the other turns of the query 
 # invariant, localized 11 with 208-1622, turned or not). Before this floor, 30-52 % of the
 # redkitchen queries (upright, with 224-3238 inliers) paid for up to three more turns.
 UPRIGHT_INLIERS = 200
+# ...and a confidence the service accepts by default (its min_confidence): a turn matched the
+# wrong way round can still find a pose from chance matches. The README demo's query, turned
+# a quarter and matched with aliked, found one 180° off with 280 inliers at confidence 1e-5
+# (tests/models/test_rotated_queries.py). On kitti05 and redkitchen (sift and xfeat-lg,
+# auto, the suggested splits) no answer with 200 inliers or more was below 0.5.
+UPRIGHT_MIN_CONFIDENCE = 0.3
 # another turn is estimated only with this many times the matches of every turn estimated before
 # (redkitchen, query against its best reference: XFeat 544-997 matches upright, 89-164 at the
 # other turns; ALIKED 225-535 and 31-63; SIFT within 2 % at every turn)
@@ -80,12 +86,14 @@ def search_turns(
 
 def settled(result: LocalizationResult) -> bool:
     """No other turn of the query needs trying for this answer: it is confident, has so
-    many inliers that the query was matched the right way up, or failed for want of depth,
-    which no turn brings."""
+    many inliers that the query was matched the right way up (and a confidence that does not
+    read it as wrong), or failed for want of depth, which no turn brings."""
     if result.reason == FailureReason.MISSING_DEPTH.value:
         return True
-    return result.localized and (
-        result.confidence >= SEARCH_CONFIDENCE or result.num_inliers >= UPRIGHT_INLIERS
+    if not result.localized:
+        return False
+    return result.confidence >= SEARCH_CONFIDENCE or (
+        result.num_inliers >= UPRIGHT_INLIERS and result.confidence >= UPRIGHT_MIN_CONFIDENCE
     )
 
 

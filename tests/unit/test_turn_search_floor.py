@@ -1,7 +1,8 @@
 """When the search over quarter turns stops for an answer: once it is confident, once it
 has so many inliers that the query was matched the right way up (a wrongly turned query
-localizes with none: ``services.localization.turns.UPRIGHT_INLIERS``), or when it failed for want of
-depth, which no turn brings; and the stage timings of several estimators over several turns."""
+localizes with none: ``services.localization.turns.UPRIGHT_INLIERS``) at a confidence that does
+not read it as wrong, or when it failed for want of depth, which no turn brings; and the stage
+timings of several estimators over several turns."""
 
 from __future__ import annotations
 
@@ -9,7 +10,12 @@ import pytest
 
 from services.localization.answer import LocalizationResult
 from services.localization.compare import own_timings
-from services.localization.turns import SEARCH_CONFIDENCE, UPRIGHT_INLIERS, settled
+from services.localization.turns import (
+    SEARCH_CONFIDENCE,
+    UPRIGHT_INLIERS,
+    UPRIGHT_MIN_CONFIDENCE,
+    settled,
+)
 
 
 def _answer(
@@ -32,8 +38,9 @@ def _answer(
     ("localized", "confidence", "inliers", "expected"),
     [
         (True, SEARCH_CONFIDENCE, 10, True),  # confident: nothing to search
-        (True, 0.3, UPRIGHT_INLIERS, True),  # unsure, but matched upright
-        (True, 0.3, UPRIGHT_INLIERS - 1, False),  # unsure with few inliers: try the turns
+        (True, UPRIGHT_MIN_CONFIDENCE, UPRIGHT_INLIERS, True),  # unsure, but matched upright
+        (True, UPRIGHT_MIN_CONFIDENCE, UPRIGHT_INLIERS - 1, False),  # few inliers: try turns
+        (True, 1e-5, 280, False),  # a chance pose of a wrong turn: try the others
         (False, 0.0, 5000, False),  # no pose: try the turns
     ],
 )
