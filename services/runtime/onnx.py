@@ -34,19 +34,20 @@ class OnnxOptions:
 
 
 def create_session(
-    path: Path,
+    model: Path | bytes,
     options: OnnxOptions | None = None,
     expected_inputs: Sequence[str] = (),
     expected_outputs: Sequence[str] = (),
 ) -> Any:
-    """An ``ort.InferenceSession`` for ``path``, checked to have the named inputs/outputs.
+    """An ``ort.InferenceSession`` for ``model`` (a file, or a serialized graph built in
+    process), checked to have the named inputs/outputs.
 
     Denormals are flushed to zero (``session.set_denormal_as_zero``): it halves LightGlue's
     time on CPU and changes no result at float32 precision.
     """
     options = options or OnnxOptions()
-    if not path.is_file():
-        raise FileNotFoundError(f"ONNX model {path} does not exist")
+    if isinstance(model, Path) and not model.is_file():
+        raise FileNotFoundError(f"ONNX model {model} does not exist")
     available = set(ort.get_available_providers())
     providers = [p for p in options.providers if p in available]
     for missing in sorted(set(options.providers) - available):
@@ -61,15 +62,17 @@ def create_session(
     so.enable_cpu_mem_arena = options.memory_arena
     so.enable_mem_pattern = options.memory_pattern
     so.add_session_config_entry("session.set_denormal_as_zero", "1")
-    session = ort.InferenceSession(str(path), sess_options=so, providers=providers)
+    source = str(model) if isinstance(model, Path) else model
+    session = ort.InferenceSession(source, sess_options=so, providers=providers)
     inputs = {i.name for i in session.get_inputs()}
     outputs = {o.name for o in session.get_outputs()}
     missing_io = [n for n in expected_inputs if n not in inputs] + [
         n for n in expected_outputs if n not in outputs
     ]
     if missing_io:
+        name = model.name if isinstance(model, Path) else "the graph"
         raise ValueError(
-            f"{path.name} lacks {missing_io}; it has inputs {sorted(inputs)} and "
+            f"{name} lacks {missing_io}; it has inputs {sorted(inputs)} and "
             f"outputs {sorted(outputs)}"
         )
     return session
