@@ -1,9 +1,9 @@
 """Cosine similarities of two sets of unit descriptors as one 8-bit integer matrix product.
 
-The product of a 4096-keypoint query and a 4096-keypoint reference (128-d RootSIFT) takes
-~57 ms in float32 on one core of the development machine and ~12 ms as ONNX Runtime's
-``MatMulInteger`` (``services/matching`` benchmark page of 2026-11-30). Each set is scaled
-so that its largest component reaches the integer range:
+The product alone of a 4096-keypoint query and a 4096-keypoint reference (128-d RootSIFT)
+takes ~57 ms in float32 on one core of the development machine and ~12 ms as ONNX Runtime's
+``MatMulInteger`` (docs/benchmarks/2026-11-30-integer-matching.md). Each set is scaled so
+that its largest component reaches the integer range:
 
 - the query to signed 8 bits, sent as ``uint8`` with zero point 128;
 - the reference to 7 bits (±63). On x86 processors without VNNI, ONNX Runtime adds ``uint8``
@@ -27,7 +27,7 @@ from services.types import Float32Array, Int32Array
 
 QUERY_LEVELS = 127  # signed 8 bits
 REFERENCE_LEVELS = 63  # 7 bits: no saturated 16-bit sums (see the module's docstring)
-ZERO_POINT = np.array(128, np.uint8)
+ZERO_POINT = 128  # the query's: uint8 128 is its 0
 
 
 @cache
@@ -60,14 +60,14 @@ def integer_similarity(query: Float32Array, reference: Float32Array) -> tuple[In
     factor that turns them into cosines (for unit descriptors)."""
     query_scale = _scale(query, QUERY_LEVELS)
     reference_scale = _scale(reference, REFERENCE_LEVELS)
-    quantized_query = (np.rint(query * query_scale) + 128).astype(np.uint8)
+    quantized_query = (np.rint(query * query_scale) + ZERO_POINT).astype(np.uint8)
     quantized_reference = np.ascontiguousarray(np.rint(reference.T * reference_scale), np.int8)
     similarity = np.empty((len(query), len(reference)), np.int32)
     session = _session()
     binding = session.io_binding()
     binding.bind_cpu_input("query", quantized_query)
     binding.bind_cpu_input("reference", quantized_reference)
-    binding.bind_cpu_input("zero", ZERO_POINT)
+    binding.bind_cpu_input("zero", np.array(ZERO_POINT, np.uint8))
     # written in place: no second (N, M) buffer from onnxruntime
     binding.bind_output("similarity", "cpu", 0, np.int32, similarity.shape, similarity.ctypes.data)
     session.run_with_iobinding(binding)
