@@ -1,4 +1,5 @@
-"""Cosine similarities of two sets of unit descriptors as one 8-bit integer matrix product.
+"""Cosine similarities of two sets of unit descriptors as 8-bit integer matrix products, a
+block of query rows at a time.
 
 The product alone of a 4096-keypoint query and a 4096-keypoint reference (128-d RootSIFT)
 takes ~57 ms in float32 on one core of the development machine and ~12 ms as ONNX Runtime's
@@ -16,6 +17,7 @@ by about 1e-3, so only pairs at the edge of a ratio test come out otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from functools import cache
 from typing import Any
 
@@ -55,20 +57,32 @@ def _scale(descriptors: Float32Array, levels: int) -> float:
     return levels / largest if largest > 0.0 else 1.0
 
 
-def integer_similarity(query: Float32Array, reference: Float32Array) -> tuple[Int32Array, float]:
-    """The (N, M) integer similarities of ``query`` (N, D) and ``reference`` (M, D), and the
-    factor that turns them into cosines (for unit descriptors)."""
-    query_scale = _scale(query, QUERY_LEVELS)
-    reference_scale = _scale(reference, REFERENCE_LEVELS)
-    quantized_query = (np.rint(query * query_scale) + ZERO_POINT).astype(np.uint8)
-    quantized_reference = np.ascontiguousarray(np.rint(reference.T * reference_scale), np.int8)
-    similarity = np.empty((len(query), len(reference)), np.int32)
-    session = _session()
-    binding = session.io_binding()
-    binding.bind_cpu_input("query", quantized_query)
-    binding.bind_cpu_input("reference", quantized_reference)
-    binding.bind_cpu_input("zero", np.array(ZERO_POINT, np.uint8))
-    # written in place: no second (N, M) buffer from onnxruntime
-    binding.bind_output("similarity", "cpu", 0, np.int32, similarity.shape, similarity.ctypes.data)
-    session.run_with_iobinding(binding)
-    return similarity, 1.0 / (query_scale * reference_scale)
+class IntegerSimilarity:
+    """The integer similarities of ``query`` (N, D) and ``reference`` (M, D), computed by
+    blocks of query rows; ``cosine`` turns them into cosines (for unit descriptors)."""
+
+    def __init__(self, query: Float32Array, reference: Float32Array) -> None:
+        query_scale = _scale(query, QUERY_LEVELS)
+        reference_scale = _scale(reference, REFERENCE_LEVELS)
+        self.query = (np.rint(query * query_scale) + ZERO_POINT).astype(np.uint8)
+        self.reference = np.ascontiguousarray(np.rint(reference.T * reference_scale), np.int8)
+        self.cosine = 1.0 / (query_scale * reference_scale)
+
+    def blocks(self, rows: int) -> Iterator[tuple[int, Int32Array]]:
+        """(first row, (≤ ``rows``, M) similarities) for each block of ``rows`` query rows in
+        order. Every block is written over the previous one's buffer: a caller reads each
+        before it asks for the next."""
+        session = _session()
+        zero = np.array(ZERO_POINT, np.uint8)
+        buffer = np.empty((min(rows, len(self.query)), self.reference.shape[1]), np.int32)
+        for start in range(0, len(self.query), rows):
+            query = self.query[start : start + rows]
+            block = buffer[: len(query)]
+            binding = session.io_binding()
+            binding.bind_cpu_input("query", query)
+            binding.bind_cpu_input("reference", self.reference)
+            binding.bind_cpu_input("zero", zero)
+            # written in place: no buffer of onnxruntime's own
+            binding.bind_output("similarity", "cpu", 0, np.int32, block.shape, block.ctypes.data)
+            session.run_with_iobinding(binding)
+            yield start, block
