@@ -5,6 +5,7 @@ from services.features.base import LocalFeatures
 from services.matching import nearest_neighbor
 from services.matching.integer_similarity import IntegerSimilarity
 from services.matching.nearest_neighbor import NearestNeighborMatcher
+from tools.benchmarks.matching import float_ratios
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -22,20 +23,6 @@ def _features(descriptors: np.ndarray) -> LocalFeatures:
     return LocalFeatures(
         np.zeros((n, 2), np.float32), descriptors, np.ones(n, np.float32), (640, 480)
     )
-
-
-def _float_ratios(query: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each query keypoint's float32 nearest reference keypoint and its distance ratio to the
-    second nearest (inf where the pair is not mutual)."""
-    similarity = query @ reference.T
-    rows = np.arange(len(query))
-    best = similarity.argmax(axis=1)
-    first = similarity[rows, best].copy()
-    mutual = first >= similarity.max(axis=0)[best]
-    similarity[rows, best] = -np.inf
-    second = similarity.max(axis=1)
-    ratio = np.sqrt(np.maximum(2 - 2 * first, 0)) / np.sqrt(np.maximum(2 - 2 * second, 1e-12))
-    return best, np.where(mutual, ratio, np.inf)
 
 
 @pytest.mark.parametrize(("dimensions", "signed"), [(128, False), (64, True)])
@@ -67,7 +54,7 @@ def test_matches_are_float_matching_but_at_the_ratio_tests_edge() -> None:
     # correspondences from clear to hopeless, so that ratios spread over the test's edge
     noise = np.linspace(0.01, 0.2, 1500)[:, None] * rng.normal(size=(1500, 128))
     query = _unit(np.abs(reference[order] + noise))
-    best, ratio = _float_ratios(query, reference)
+    best, ratio = float_ratios(query, reference)
 
     matches = NearestNeighborMatcher(0.8).match(_features(query), _features(reference))
 

@@ -23,16 +23,17 @@ from services.features.base import LocalFeatures
 from services.features.sift import SiftExtractor
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from services.runtime.threads import apply_thread_plan, plan_threads
-from services.types import IntArray
+from services.types import Float32Array, FloatArray, IntArray
 from tools.benchmarks.images import load_rgb
 from tools.evaluation.datasets import open_dataset
 
 RATIO = 0.8  # the sift preset's
 
 
-def float_matches(query: LocalFeatures, reference: LocalFeatures) -> IntArray:
-    """The matcher's test on float32 cosines."""
-    similarity = query.descriptors @ reference.descriptors.T
+def float_ratios(query: Float32Array, reference: Float32Array) -> tuple[IntArray, FloatArray]:
+    """Each query descriptor's nearest reference descriptor on float32 cosines, and its
+    distance ratio to the second nearest (inf where the two are not each other's nearest)."""
+    similarity = query @ reference.T
     rows = np.arange(len(query))
     best = similarity.argmax(axis=1)
     first = similarity[rows, best].copy()
@@ -40,9 +41,15 @@ def float_matches(query: LocalFeatures, reference: LocalFeatures) -> IntArray:
     similarity[rows, best] = -np.inf
     second = similarity.max(axis=1)
     d_first = np.sqrt(np.maximum(2.0 - 2.0 * first, 0.0))
-    d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
-    keep = (d_first < RATIO * d_second) & mutual
-    return np.stack([rows[keep], best[keep]], axis=1)
+    d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 1e-12))
+    return best, np.where(mutual, d_first / d_second, np.inf)
+
+
+def float_matches(query: LocalFeatures, reference: LocalFeatures) -> IntArray:
+    """The matcher's test on float32 cosines."""
+    best, ratio = float_ratios(query.descriptors, reference.descriptors)
+    keep = ratio < RATIO
+    return np.stack([np.flatnonzero(keep), best[keep]], axis=1)
 
 
 def _timed(
