@@ -11,11 +11,15 @@ from app.schemas.geo import GeoPoseAccuracySchema, GeoPoseSchema, GpsSchema
 from app.schemas.geometry import CameraSchema, FiniteFloat, PoseSchema
 from app.schemas.session import MAX_FRAMES_SCHEMA, FrameIn, SessionAlignmentOut
 from app.schemas.uncertainty import UncertaintyOut
-from app.usecases.localize import DEFAULT_MIN_CONFIDENCE, LocalizeRequest
+from app.usecases.localize import LocalizeRequest
 from app.usecases.localize_frames import SessionFrame
 from services.estimators.base import FailureReason
 from services.geo.geopose import GeoPose, GeoPoseAccuracy
-from services.localization.answer import LocalizationResult, RetrievedReference
+from services.localization.answer import (
+    DEFAULT_MIN_CONFIDENCE,
+    LocalizationResult,
+    RetrievedReference,
+)
 from services.localization.frames import SessionLocalizationResult
 from services.localization.query_frame import QueryFrameHints
 from services.retrieval.search import PositionPrior

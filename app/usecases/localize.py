@@ -18,7 +18,7 @@ from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
 from services.geometry.camera import Camera
-from services.localization.answer import LocalizationResult
+from services.localization.answer import DEFAULT_MIN_CONFIDENCE, LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import QueryFrameHints
 from services.references.cache import ReferenceFeatureCache
@@ -28,12 +28,6 @@ from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad_index import VladIndexer, searchable_vocabulary
 from services.runtime.spare_workers import SpareWorkers
 from services.runtime.worker_slots import WorkerSlots, holding
-
-# the least confidence of a localized answer: on both dev sets (five splits, sift and xfeat-lg)
-# the lowest floor that turns away every answer more than 1 m off, and 14 of 1,365 right ones,
-# all but one from queries outside the map's frames
-# (docs/benchmarks/2026-11-30-reference-pose-spread.md)
-DEFAULT_MIN_CONFIDENCE = 0.3
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,12 @@ from services.geometry.intrinsics_adaptation import CameraAdaptation
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
 
+# the least confidence of a localized answer: on both dev sets (five splits, sift and xfeat-lg)
+# the lowest floor that turns away every answer more than 1 m off, and 14 of 1,365 right ones,
+# all but one from queries outside the map's frames
+# (docs/benchmarks/2026-11-30-reference-pose-spread.md)
+DEFAULT_MIN_CONFIDENCE = 0.3
+
 
 @dataclass(frozen=True)
 class RetrievedReference:

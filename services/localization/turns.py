@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 from services.estimators.base import FailureReason
 from services.geometry.intrinsics_adaptation import CameraAdaptation
-from services.localization.answer import LocalizationResult
+from services.localization.answer import DEFAULT_MIN_CONFIDENCE, LocalizationResult
 from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.stages import MatchedQuery
 
@@ -23,12 +23,11 @@ SEARCH_CONFIDENCE = 0.5  # an answer below it lets the other turns of the query 
 # invariant, localized 11 with 208-1622, turned or not). Before this floor, 30-52 % of the
 # redkitchen queries (upright, with 224-3238 inliers) paid for up to three more turns.
 UPRIGHT_INLIERS = 200
-# ...and a confidence the service accepts by default (its min_confidence): a turn matched the
-# wrong way round can still find a pose from chance matches. The README demo's query, turned
-# a quarter and matched with aliked, found one 180° off with 280 inliers at confidence 1e-5
+# ...and at least the default min_confidence: a turn matched the wrong way round can still
+# find a pose from chance matches. The README demo's query, turned a quarter and matched with
+# aliked, found one 180° off with 280 inliers at confidence 1e-5
 # (tests/models/test_rotated_queries.py). On kitti05 and redkitchen (sift and xfeat-lg,
 # auto, the suggested splits) no answer with 200 inliers or more was below 0.5.
-UPRIGHT_MIN_CONFIDENCE = 0.3
 # another turn is estimated only with this many times the matches of every turn estimated before
 # (redkitchen, query against its best reference: XFeat 544-997 matches upright, 89-164 at the
 # other turns; ALIKED 225-535 and 31-63; SIFT within 2 % at every turn)
@@ -93,7 +92,7 @@ def settled(result: LocalizationResult) -> bool:
     if not result.localized:
         return False
     return result.confidence >= SEARCH_CONFIDENCE or (
-        result.num_inliers >= UPRIGHT_INLIERS and result.confidence >= UPRIGHT_MIN_CONFIDENCE
+        result.num_inliers >= UPRIGHT_INLIERS and result.confidence >= DEFAULT_MIN_CONFIDENCE
     )
 
 

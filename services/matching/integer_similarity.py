@@ -19,13 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from functools import cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from onnx import TensorProto, helper
 
 from services.runtime.onnx import OnnxOptions, create_session
-from services.types import Float32Array, Int32Array
+from services.types import Float32Array, Int32Array, UInt8Array
 
 QUERY_LEVELS = 127  # signed 8 bits
 REFERENCE_LEVELS = 63  # 7 bits: no saturated 16-bit sums (see the module's docstring)
@@ -57,16 +57,29 @@ def _scale(descriptors: Float32Array, levels: int) -> float:
     return levels / largest if largest > 0.0 else 1.0
 
 
-class IntegerSimilarity:
-    """The integer similarities of ``query`` (N, D) and ``reference`` (M, D), computed by
-    blocks of query rows; ``cosine`` turns them into cosines (for unit descriptors)."""
+class QuantizedQuery(NamedTuple):
+    """A query's descriptors as ``uint8`` around ``ZERO_POINT``, and the scale they were
+    multiplied by: quantized once for all the references it is matched with."""
 
-    def __init__(self, query: Float32Array, reference: Float32Array) -> None:
-        query_scale = _scale(query, QUERY_LEVELS)
+    values: UInt8Array
+    scale: float
+
+
+def quantize_query(descriptors: Float32Array) -> QuantizedQuery:
+    scale = _scale(descriptors, QUERY_LEVELS)
+    return QuantizedQuery((np.rint(descriptors * scale) + ZERO_POINT).astype(np.uint8), scale)
+
+
+class IntegerSimilarity:
+    """The integer similarities of a quantized ``query`` (N, D) and ``reference`` (M, D),
+    computed by blocks of query rows; ``cosine`` turns them into cosines (for unit
+    descriptors)."""
+
+    def __init__(self, query: QuantizedQuery, reference: Float32Array) -> None:
         reference_scale = _scale(reference, REFERENCE_LEVELS)
-        self.query = (np.rint(query * query_scale) + ZERO_POINT).astype(np.uint8)
+        self.query = query.values
         self.reference = np.ascontiguousarray(np.rint(reference.T * reference_scale), np.int8)
-        self.cosine = 1.0 / (query_scale * reference_scale)
+        self.cosine = 1.0 / (query.scale * reference_scale)
 
     def blocks(self, rows: int) -> Iterator[tuple[int, Int32Array]]:
         """(first row, (≤ ``rows``, M) similarities) for each block of ``rows`` query rows in

@@ -9,9 +9,13 @@ import numpy as np
 
 from services.features.base import LocalFeatures
 from services.matching.base import match_each
-from services.matching.integer_similarity import IntegerSimilarity
+from services.matching.integer_similarity import (
+    IntegerSimilarity,
+    QuantizedQuery,
+    quantize_query,
+)
 from services.runtime.spare_workers import Spread
-from services.types import IntArray
+from services.types import Float32Array, IntArray
 
 # query keypoints compared at once: a block of 512 against 4096 reference keypoints is 8 MiB
 # of similarities, an eighth of a whole 4096 × 4096 pair, and is written into one buffer, so
@@ -40,12 +44,16 @@ class NearestNeighborMatcher:
         self.name = f"mnn-ratio-{ratio:g}{floor}"
 
     def match(self, query: LocalFeatures, reference: LocalFeatures) -> IntArray:
-        if len(query) < 2 or len(reference) < 2:
+        return self._match(quantize_query(query.descriptors), reference.descriptors)
+
+    def _match(self, query: QuantizedQuery, reference: Float32Array) -> IntArray:
+        if len(query.values) < 2 or len(reference) < 2:
             return np.zeros((0, 2), dtype=np.int64)
-        similarity = IntegerSimilarity(query.descriptors, reference.descriptors)
-        best = np.empty(len(query), np.int64)
-        first = np.empty(len(query), np.int32)
-        second = np.empty(len(query), np.int32)
+        similarity = IntegerSimilarity(query, reference)
+        n = len(query.values)
+        best = np.empty(n, np.int64)
+        first = np.empty(n, np.int32)
+        second = np.empty(n, np.int32)
         column_max = np.full(len(reference), np.iinfo(np.int32).min, np.int32)
         for start, block in similarity.blocks(QUERY_BLOCK):
             rows = np.arange(len(block))
@@ -65,7 +73,7 @@ class NearestNeighborMatcher:
         keep = (d_first < self.ratio * d_second) & mutual
         if self.min_similarity is not None:
             keep &= cosine * first > self.min_similarity
-        rows = np.arange(len(query))
+        rows = np.arange(n)
         return np.stack([rows[keep], best[keep]], axis=1).astype(np.int64)
 
     def match_many(
@@ -75,4 +83,9 @@ class NearestNeighborMatcher:
         stop: Callable[[], bool] | None = None,
         spread: Spread | None = None,
     ) -> list[IntArray]:
-        return match_each(self.match, query, references, stop, spread)
+        quantized = quantize_query(query.descriptors)  # once for every reference
+
+        def match(_: LocalFeatures, reference: LocalFeatures) -> IntArray:
+            return self._match(quantized, reference.descriptors)
+
+        return match_each(match, query, references, stop, spread)

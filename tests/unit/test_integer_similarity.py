@@ -3,7 +3,7 @@ import pytest
 
 from services.features.base import LocalFeatures
 from services.matching import nearest_neighbor
-from services.matching.integer_similarity import IntegerSimilarity
+from services.matching.integer_similarity import IntegerSimilarity, quantize_query
 from services.matching.nearest_neighbor import NearestNeighborMatcher
 from tools.benchmarks.matching import float_ratios
 
@@ -31,7 +31,7 @@ def test_cosines_within_a_rounding_step(dimensions: int, signed: bool) -> None:
     raw = rng.normal(size=(700, dimensions))
     descriptors = _unit(raw if signed else np.abs(raw))
     query, reference = descriptors[:300], descriptors[300:]
-    product = IntegerSimilarity(query, reference)
+    product = IntegerSimilarity(quantize_query(query), reference)
     blocks = [(start, block.copy()) for start, block in product.blocks(128)]
     assert [start for start, _ in blocks] == [0, 128, 256]
     similarity = np.vstack([block for _, block in blocks])
@@ -42,7 +42,9 @@ def test_cosines_within_a_rounding_step(dimensions: int, signed: bool) -> None:
 
 
 def test_zero_descriptors_have_zero_similarity() -> None:
-    product = IntegerSimilarity(np.zeros((2, 8), np.float32), np.ones((3, 8), np.float32))
+    product = IntegerSimilarity(
+        quantize_query(np.zeros((2, 8), np.float32)), np.ones((3, 8), np.float32)
+    )
     [(_, similarity)] = product.blocks(1024)
     assert similarity.shape == (2, 3) and not similarity.any()
 

@@ -8,14 +8,9 @@ from __future__ import annotations
 
 import pytest
 
-from services.localization.answer import LocalizationResult
+from services.localization.answer import DEFAULT_MIN_CONFIDENCE, LocalizationResult
 from services.localization.compare import own_timings
-from services.localization.turns import (
-    SEARCH_CONFIDENCE,
-    UPRIGHT_INLIERS,
-    UPRIGHT_MIN_CONFIDENCE,
-    settled,
-)
+from services.localization.turns import SEARCH_CONFIDENCE, UPRIGHT_INLIERS, settled
 
 
 def _answer(
@@ -38,8 +33,8 @@ def _answer(
     ("localized", "confidence", "inliers", "expected"),
     [
         (True, SEARCH_CONFIDENCE, 10, True),  # confident: nothing to search
-        (True, UPRIGHT_MIN_CONFIDENCE, UPRIGHT_INLIERS, True),  # unsure, but matched upright
-        (True, UPRIGHT_MIN_CONFIDENCE, UPRIGHT_INLIERS - 1, False),  # few inliers: try turns
+        (True, DEFAULT_MIN_CONFIDENCE, UPRIGHT_INLIERS, True),  # unsure, but matched upright
+        (True, DEFAULT_MIN_CONFIDENCE, UPRIGHT_INLIERS - 1, False),  # few inliers: try turns
         (True, 1e-5, 280, False),  # a chance pose of a wrong turn: try the others
         (False, 0.0, 5000, False),  # no pose: try the turns
     ],
