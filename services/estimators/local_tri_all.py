@@ -9,6 +9,13 @@ reprojection errors, and a tight loss; kept unless fewer points then fit within
 median position error from 1.4 to 1.2 cm with ``sift`` and from 1.8 to 1.5 cm with
 ``xfeat-lg``; on redkitchen it left the recall and median as they were.
 
+When that refinement is kept, the pose is refined once more jointly with those points, each
+point placed by its reference observations and its query keypoint together
+(``tracks.refine_with_points``): a point the references saw under a small angle is placed
+along its rays no better than they allow, and the query's view of it helps. Kept unless fewer
+points then fit within ``max_error_px``. Its figures on both dev sets:
+``docs/benchmarks/2026-11-30-joint-refinement.md``.
+
 The returned inlier masks are the matches within ``max_error_px`` Sampson error of the final
 pose (the same definition as every other estimator); ``stats`` also reports the 2D–3D
 inliers, and its ``score`` is their count.
@@ -22,6 +29,7 @@ from services.estimators.tracks import (
     build_tracks,
     pose_from_tracks,
     refine_keeping_support,
+    refine_with_points,
     triangulate_tracks,
 )
 
@@ -69,4 +77,9 @@ class LocalTriAllEstimator(Estimator):
             request.deadline,
         )
         stats["points_refined"] = float(refined)
+        if refined:
+            pose, joint = refine_with_points(
+                stacked, tracks, tri, pose, request.query_camera, options, request.deadline
+            )
+            stats["points_joint"] = float(joint)
         return Solution(pose)

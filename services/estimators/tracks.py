@@ -24,10 +24,14 @@ from services.estimators.poselib_bridge import (
 from services.estimators.ransac import Deadline
 from services.estimators.robust_scale import adaptive_threshold_px
 from services.geometry.camera import Camera
+from services.geometry.joint_refinement import PointObservations, refine_pose_and_points
 from services.geometry.projection import pixels_from_camera_points
 from services.geometry.rigid import Rigid3d
 from services.geometry.triangulation import TriangulatedTracks, ransac_triangulate
 from services.types import BoolArray, FloatArray, IntArray
+
+# the fewest points the joint refinement of pose and points runs on
+JOINT_MIN_POINTS = 6
 
 
 @dataclass(frozen=True)
@@ -207,12 +211,9 @@ def refine_keeping_support(
     refinement used (0 when ``pose`` is kept)."""
     refined, used = refine_on_points(pose, points3d, query_xy, query_camera, options, deadline)
     limit = options.ransac.max_error_px
-
-    def support(candidate: Rigid3d) -> int:
-        errors = reprojection_errors(candidate, points3d, query_xy, query_camera)
-        return int(np.count_nonzero(errors < limit))
-
-    if used == 0 or support(refined) < support(pose):
+    if used == 0 or support(refined, points3d, query_xy, query_camera, limit) < support(
+        pose, points3d, query_xy, query_camera, limit
+    ):
         return pose, 0
     return refined, used
 
@@ -225,3 +226,62 @@ def reprojection_errors(
     projected = pixels_from_camera_points(query_camera, pose.apply(points3d))
     err = np.linalg.norm(projected - query_xy, axis=1)
     return np.where(np.isfinite(err), err, np.inf)
+
+
+def refine_with_points(
+    stacked: StackedMatches,
+    tracks: Tracks,
+    triangulated: TriangulatedTracks,
+    pose: Rigid3d,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+) -> tuple[Rigid3d, int]:
+    """``pose`` refined jointly with the triangulated points of ``tracks`` that reproject
+    within the adaptive threshold (``refine_on_points``' last round), each with the reference
+    observations that triangulated it (``services.geometry.joint_refinement``; Cauchy loss at
+    a quarter of the threshold). Kept only when at least as many of the points reproject
+    within ``max_error_px`` of it as of ``pose``. Returns the pose and the points it rests on
+    (0 when ``pose`` is kept)."""
+    valid = np.flatnonzero(triangulated.valid)
+    points = triangulated.points[valid]
+    tracks = tracks.subset(valid)
+    query_xy = stacked.query_xy[tracks.query_match]
+    errors = reprojection_errors(pose, points, query_xy, query_camera)
+    threshold = adaptive_threshold_px(errors, options.ransac.max_error_px)
+    used = errors < threshold
+    if used.sum() < JOINT_MIN_POINTS or deadline.expired():
+        return pose, 0
+    point_of, view_of = np.nonzero(triangulated.inliers[valid][used])
+    starts = stacked.offsets[:-1]
+    rotations = stacked.R_ref
+    observations = PointObservations(
+        point_of=point_of,
+        camera_of=view_of,
+        normalized=stacked.ref_norm[tracks.match_index[used][point_of, view_of]],
+        rotations=rotations,
+        translations=-(rotations @ stacked.C_ref[:, :, None])[:, :, 0],
+        focals=stacked.ref_focal[np.minimum(starts, stacked.size - 1)],
+    )
+    refined, _ = refine_pose_and_points(
+        pose,
+        points[used],
+        stacked.query_norm[tracks.query_match[used]],
+        float(np.mean(query_camera.focal_lengths)),
+        observations,
+        threshold / 4.0,
+    )
+    limit = options.ransac.max_error_px
+    if support(refined, points, query_xy, query_camera, limit) < support(
+        pose, points, query_xy, query_camera, limit
+    ):
+        return pose, 0
+    return refined, int(used.sum())
+
+
+def support(
+    pose: Rigid3d, points3d: FloatArray, query_xy: FloatArray, query_camera: Camera, limit: float
+) -> int:
+    """How many of the points reproject within ``limit`` pixels of their query keypoints."""
+    errors = reprojection_errors(pose, points3d, query_xy, query_camera)
+    return int(np.count_nonzero(errors < limit))

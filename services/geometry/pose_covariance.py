@@ -75,7 +75,7 @@ class PoseCovariance:
         return float(np.sqrt(max(self.covariance[6, 6], 0.0)))
 
 
-def _projection_jacobian(X_cam: FloatArray, focal: float | FloatArray) -> FloatArray:
+def projection_jacobian(X_cam: FloatArray, focal: float | FloatArray) -> FloatArray:
     """(N, 2, 3) ``∂(u, v)/∂X_cam`` of the projections ``f · (x/z, y/z)`` of camera-frame
     points (``focal``: one for all, or one per point)."""
     z = X_cam[:, 2]
@@ -99,9 +99,9 @@ def _skew(v: FloatArray) -> FloatArray:
     )
 
 
-def _over_pose(d_proj: FloatArray, X_cam: FloatArray, rotation: FloatArray) -> FloatArray:
+def over_pose(d_proj: FloatArray, X_cam: FloatArray, rotation: FloatArray) -> FloatArray:
     """(N, 2, 6) the projections' Jacobian over the observing camera's ``(δθ, C)``, from
-    ``d_proj`` = ∂(u, v)/∂X_cam (``_projection_jacobian``): ``X_cam = exp([δθ]×) R (X − C)``
+    ``d_proj`` = ∂(u, v)/∂X_cam (``projection_jacobian``): ``X_cam = exp([δθ]×) R (X − C)``
     gives ``∂X_cam/∂δθ = −[X_cam]×`` and ``∂X_cam/∂C = −R`` (``rotation``: one, or one per
     point)."""
     return np.concatenate([d_proj @ -_skew(X_cam), d_proj @ -rotation], axis=2)
@@ -126,8 +126,8 @@ def reprojection_jacobian(
     x, y = X_cam[:, 0] / z, X_cam[:, 1] / z
     projected = focal * np.stack([x, y], axis=1)
     n = points3d.shape[0]
-    d_proj = _projection_jacobian(X_cam, focal)
-    blocks = [_over_pose(d_proj, X_cam, R)]
+    d_proj = projection_jacobian(X_cam, focal)
+    blocks = [over_pose(d_proj, X_cam, R)]
     if with_focal:
         blocks.append(np.stack([x, y], axis=1)[:, :, None])
     jacobian = np.concatenate(blocks, axis=2).reshape(2 * n, -1)
@@ -248,12 +248,12 @@ def _pose_information(
     X_cam += references.translations[camera_of]
     front = X_cam[:, 2] > 1e-9
     X_cam[~front, 2] = 1.0  # no information: zeroed below
-    d_proj = _projection_jacobian(X_cam, references.focals[camera_of]) * front[:, None, None]
+    d_proj = projection_jacobian(X_cam, references.focals[camera_of]) * front[:, None, None]
     over_point = d_proj @ rotations  # ∂X_cam/∂X = R
     b = -query_jacobian[:, :, 3:6]
     point_information = np.swapaxes(b, 1, 2) @ b
-    point_information += _sum_by(point_of, np.swapaxes(over_point, 1, 2) @ over_point, n)
-    inverse, solvable = _inverse_3x3(point_information)
+    point_information += sum_by(point_of, np.swapaxes(over_point, 1, 2) @ over_point, n)
+    inverse, solvable = inverse_3x3(point_information)
     uncertain = np.zeros(0, np.int64)
     if references.poses_uncertain:
         kept = solvable[point_of]
@@ -270,8 +270,8 @@ def _pose_information(
         slot[uncertain] = np.arange(len(uncertain))
         rows = np.flatnonzero((slot[camera_of] >= 0) & solvable[point_of])
         slot_of, point_of = slot[camera_of[rows]], point_of[rows]
-        over_pose = _over_pose(d_proj[rows], X_cam[rows], rotations[rows])
-        blocks = _sum_by(slot_of, np.swapaxes(over_pose, 1, 2) @ over_pose, len(uncertain))
+        over_reference = over_pose(d_proj[rows], X_cam[rows], rotations[rows])
+        blocks = sum_by(slot_of, np.swapaxes(over_reference, 1, 2) @ over_reference, len(uncertain))
         prior = np.diag(
             sigma2 / np.repeat([references.rotation_sigma_rad, references.position_sigma], 3) ** 2
         )
@@ -279,16 +279,16 @@ def _pose_information(
             block = slice(p + 6 * c, p + 6 * c + 6)
             normal[block, block] = blocks[c] + prior
         # a reference observes a point once: each (point, slot) pair is its own entry
-        per_observation = np.swapaxes(over_pose, 1, 2) @ over_point[rows]  # (K, 6, 3)
+        per_observation = np.swapaxes(over_reference, 1, 2) @ over_point[rows]  # (K, 6, 3)
         flat = coupling.reshape(n * size, 3)
         targets = (point_of * size + p + 6 * slot_of)[:, None] + np.arange(6)
-        flat += _sum_by(targets.reshape(-1), per_observation.reshape(-1, 1, 3), n * size)[:, 0]
+        flat += sum_by(targets.reshape(-1), per_observation.reshape(-1, 1, 3), n * size)[:, 0]
     coupling = coupling[solvable]
     normal -= np.tensordot(coupling @ inverse[solvable], coupling, axes=([0, 2], [0, 2]))
     return normal
 
 
-def _sum_by(index: IntArray, values: FloatArray, count: int) -> FloatArray:
+def sum_by(index: IntArray, values: FloatArray, count: int) -> FloatArray:
     """(K, a, b) values summed by ``index`` into (count, a, b) (``np.bincount`` per entry: far
     faster than ``np.add.at``)."""
     flat = values.reshape(len(values), -1)
@@ -296,7 +296,7 @@ def _sum_by(index: IntArray, values: FloatArray, count: int) -> FloatArray:
     return np.stack(sums, axis=1).astype(np.float64).reshape(count, *values.shape[1:])
 
 
-def _inverse_3x3(matrices: FloatArray) -> tuple[FloatArray, BoolArray]:
+def inverse_3x3(matrices: FloatArray) -> tuple[FloatArray, BoolArray]:
     """(N, 3, 3) symmetric matrices → their inverses by the adjugate (far cheaper than a
     batched solve) and which are solvable: a determinant below 1e-12 of the diagonal's product
     is singular (its inverse left zero)."""
