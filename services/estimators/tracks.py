@@ -270,6 +270,7 @@ def refine_with_points(
         float(np.mean(query_camera.focal_lengths)),
         observations,
         threshold / 4.0,
+        stop=deadline.expired,
     )
     limit = options.ransac.max_error_px
     if support(refined, points, query_xy, query_camera, limit) < support(

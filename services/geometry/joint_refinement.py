@@ -21,6 +21,7 @@ ten references, one thread, median of 7, this took 11–13 ms (3 steps) where py
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -69,6 +70,7 @@ def refine_pose_and_points(
     references: PointObservations,
     loss_scale_px: float,
     iterations: int = 3,
+    stop: Callable[[], bool] | None = None,
 ) -> tuple[Rigid3d, FloatArray]:
     """The query pose and the points after ``iterations`` damped steps (from a pose already
     refined on the points as if they were exact, three reach what more steps do to within a
@@ -79,6 +81,8 @@ def refine_pose_and_points(
             (N, 2, normalised coordinates) and by the references in ``references``.
         focal: the query's focal length, pixels.
         loss_scale_px: the Cauchy loss's scale.
+        stop: polled before each step (a request's deadline); once it answers True the
+            steps taken so far are the result.
     Returns:
         The pose and the (N, 3) points; ``cam_from_world`` and ``points3d`` unchanged when no
         step lowers the cost (or a point lies behind a camera).
@@ -87,6 +91,8 @@ def refine_pose_and_points(
     cost = _cost(pose, points, query_normalized, focal, references, loss_scale_px)
     damping = INITIAL_DAMPING
     for _ in range(iterations):
+        if stop is not None and stop():
+            break
         step = _step(pose, points, query_normalized, focal, references, loss_scale_px, damping)
         if step is None:
             break
