@@ -87,17 +87,18 @@ def refine_pose_and_points(
         The pose and the (N, 3) points; ``cam_from_world`` and ``points3d`` unchanged when no
         step lowers the cost (or a point lies behind a camera).
     """
+    problem = _Problem(query_normalized, focal, references, loss_scale_px)
     pose, points = cam_from_world, points3d
-    cost = _cost(pose, points, query_normalized, focal, references, loss_scale_px)
+    cost = problem.cost(pose, points)
     damping = INITIAL_DAMPING
     for _ in range(iterations):
         if stop is not None and stop():
             break
-        step = _step(pose, points, query_normalized, focal, references, loss_scale_px, damping)
+        step = problem.step(pose, points, damping)
         if step is None:
             break
         candidate, moved = step
-        new_cost = _cost(candidate, moved, query_normalized, focal, references, loss_scale_px)
+        new_cost = problem.cost(candidate, moved)
         if new_cost < cost:
             pose, points, cost = candidate, moved, new_cost
             damping /= 10.0
@@ -106,92 +107,101 @@ def refine_pose_and_points(
     return pose, points
 
 
-def _residuals(
-    pose: Rigid3d,
-    points: FloatArray,
-    query_normalized: FloatArray,
-    focal: float,
-    references: PointObservations,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
-    """Query and reference camera-frame points and pixel residuals; None when a point lies
-    behind a camera that observes it."""
-    query_cam = pose.apply(points)
-    rotations = references.rotations[references.camera_of]
-    ref_cam = np.einsum("kij,kj->ki", rotations, points[references.point_of])
-    ref_cam += references.translations[references.camera_of]
-    if np.any(query_cam[:, 2] <= 1e-9) or np.any(ref_cam[:, 2] <= 1e-9):
-        return None
-    query_r = focal * (query_cam[:, :2] / query_cam[:, 2:3] - query_normalized)
-    ref_focal = references.focals[references.camera_of][:, None]
-    ref_r = ref_focal * (ref_cam[:, :2] / ref_cam[:, 2:3] - references.normalized)
-    return query_cam, ref_cam, query_r, ref_r
-
-
 def _cauchy(squared: FloatArray, scale: float) -> FloatArray:
     return scale * scale * np.log1p(squared / (scale * scale))
 
 
-def _cost(
-    pose: Rigid3d,
-    points: FloatArray,
-    query_normalized: FloatArray,
-    focal: float,
-    references: PointObservations,
-    scale: float,
-) -> float:
-    found = _residuals(pose, points, query_normalized, focal, references)
-    if found is None:
-        return float("inf")
-    _, _, query_r, ref_r = found
-    return float(
-        _cauchy((query_r**2).sum(axis=1), scale).sum()
-        + _cauchy((ref_r**2).sum(axis=1), scale).sum()
-    )
+@dataclass(frozen=True)
+class _Problem:
+    """What stays fixed: the query's observations and focal length, the references'
+    observations and poses, the loss's scale."""
+
+    query_normalized: FloatArray
+    focal: float
+    references: PointObservations
+    scale: float
+
+    def residuals(
+        self, pose: Rigid3d, points: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """Query and reference camera-frame points and pixel residuals; None when a point
+        lies behind a camera that observes it."""
+        refs = self.references
+        query_cam = pose.apply(points)
+        rotations = refs.rotations[refs.camera_of]
+        ref_cam = np.einsum("kij,kj->ki", rotations, points[refs.point_of])
+        ref_cam += refs.translations[refs.camera_of]
+        if np.any(query_cam[:, 2] <= 1e-9) or np.any(ref_cam[:, 2] <= 1e-9):
+            return None
+        query_r = self.focal * (query_cam[:, :2] / query_cam[:, 2:3] - self.query_normalized)
+        ref_focal = refs.focals[refs.camera_of][:, None]
+        ref_r = ref_focal * (ref_cam[:, :2] / ref_cam[:, 2:3] - refs.normalized)
+        return query_cam, ref_cam, query_r, ref_r
+
+    def cost(self, pose: Rigid3d, points: FloatArray) -> float:
+        """The robust cost (inf with a point behind a camera)."""
+        found = self.residuals(pose, points)
+        if found is None:
+            return float("inf")
+        _, _, query_r, ref_r = found
+        return float(
+            _cauchy((query_r**2).sum(axis=1), self.scale).sum()
+            + _cauchy((ref_r**2).sum(axis=1), self.scale).sum()
+        )
+
+    def step(
+        self, pose: Rigid3d, points: FloatArray, damping: float
+    ) -> tuple[Rigid3d, FloatArray] | None:
+        """One reweighted, damped Gauss–Newton step; None when the system is singular."""
+        found = self.residuals(pose, points)
+        if found is None:
+            return None
+        query_cam, ref_cam, query_r, ref_r = found
+        refs, scale = self.references, self.scale
+        n = points.shape[0]
+        # Cauchy weights: ρ'(s) for s the squared residual norm
+        query_w = 1.0 / (1.0 + (query_r**2).sum(axis=1) / scale**2)
+        ref_w = 1.0 / (1.0 + (ref_r**2).sum(axis=1) / scale**2)
+        query_d = projection_jacobian(query_cam, self.focal)
+        over_query_pose = over_pose(query_d, query_cam, pose.rotation)  # (N, 2, 6)
+        over_point = query_d @ pose.rotation  # (N, 2, 3)
+        rotations = refs.rotations[refs.camera_of]
+        ref_d = projection_jacobian(ref_cam, refs.focals[refs.camera_of])
+        ref_over_point = ref_d @ rotations  # (K, 2, 3)
+        wj = over_query_pose * query_w[:, None, None]
+        wb = over_point * query_w[:, None, None]
+        h_pose = np.einsum("nai,naj->ij", wj, over_query_pose)
+        g_pose = np.einsum("nai,na->i", wj, query_r)
+        h_coupling = np.swapaxes(wj, 1, 2) @ over_point  # (N, 6, 3)
+        h_point = np.swapaxes(wb, 1, 2) @ over_point
+        h_point += sum_by(
+            refs.point_of,
+            np.swapaxes(ref_over_point * ref_w[:, None, None], 1, 2) @ ref_over_point,
+            n,
+        )
+        g_point = np.einsum("nai,na->ni", wb, query_r)
+        g_point += sum_by(
+            refs.point_of,
+            np.einsum("kai,ka->ki", ref_over_point * ref_w[:, None, None], ref_r)[:, :, None],
+            n,
+        )[:, :, 0]
+        h_pose += damping * np.diag(np.diag(h_pose))
+        h_point += damping * h_point * np.eye(3)
+        return _solve(pose, points, h_pose, g_pose, h_coupling, h_point, g_point)
 
 
-def _step(
+def _solve(
     pose: Rigid3d,
     points: FloatArray,
-    query_normalized: FloatArray,
-    focal: float,
-    references: PointObservations,
-    scale: float,
-    damping: float,
+    h_pose: FloatArray,
+    g_pose: FloatArray,
+    h_coupling: FloatArray,
+    h_point: FloatArray,
+    g_point: FloatArray,
 ) -> tuple[Rigid3d, FloatArray] | None:
-    """One reweighted, damped Gauss–Newton step; None when the system is singular."""
-    found = _residuals(pose, points, query_normalized, focal, references)
-    if found is None:
-        return None
-    query_cam, ref_cam, query_r, ref_r = found
-    n = points.shape[0]
-    # Cauchy weights: ρ'(s) for s the squared residual norm
-    query_w = 1.0 / (1.0 + (query_r**2).sum(axis=1) / scale**2)
-    ref_w = 1.0 / (1.0 + (ref_r**2).sum(axis=1) / scale**2)
-    query_d = projection_jacobian(query_cam, focal)
-    over_query_pose = over_pose(query_d, query_cam, pose.rotation)  # (N, 2, 6)
-    over_point = query_d @ pose.rotation  # (N, 2, 3)
-    rotations = references.rotations[references.camera_of]
-    ref_d = projection_jacobian(ref_cam, references.focals[references.camera_of])
-    ref_over_point = ref_d @ rotations  # (K, 2, 3)
-    wj = over_query_pose * query_w[:, None, None]
-    wb = over_point * query_w[:, None, None]
-    h_pose = np.einsum("nai,naj->ij", wj, over_query_pose)
-    g_pose = np.einsum("nai,na->i", wj, query_r)
-    h_coupling = np.swapaxes(wj, 1, 2) @ over_point  # (N, 6, 3)
-    h_point = np.swapaxes(wb, 1, 2) @ over_point
-    h_point += sum_by(
-        references.point_of,
-        np.swapaxes(ref_over_point * ref_w[:, None, None], 1, 2) @ ref_over_point,
-        n,
-    )
-    g_point = np.einsum("nai,na->ni", wb, query_r)
-    g_point += sum_by(
-        references.point_of,
-        np.einsum("kai,ka->ki", ref_over_point * ref_w[:, None, None], ref_r)[:, :, None],
-        n,
-    )[:, :, 0]
-    h_pose += damping * np.diag(np.diag(h_pose))
-    h_point += damping * h_point * np.eye(3)
+    """The step of the normal equations, the points eliminated: the pose's block ``h_pose``
+    (6, 6) and gradient ``g_pose``, each point's coupling to it ``h_coupling`` (N, 6, 3), its
+    block ``h_point`` (N, 3, 3) and gradient ``g_point`` (N, 3). None when singular."""
     inverse, solvable = inverse_3x3(h_point)
     if not solvable.all():
         return None
