@@ -142,13 +142,13 @@ def _intersect_pairs(
 
 
 def ray_angles_deg(point: FloatArray, origins: FloatArray, directions: FloatArray) -> FloatArray:
-    """(N,) angle in degrees between each ray direction and the vector origin → point; a point
-    behind a ray (s < 0) gives an angle above 90°."""
-    to_point = point[None, :] - origins
-    to_point /= np.maximum(np.linalg.norm(to_point, axis=1, keepdims=True), 1e-12)
+    """(N,) angle in degrees between each ray direction and the vector origin → point ((P, N)
+    for (P, 3) points); a point behind a ray (s < 0) gives an angle above 90°."""
+    to_point = point[..., None, :] - origins
+    to_point /= np.maximum(np.linalg.norm(to_point, axis=-1, keepdims=True), 1e-12)
     d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     return np.asarray(
-        np.degrees(np.arccos(np.clip((to_point * d).sum(axis=1), -1.0, 1.0))), dtype=np.float64
+        np.degrees(np.arccos(np.clip((to_point * d).sum(axis=-1), -1.0, 1.0))), dtype=np.float64
     )
 
 
@@ -172,11 +172,7 @@ def ransac_ray_intersection(
     n = origins.shape[0]
     first, second = np.triu_indices(n, k=1)  # every pair, in itertools.combinations' order
     points, conds = _intersect_pairs(origins, directions, first, second)
-    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    to_points = points[:, None, :] - origins[None, :, :]
-    to_points /= np.maximum(np.linalg.norm(to_points, axis=2, keepdims=True), 1e-12)
-    angles = np.degrees(np.arccos(np.clip(np.einsum("pnk,nk->pn", to_points, d), -1.0, 1.0)))
-    inliers = angles <= inlier_deg
+    inliers = ray_angles_deg(points, origins, directions) <= inlier_deg
     pairs = np.arange(len(first))
     # a pair whose rays meet behind one of its references proposes nothing
     usable = (conds >= min_conditioning) & inliers[pairs, first] & inliers[pairs, second]
