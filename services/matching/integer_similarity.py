@@ -53,7 +53,7 @@ def _session() -> Any:
 
 
 def _scale(descriptors: Float32Array, levels: int) -> float:
-    largest = float(np.abs(descriptors).max(initial=0.0))
+    largest = max(float(descriptors.max(initial=0.0)), -float(descriptors.min(initial=0.0)))
     return levels / largest if largest > 0.0 else 1.0
 
 
@@ -78,7 +78,9 @@ class IntegerSimilarity:
     def __init__(self, query: QuantizedQuery, reference: Float32Array) -> None:
         reference_scale = _scale(reference, REFERENCE_LEVELS)
         self.query = query.values
-        self.reference = np.ascontiguousarray(np.rint(reference.T * reference_scale), np.int8)
+        # rounded in the rows' order, then turned as bytes: half the time of turning floats
+        scaled = reference * np.float32(reference_scale)
+        self.reference = np.ascontiguousarray(np.rint(scaled, out=scaled).astype(np.int8).T)
         self.cosine = 1.0 / (query.scale * reference_scale)
 
     def blocks(self, rows: int) -> Iterator[tuple[int, Int32Array]]:
