@@ -25,19 +25,24 @@ def advisory_key(name: str) -> int:
 
 
 @contextmanager
-def try_exclusive(engine: Engine, name: str) -> Iterator[bool]:
-    """Hold the lock ``name`` across processes while the block runs, without waiting: yields
-    True when held, False when another holder has it (the block should then skip its work).
+def exclusive(engine: Engine, name: str, wait: bool = False) -> Iterator[bool]:
+    """Hold the lock ``name`` across processes while the block runs: yields True when held;
+    without ``wait``, False at once when another holder has it (the block should then skip
+    its work); with ``wait``, True once the other holder has released it.
 
-    PostgreSQL: a session-level ``pg_try_advisory_lock`` on a connection kept for the block
-    (the block may run many transactions on other connections), released by
-    ``pg_advisory_unlock``, or by the server if the process dies. Other databases: a lock
-    of this process.
+    PostgreSQL: a session-level advisory lock (``pg_advisory_lock``, or
+    ``pg_try_advisory_lock`` without ``wait``) on a connection kept for the block (the block
+    may run many transactions on other connections), released by ``pg_advisory_unlock``, or by
+    the server if the process dies. Other databases: a lock of this process.
     """
     if engine.dialect.name == "postgresql":
         key = advisory_key(name)
         with engine.connect() as conn:
-            held = bool(conn.scalar(text("SELECT pg_try_advisory_lock(:k)"), {"k": key}))
+            if wait:
+                conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": key})
+                held = True
+            else:
+                held = bool(conn.scalar(text("SELECT pg_try_advisory_lock(:k)"), {"k": key}))
             conn.commit()
             try:
                 yield held
@@ -48,7 +53,7 @@ def try_exclusive(engine: Engine, name: str) -> Iterator[bool]:
         return
     with _local_guard:
         lock = _local_locks.setdefault(name, threading.Lock())
-    held = lock.acquire(blocking=False)
+    held = lock.acquire(blocking=wait)
     try:
         yield held
     finally:

@@ -19,7 +19,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from db.arrays import from_row, to_row
-from db.locks import try_exclusive
+from db.locks import exclusive
 from db.models import FeatureArray, Map, MapVocabulary, ReferenceImage
 from services.retrieval.contracts import Encoder, VocabularyError, VocabularyState
 from services.retrieval.vlad import Vocabulary
@@ -78,10 +78,11 @@ class SqlVocabularyStore:
             return _descriptors(session, image_ids)
 
     @contextmanager
-    def training_lock(self) -> Iterator[bool]:
+    def training_lock(self, wait: bool = False) -> Iterator[bool]:
         """The map and model's training lock across every process on the database."""
         engine = self.sessions.kw["bind"]
-        with try_exclusive(engine, f"vocabulary:{self.map_id}:{self.feature_model}") as held:
+        name = f"vocabulary:{self.map_id}:{self.feature_model}"
+        with exclusive(engine, name, wait) as held:
             yield held
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:

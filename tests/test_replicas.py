@@ -13,7 +13,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import create_engine, select
 
-from db.locks import try_exclusive
+from db.locks import exclusive
 from db.models import MapVocabulary, ReferenceImage
 from services.features.configs import SIFT
 from services.retrieval.policy import MIN_IMAGES
@@ -105,7 +105,7 @@ def test_two_replicas_share_one_database(
 
         # While another holder (this test) has the training lock, neither replica trains,
         # though the map has grown past the training threshold on both.
-        with try_exclusive(engine, f"vocabulary:{map_id}:{feature_model}") as held:
+        with exclusive(engine, f"vocabulary:{map_id}:{feature_model}") as held:
             assert held
             for i, view in enumerate(reference_views[1:MIN_IMAGES]):
                 response = upload_view(on_a if i % 2 else on_b, map_id, view)  # type: ignore[arg-type]

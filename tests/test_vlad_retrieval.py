@@ -5,6 +5,9 @@ demand (API and CLI path) from stored descriptors only; on a real SQLite file an
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ from sqlalchemy import select
 from app.schemas.images import ImageMetadata
 from app.usecases.images import add_reference_image
 from app.usecases.localize import reference_store
+from db import vocabulary
 from db.migrate import upgrade
 from db.models import FeatureArray, MapVocabulary, ReferenceImage
 from db.repositories.images import ImageRepository
@@ -150,6 +154,51 @@ def test_reindex_endpoint(
         assert body["num_centers"] == NUM_CENTERS and body["trained_images"] == 3
         again = client.post(f"/v1/maps/{map_id}/reindex").json()
         assert again["vocabulary_version"] == 2
+
+
+def test_reindex_waits_for_a_training_running_elsewhere(
+    database_url: str,
+    localizer: Localizer,
+    reference_views: list[SyntheticView],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An explicit reindex trains holding the map's training lock, once the trainer that
+    holds it (a background training, another replica; here the test) is done, so that two
+    trainings of one map never run at once."""
+    waiting = threading.Event()
+    held_while_training: list[bool] = []
+    real_exclusive, real_train = vocabulary.exclusive, VladIndexer.train
+
+    @contextmanager
+    def announcing(engine: object, name: str, wait: bool = False) -> Iterator[bool]:
+        if wait:
+            waiting.set()
+        with real_exclusive(engine, name, wait) as held:  # type: ignore[arg-type]
+            yield held
+
+    def probing(self: VladIndexer, yield_to_newer: bool = False) -> object:
+        with real_exclusive(engine, lock_name) as free:
+            held_while_training.append(not free)
+        return real_train(self, yield_to_newer)
+
+    monkeypatch.setattr(vocabulary, "exclusive", announcing)
+    monkeypatch.setattr(VladIndexer, "train", probing)
+    engine = make_engine(database_url)
+    with make_client(database_url, localizer) as client, ThreadPoolExecutor(1) as pool:
+        map_id = create_map(client, "waiting")
+        for view in reference_views[:3]:
+            assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
+        lock_name = f"vocabulary:{map_id}:{localizer.extractor.name}"
+        with real_exclusive(engine, lock_name) as held:
+            assert held
+            reindexed = pool.submit(client.post, f"/v1/maps/{map_id}/reindex")
+            assert waiting.wait(60)
+            assert not reindexed.done() and held_while_training == []
+        response = reindexed.result(timeout=120)
+    engine.dispose()
+    assert response.status_code == 200, response.text
+    assert response.json()["vocabulary_version"] == 1
+    assert held_while_training == [True]
 
 
 def test_global_model_maps_have_no_vocabulary(database_url: str, localizer: Localizer) -> None:

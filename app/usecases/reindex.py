@@ -43,7 +43,8 @@ def reindex_map(
     sessions: sessionmaker[Session], localizers: Localizers, map_id: str, vlad: bool
 ) -> Reindexed:
     """Train a new VLAD vocabulary version from the map's stored descriptors and re-encode
-    every reference with it (no image is re-read).
+    every reference with it (no image is re-read), after a training of the map running
+    meanwhile (a background one, or another replica's) is done.
 
     Raises:
         NotFoundError: unknown map, also one deleted while it was being trained.
@@ -60,7 +61,7 @@ def reindex_map(
         )
     feature_model = localizer.extractor.name
     try:
-        report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train()
+        report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train_now()
     except VocabularyError as exc:
         with sessions() as session:
             require_map(session, map_id)  # gone meanwhile: not found, not a conflict

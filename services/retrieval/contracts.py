@@ -89,9 +89,10 @@ class VocabularyStore(Protocol):
         """(N, D) local descriptors of the references among ``image_ids`` still stored."""
         ...
 
-    def training_lock(self) -> AbstractContextManager[bool]:
+    def training_lock(self, wait: bool = False) -> AbstractContextManager[bool]:
         """Held while a vocabulary is trained, by one trainer at a time across every process
-        sharing the store; yields False (without waiting) when another trainer holds it."""
+        sharing the store; when another trainer holds it, yields False at once, or with
+        ``wait`` True once that trainer is done."""
         ...
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:

@@ -88,6 +88,17 @@ class VladIndexer:
             # checked under the lock: a trainer that held it before may just have published
             return self.train(yield_to_newer=True) if self.due() else None
 
+    def train_now(self) -> ReindexReport:
+        """``train`` holding the store's training lock, after a training that holds it
+        elsewhere is done: one trainer at a time, and one due meanwhile finds nothing left
+        to do once this version is published.
+
+        Raises:
+            VocabularyError: as ``train``.
+        """
+        with self.store.training_lock(wait=True):
+            return self.train()
+
     def train(self, yield_to_newer: bool = False) -> ReindexReport:
         """Train a new vocabulary version now, encode every reference with it, publish it (on
         top of any version published meanwhile, unless ``yield_to_newer``).
