@@ -87,6 +87,15 @@ class BlobStore(Protocol):
         """The blobs whose keys start with ``prefix``, in no particular order."""
         ...
 
+    def check(self) -> None:
+        """Nothing when the store can take writes now.
+
+        Raises:
+            BlobStoreError: it cannot (a folder missing or read-only; a bucket that cannot
+                be reached, or refuses these credentials), saying why.
+        """
+        ...
+
 
 def check_key(key: str) -> str:
     """``key`` when it is a valid key: ``/``-separated segments of letters, digits, ``.``,
@@ -175,6 +184,13 @@ class FileBlobStore:
                 except FileNotFoundError:  # deleted while listed
                     continue
                 yield BlobInfo(key, stat.st_size, datetime.fromtimestamp(stat.st_mtime, UTC))
+
+    def check(self) -> None:
+        # access(2) also answers no for a read-only file system and an immutable folder
+        if not self.root.is_dir():
+            raise BlobStoreError(f"{self.description}: not a folder")
+        if not os.access(self.root, os.W_OK | os.X_OK):
+            raise BlobStoreError(f"{self.description}: not writable")
 
     def remove_stale_temporaries(self, older_than_s: float) -> int:
         """Remove the temporary files of writes that a crash interrupted, older than
@@ -289,10 +305,7 @@ class S3BlobStore:
         timing out, or an error answer (access denied, no such bucket, a 5xx)."""
         return BlobStoreError(f"{self.description}: cannot {action} {key}: {exc}")
 
-    def check_bucket(self) -> None:
-        """Raises:
-        BlobStoreError: the bucket cannot be reached with these credentials.
-        """
+    def check(self) -> None:
         try:
             self.client.head_bucket(Bucket=self.bucket)
         except Exception as exc:

@@ -62,8 +62,15 @@ class UnservableMapOut(BaseModel):
 
 class HealthOut(BaseModel):
     status: str = Field(
-        description="ok; degraded when the database is down or some map cannot be served "
-        "(unservable_maps)"
+        description="ok; degraded when the database is down, some map cannot be served "
+        "(unservable_maps) or the blob store cannot take writes (blob_store)"
+    )
+    blob_store: str = Field(
+        "ok",
+        description="ok; unavailable when the store of the references' originals cannot take "
+        "writes (a folder missing or read-only, a bucket unreachable or refusing the "
+        "credentials; the server's log says why): adds answer 503 blob-store-unavailable, "
+        "localize goes on. Probed at most every 15 s",
     )
     version: str
     models: ModelsOut

@@ -71,7 +71,7 @@ def test_s3_refuses_unknown_credentials(s3_server: SeaweedS3) -> None:  # noqa: 
     with pytest.raises(Exception, match=r"InvalidAccessKeyId|AccessDenied|SignatureDoesNotMatch"):
         intruder.get("k")
     with pytest.raises(BlobStoreError):
-        intruder.check_bucket()
+        intruder.check()
 
 
 def test_s3_store_from_the_standard_environment(

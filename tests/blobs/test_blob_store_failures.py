@@ -88,6 +88,15 @@ def _blobs(client: TestClient) -> BlobStore:
     return blobs
 
 
+def _health_says(client: TestClient, blob_store: str) -> None:
+    """GET /v1/health, probing the store afresh, names ``blob_store``; degraded when it is
+    unavailable."""
+    client.app.state.blob_probe = None  # type: ignore[attr-defined]
+    health = client.get("/v1/health").json()
+    assert health["blob_store"] == blob_store
+    assert health["status"] == ("ok" if blob_store == "ok" else "degraded")
+
+
 def _localizes(client: TestClient, map_id: str, view: SyntheticView) -> None:
     response = client.post(
         f"/v1/maps/{map_id}/localize",
@@ -113,7 +122,9 @@ def test_a_read_only_blob_folder_refuses_adds_with_503_and_stores_nothing(
         assert isinstance(blobs, FileBlobStore)
         before = sorted(info.key for info in blobs.list())
 
+        _health_says(client, "ok")
         with _immutable(blobs.root):
+            _health_says(client, "unavailable")
             for depth in (False, True):
                 refused = _add(client, map_id, reference_views[4], "refused", depth=depth)
                 _assert_unavailable(refused, stored_nothing=True)
@@ -129,6 +140,7 @@ def test_a_read_only_blob_folder_refuses_adds_with_503_and_stores_nothing(
             assert not [p for p in blobs.root.rglob(".*") if p.is_file()]
 
         # writable again: the same add succeeds, without a restart
+        _health_says(client, "ok")
         assert _add(client, map_id, reference_views[4], "refused", depth=True).status_code == 201
         assert _names(client, map_id) == ["kept-0", "kept-1", "kept-2", "refused"]
         sessions = client.app.state.sessions  # type: ignore[attr-defined]
@@ -141,7 +153,10 @@ def test_a_file_store_maps_file_system_refusals_to_blob_store_errors(tmp_path: P
     the file system refuses, and for a read of a key that is a folder."""
     store = FileBlobStore(tmp_path / "blobs")
     store.put("a/b", b"x")
+    store.check()
     with _immutable(store.root):
+        with pytest.raises(BlobStoreError, match="not writable"):
+            store.check()
         with pytest.raises(BlobStoreError, match=r"cannot write c/d: Operation not permitted"):
             store.put("c/d", b"y")
         with pytest.raises(BlobStoreError, match="cannot delete a/b"):
@@ -149,6 +164,9 @@ def test_a_file_store_maps_file_system_refusals_to_blob_store_errors(tmp_path: P
         assert store.get("a/b") == b"x"
     with pytest.raises(BlobStoreError, match="cannot read a: Is a directory"):
         store.get("a")
+    shutil.rmtree(store.root)
+    with pytest.raises(BlobStoreError, match="not a folder"):
+        store.check()
 
 
 def test_a_missing_blob_answers_a_404_that_says_so(
@@ -195,7 +213,9 @@ def test_an_unreachable_s3_store_answers_503_and_stores_nothing(
         ]
         assert all("id" in image for image in kept)
 
+        _health_says(client, "ok")
         own_s3_server.close()
+        _health_says(client, "unavailable")
         refused = _add(client, map_id, reference_views[4], "refused", depth=True)
         _assert_unavailable(refused, stored_nothing=True)
         assert _names(client, map_id) == ["kept-0", "kept-1", "kept-2"]

@@ -13,8 +13,9 @@ export interface paths {
         };
         /**
          * Health
-         * @description No API key needed. ``status`` is ``ok``, or ``degraded`` when the database is down.
-         *     Never waits behind other requests: the database probe runs on threads of its own.
+         * @description No API key needed. ``status`` is ``ok``, or ``degraded`` when the database is down,
+         *     some map cannot be served or the blob store cannot take writes. Never waits behind other
+         *     requests: the probes run on threads of their own.
          */
         get: operations["health"];
         put?: never;
@@ -1574,11 +1575,17 @@ export interface components {
         };
         /** HealthOut */
         HealthOut: {
+            /**
+             * Blob Store
+             * @description ok; unavailable when the store of the references' originals cannot take writes (a folder missing or read-only, a bucket unreachable or refusing the credentials; the server's log says why): adds answer 503 blob-store-unavailable, localize goes on. Probed at most every 15 s
+             * @default ok
+             */
+            blob_store?: string;
             models: components["schemas"]["ModelsOut"];
             runtime: components["schemas"]["RuntimeOut"];
             /**
              * Status
-             * @description ok; degraded when the database is down or some map cannot be served (unservable_maps)
+             * @description ok; degraded when the database is down, some map cannot be served (unservable_maps) or the blob store cannot take writes (blob_store)
              */
             status: string;
             /**

@@ -695,10 +695,14 @@ class GroundPlaneOut(BaseModel):
 
 class HealthOut(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
+    blob_store: str = Field(
+        default="ok",
+        description="ok; unavailable when the store of the references' originals cannot take writes (a folder missing or read-only, a bucket unreachable or refusing the credentials; the server's log says why): adds answer 503 blob-store-unavailable, localize goes on. Probed at most every 15 s",
+    )
     models: ModelsOut
     runtime: RuntimeOut
     status: str = Field(
-        description="ok; degraded when the database is down or some map cannot be served (unservable_maps)"
+        description="ok; degraded when the database is down, some map cannot be served (unservable_maps) or the blob store cannot take writes (blob_store)"
     )
     unservable_map_count: int = Field(
         default=0,
