@@ -89,12 +89,17 @@ def _blobs(client: TestClient) -> BlobStore:
 
 
 def _health_says(client: TestClient, blob_store: str) -> None:
-    """GET /v1/health, probing the store afresh, names ``blob_store``; degraded when it is
-    unavailable."""
+    """GET /v1/health, probing the store afresh, names ``blob_store``, degraded when it is
+    unavailable; so does /readyz's text (the probe reused)."""
     client.app.state.blob_probe = None  # type: ignore[attr-defined]
     health = client.get("/v1/health").json()
     assert health["blob_store"] == blob_store
     assert health["status"] == ("ok" if blob_store == "ok" else "degraded")
+    ready = client.get("/readyz")  # ready either way: localize never needs the store
+    assert ready.status_code == 200
+    assert ready.text == (
+        "ok\n" if blob_store == "ok" else "ok; degraded: blob store: unavailable; adds answer 503\n"
+    )
 
 
 def _localizes(client: TestClient, map_id: str, view: SyntheticView) -> None:

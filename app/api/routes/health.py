@@ -59,8 +59,8 @@ async def livez() -> Response:
 async def readyz(request: Request) -> Response:
     """Readiness: the database answers within READY_DATABASE_TIMEOUT_S, the models are
     loaded and the service is not draining; else 503 naming what is not ready. A SQLite
-    database whose file or folder is read-only is ready (reads are served) and named
-    degraded."""
+    database whose file or folder is read-only, and a blob store that cannot take writes,
+    leave it ready (reads and localize are served) and are named degraded."""
     state = request.app.state
     problems = []
     if getattr(state, "draining", False):
@@ -83,14 +83,17 @@ async def readyz(request: Request) -> Response:
             media_type="text/plain",
             headers={"Retry-After": "5"},
         )
-    # reads are still served: ready, and says so
+    # reads are still served: ready, and says what is degraded
+    degraded = []
     engine = getattr(state, "engine", None)
     if engine is not None and sqlite_not_writable(engine) is not None:
-        return Response(
-            "ok; degraded: database: not writable (its file or folder is read-only); writes "
-            "answer 503\n",
-            media_type="text/plain",
+        degraded.append(
+            "database: not writable (its file or folder is read-only); writes answer 503"
         )
+    if getattr(state, "blobs", None) is not None and not await _blob_store_ok(state):
+        degraded.append("blob store: unavailable; adds answer 503")
+    if degraded:
+        return Response("ok; degraded: " + "; ".join(degraded) + "\n", media_type="text/plain")
     return Response("ok\n", media_type="text/plain")
 
 
