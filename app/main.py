@@ -96,6 +96,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             settings.blob_url, settings.database_url, settings.data_dir
         )
         logger.info("originals of reference images: %s", blobs.description)
+        # health's probe of it: one at a time, so that a store that hangs holds one thread
+        app.state.blob_probe_threads = CapacityLimiter(1)
         app.state.blob_sweep = (
             StartupSweep(app.state.sessions, blobs, settings.blob_sweep_grace_s)
             if settings.blob_sweep_on_start
@@ -152,8 +154,6 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
         app.state.query_outcomes = QueryOutcomes(app.state.sessions)
         # health's database probe; apart from the thread pool other routes may fill
         app.state.health_threads = CapacityLimiter(2)
-        # health's blob store probe: one at a time, so that a store that hangs holds one thread
-        app.state.blob_probe_threads = CapacityLimiter(1)
         if not settings.api_keys:
             logger.warning("SLLOC_API_KEYS is empty: authentication is OFF, anyone may write")
         logger.info("slloc ready: database %s", engine.url.render_as_string(hide_password=True))

@@ -90,7 +90,7 @@ async def readyz(request: Request) -> Response:
         degraded.append(
             "database: not writable (its file or folder is read-only); writes answer 503"
         )
-    # the probe's limiter is the last of the state the lifespan sets up
+    # set up by the lifespan together with the store
     if getattr(state, "blob_probe_threads", None) is not None and not await _blob_store_ok(state):
         degraded.append("blob store: unavailable; adds answer 503")
     if degraded:
