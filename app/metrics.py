@@ -1,6 +1,7 @@
 """Prometheus metrics of one app (``GET /metrics``): HTTP requests by route template, localize
 stage timings and outcomes, and, read at each scrape, the admission queue, the retrieval cache,
-the size of the largest maps and the process (``process_*``, ``python_*``)."""
+the size of the largest maps, whether the database and the blob store answer, and the process
+(``process_*``, ``python_*``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import logging
 import time
 from collections.abc import Iterable, Sequence
 
+from anyio import to_thread
 from fastapi import APIRouter, Depends, Request, Response
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
@@ -28,6 +30,7 @@ from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.auth import API_KEY_HEADER, RoleCheck
+from app.blob_probe import BLOB_PROBE_TTL_S, blob_probe_ready, blob_store_ok
 from app.usecases.evaluations import Evaluator
 from db.repositories.maps import MapRepository
 from services.localization.answer import LocalizationResult
@@ -226,10 +229,25 @@ class _StateCollector(Collector):
                     largest = MapRepository(session).largest(MAX_MAP_SERIES)
             except SQLAlchemyError:
                 logger.warning("metrics: map sizes left out, the database is unreachable")
+                database_up = False
             else:
                 for map_id, name, count in largest:
                     maps.add_metric((map_id, name), count)
                 yield maps
+                database_up = True
+            yield _gauge(
+                "slloc_database_up",
+                "1 when the database answered this scrape's query of the map sizes, else 0",
+                float(database_up),
+            )
+        probed: tuple[float, bool] | None = getattr(self.state, "blob_probe", None)
+        if probed is not None:
+            yield _gauge(
+                "slloc_blob_store_up",
+                "1 when the blob store of the originals took writes at its latest probe (at "
+                f"most {BLOB_PROBE_TTL_S:g} s before the scrape), else 0",
+                float(probed[1]),
+            )
 
 
 def _evaluation_metrics(evaluator: Evaluator) -> Iterable[Metric]:
@@ -346,8 +364,11 @@ router = APIRouter()
 
 
 @router.get("/metrics", include_in_schema=False, dependencies=[Depends(_metrics_access)])
-def metrics(request: Request) -> Response:
-    """Prometheus text exposition (runs on a worker thread: the map sizes query the
-    database)."""
-    registry: ServiceMetrics = request.app.state.metrics
-    return Response(registry.exposition(), media_type=CONTENT_TYPE_LATEST)
+async def metrics(request: Request) -> Response:
+    """Prometheus text exposition: the blob store probed (unless probed lately), then the
+    registry read on a worker thread (the map sizes query the database)."""
+    state = request.app.state
+    if blob_probe_ready(state):
+        await blob_store_ok(state)
+    registry: ServiceMetrics = state.metrics
+    return Response(await to_thread.run_sync(registry.exposition), media_type=CONTENT_TYPE_LATEST)

@@ -296,6 +296,7 @@ def test_postgres_stopped_and_started_under_load(
             while time.monotonic() < down + OUTAGE_S:
                 readiness.append(probe.get("/readyz"))
                 time.sleep(0.2)
+            scraped_down = probe.get("/metrics")
             starting = time.monotonic()
             postgres.start()
             up = time.monotonic()
@@ -310,6 +311,7 @@ def test_postgres_stopped_and_started_under_load(
                 30,
             ), load.answers[-20:]
             time.sleep(AFTER_S)  # more load after the recovery, not a proof of anything
+            scraped_up = probe.get("/metrics")
         assert server.process.poll() is None  # never restarted
         log = server.log_text()
 
@@ -338,6 +340,10 @@ def test_postgres_stopped_and_started_under_load(
     ][:5]
     assert all(r.status_code == 503 and r.headers["retry-after"] for r in readiness)
     assert all("database" in r.text for r in readiness)
+    # /metrics answers through the outage and says whether the database answered it
+    assert scraped_down.status_code == 200 and scraped_up.status_code == 200
+    assert "\nslloc_database_up 0.0\n" in scraped_down.text, scraped_down.text[-2000:]
+    assert "\nslloc_database_up 1.0\n" in scraped_up.text
 
     # no acknowledged write lost
     maps = {a.written_id for a in answers if a.op == "create_map" and a.written_id}

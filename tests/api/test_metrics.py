@@ -140,6 +140,8 @@ def test_metrics_after_localize(
         value(metrics["slloc_retrieval_cache_references"], "slloc_retrieval_cache_references") >= 8
     )
     assert value(metrics["slloc_retrieval_cache_bytes"], "slloc_retrieval_cache_bytes") > 0
+    assert value(metrics["slloc_database_up"], "slloc_database_up") == 1
+    assert value(metrics["slloc_blob_store_up"], "slloc_blob_store_up") == 1
     workers = client.get("/v1/health").json()["runtime"]["localize_workers"]
     capacity = value(metrics["slloc_admission_capacity"], "slloc_admission_capacity")
     assert capacity == workers + Settings().max_queued

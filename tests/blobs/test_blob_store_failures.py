@@ -90,8 +90,14 @@ def _blobs(client: TestClient) -> BlobStore:
 
 def _health_says(client: TestClient, blob_store: str) -> None:
     """GET /v1/health, probing the store afresh, names ``blob_store``, degraded when it is
-    unavailable; so does /readyz's text (the probe reused)."""
-    client.app.state.blob_probe = None  # type: ignore[attr-defined]
+    unavailable; so does /readyz's text (the probe reused); a scrape of /metrics, probing it
+    afresh too, says 1 or 0."""
+    state = client.app.state  # type: ignore[attr-defined]
+    state.blob_probe = None
+    scraped = client.get("/metrics")
+    assert scraped.status_code == 200
+    assert f"\nslloc_blob_store_up {1.0 if blob_store == 'ok' else 0.0}\n" in scraped.text
+    state.blob_probe = None
     health = client.get("/v1/health").json()
     assert health["blob_store"] == blob_store
     assert health["status"] == ("ok" if blob_store == "ok" else "degraded")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import time
 from importlib.metadata import version
 
@@ -14,9 +13,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.datastructures import State
 
 from app.api.deps import LocalizersDep, SessionsDep
+from app.blob_probe import blob_probe_ready, blob_store_ok
 from app.schemas.health import HealthOut, ModelsOut, RuntimeOut, UnservableMapOut
 from app.usecases.served_features import MapLocalizer, UnservableMap, unservable_maps
-from db.blobs import BlobStore, BlobStoreError
 from db.session import sqlite_not_writable
 from services.components import EngineConfig
 from services.estimators.registry import estimator_names
@@ -24,8 +23,6 @@ from services.references.cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.runtime.memory import MemoryBound
 from services.runtime.threads import ThreadPlan
-
-logger = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/v1", tags=["health"])
 # Kubernetes-style probes at the root, without an API key: outside the documented API
@@ -36,10 +33,6 @@ READY_DATABASE_TIMEOUT_S = 2.0
 # reference's models)
 UNSERVABLE_LISTED = 20
 UNSERVABLE_TTL_S = 15.0
-# how long health's blob store probe is reused, and how long it may take before the store
-# counts as unavailable
-BLOB_PROBE_TTL_S = 15.0
-BLOB_PROBE_TIMEOUT_S = 2.0
 
 
 @router.head("/health", include_in_schema=False)
@@ -90,8 +83,7 @@ async def readyz(request: Request) -> Response:
         degraded.append(
             "database: not writable (its file or folder is read-only); writes answer 503"
         )
-    # set up by the lifespan together with the store
-    if getattr(state, "blob_probe_threads", None) is not None and not await _blob_store_ok(state):
+    if blob_probe_ready(state) and not await blob_store_ok(state):
         degraded.append("blob store: unavailable; adds answer 503")
     if degraded:
         return Response("ok; degraded: " + "; ".join(degraded) + "\n", media_type="text/plain")
@@ -110,7 +102,7 @@ async def health(request: Request, sessions: SessionsDep, localizers: Localizers
         if up
         else (0, [])
     )
-    blobs_ok = await _blob_store_ok(state)
+    blobs_ok = await blob_store_ok(state)
     return HealthOut(
         status="ok" if up and not count and blobs_ok else "degraded",
         blob_store="ok" if blobs_ok else "unavailable",
@@ -176,40 +168,6 @@ def _unservable(state: State, localizer: MapLocalizer) -> tuple[int, list[Unserv
         return 0, []
     state.unservable_survey = (now, count, found)
     return count, found
-
-
-async def _blob_store_ok(state: State) -> bool:
-    """Whether the blob store takes writes, probed at most every BLOB_PROBE_TTL_S seconds and
-    for at most BLOB_PROBE_TIMEOUT_S (no answer by then: unavailable). A change is logged,
-    with the reason."""
-    cached: tuple[float, bool] | None = getattr(state, "blob_probe", None)
-    now = time.monotonic()
-    if cached is not None and now - cached[0] < BLOB_PROBE_TTL_S:
-        return cached[1]
-    problem: str | None = f"no answer within {BLOB_PROBE_TIMEOUT_S:g} s"
-    with move_on_after(BLOB_PROBE_TIMEOUT_S):
-        problem = await to_thread.run_sync(
-            _blob_store_problem,
-            state.blobs,
-            limiter=state.blob_probe_threads,
-            abandon_on_cancel=True,
-        )
-    ok = problem is None
-    if cached is None or cached[1] != ok:
-        if ok:
-            logger.info("blob store: takes writes")
-        else:
-            logger.warning("blob store: unavailable, adds answer 503: %s", problem)
-    state.blob_probe = (now, ok)
-    return ok
-
-
-def _blob_store_problem(blobs: BlobStore) -> str | None:
-    try:
-        blobs.check()
-    except BlobStoreError as exc:
-        return str(exc)
-    return None
 
 
 def _database_up(sessions: sessionmaker[Session]) -> bool:
