@@ -9,15 +9,17 @@ each coefficient of each component down to its last bit (successive approximatio
 
 from __future__ import annotations
 
+import io
 import math
 import re
 import struct
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
+from PIL import JpegImagePlugin
 
 from services.errors import ImageDecodeError
+from services.types import UInt8Array
 
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 _PROGRESSIVE_SOF = {0xC2, 0xC6, 0xCA, 0xCE}
@@ -78,11 +80,29 @@ def check_jpeg_complete(data: bytes) -> None:
     # a sequential stream's missing blocks show in their DC terms, so 1/8 scale (all data still
     # entropy-decoded, little computed) suffices; a progressive stream's later scans refine the
     # AC terms only, which need the full-size decode
-    flag = cv2.IMREAD_COLOR if layout.progressive else cv2.IMREAD_REDUCED_COLOR_8
-    plain = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flag)
-    probe = cv2.imdecode(np.frombuffer(probed, dtype=np.uint8), flag)
+    reduced = not layout.progressive
+    plain, probe = _pixels(data, reduced), _pixels(probed, reduced)
     if plain is None or probe is None or not np.array_equal(plain, probe):
         raise ImageDecodeError("corrupt JPEG: its coded data ends before the last pixel")
+
+
+def _pixels(data: bytes, reduced: bool) -> UInt8Array | None:
+    """The decoded samples (at 1/8 scale when ``reduced``), None when undecodable.
+
+    Pillow decodes, with the libjpeg that OpenCV's decoder also wraps: it keeps libjpeg's
+    warnings to itself, where OpenCV's decoder prints each to the process's stderr (the probe
+    draws one, "extraneous bytes", from every complete stream). The reader is constructed
+    directly, which leaves the pixel limit to the caller, as ``services.imaging.exif`` does.
+    """
+    try:
+        with JpegImagePlugin.JpegImageFile(io.BytesIO(data)) as image:
+            scale = 8 if reduced else 1
+            # a colour stream left in YCbCr: no colour conversion, the same comparison
+            image.draft("YCbCr", (max(1, image.width // scale), max(1, image.height // scale)))
+            image.load()
+            return np.asarray(image)
+    except (OSError, SyntaxError, ValueError, EOFError, struct.error):
+        return None
 
 
 def _walk(data: bytes) -> _Layout:

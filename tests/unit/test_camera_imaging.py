@@ -154,6 +154,20 @@ class TestDecode:
             with pytest.raises(ImageDecodeError, match="progressive scans end"):
                 decode_image(data[:cut] + b"\xff\xd9", max_pixels=10**8)
 
+    @pytest.mark.parametrize(
+        "params", [[], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]], ids=["baseline", "progressive"]
+    )
+    def test_jpeg_checked_and_decoded_without_a_line_on_stderr(
+        self, params: list[int], capfd: pytest.CaptureFixture[str]
+    ) -> None:
+        """The integrity probe draws a libjpeg warning from every complete stream; it stays
+        out of the process's stderr, where it would break a JSON log stream."""
+        ok, buf = cv2.imencode(".jpg", _textured(480, 640), params)
+        assert ok
+        capfd.readouterr()
+        assert decode_image(buf.tobytes(), max_pixels=10**8).shape == (480, 640, 3)
+        assert capfd.readouterr().err == ""
+
     def test_jpeg_with_bytes_after_the_image_accepted(self) -> None:
         """Phones append data (a second image, a video) after the end-of-image marker."""
         data = _encode(".jpg", _textured(48, 64)) + b"\xff\xd8appended\xff\xd9"
