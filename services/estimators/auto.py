@@ -218,20 +218,30 @@ class AutoEstimator:
             )
         deadline = Deadline(options.time_budget_s)
         plan = plan_estimators(layout_of(references), has_depth(references))
-        results: dict[str, EstimateResult] = {}
-        for name in plan.estimators:
-            if deadline.expired() or (name in plan.fallbacks and self._verified(results)):
-                break
+
+        def attempt(name: str) -> EstimateResult:
+            """``name``'s pose, verified, with what is left of the budget."""
             left = deadline.remaining_s()
             budget = replace(options, time_budget_s=None if left == float("inf") else left)
             found = self.candidates[name].estimate(query_camera, references, budget)
             if found.cam_from_world is not None and deadline.expired():
                 # not verified in time: no answer (100 references: verifying takes ~0.5 s)
-                results[name] = EstimateResult.failure(
+                return EstimateResult.failure(
                     FailureReason.TIME_BUDGET_EXCEEDED, references, found.stats
                 )
+            return verify_pose(found, query_camera, references, budget, deadline)
+
+        results: dict[str, EstimateResult] = {}
+        if options.spread is not None and len(plan.first) > 1:
+            # the first stage's estimators are independent: at once where a worker is idle
+            done = options.spread(lambda names: [attempt(n) for n in names], plan.first)
+            results.update(zip(plan.first, done, strict=True))
+        for name in plan.estimators:
+            if name in results:
+                continue
+            if deadline.expired() or (name in plan.fallbacks and self._verified(results)):
                 break
-            results[name] = verify_pose(found, query_camera, references, budget, deadline)
+            results[name] = attempt(name)
         attempts = {"auto_attempts": float(len(results))}
         verified = self._verified(results)
         if self._fit(results):

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+from services.runtime.spare_workers import Spread
+
 
 @dataclass(frozen=True)
 class RansacOptions:
@@ -165,6 +167,9 @@ class EstimatorOptions:
             unbounded). The robust loops check it before every batch of hypotheses and cap
             PoseLib's iteration counts by it; a single PoseLib call is not interruptible, so the
             bound is soft by one call.
+        spread: runs independent parts of the estimate (``auto``'s first-stage estimators) at
+            once on the idle workers free at that moment (``SpareWorkers.split``); None: on
+            the calling thread, one after the other. The answer is the same either way.
     """
 
     ransac: RansacOptions = field(default_factory=RansacOptions)
@@ -175,3 +180,4 @@ class EstimatorOptions:
     e3p1: E3p1Options = field(default_factory=E3p1Options)
     focal: FocalOptions = field(default_factory=FocalOptions)
     uncertainty: UncertaintyOptions = field(default_factory=UncertaintyOptions)
+    spread: Spread | None = field(default=None, compare=False, repr=False)

@@ -44,7 +44,7 @@ def localize_each(
 
     def estimate(index: int, matched: MatchedQuery) -> LocalizationResult:
         start = time.perf_counter()
-        result = localizer.estimate(matched, query, params, estimators[index], clock)
+        result = localizer.estimate(matched, query, params, estimators[index], clock, spare)
         own_ms[index] += (time.perf_counter() - start) * 1000.0
         return result
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 from services.confidence.model import ConfidenceModel, default_confidence_model
@@ -217,8 +217,8 @@ class Localizer:
         (``services.localization.widen``). Past one attempt, the stage timings are summed over
         the attempts.
 
-        ``spare``: the idle workers the query's extraction and matching may borrow (None: they
-        run on the calling thread alone)."""
+        ``spare``: the idle workers the query's extraction, matching and estimate may borrow
+        (None: they run on the calling thread alone)."""
         clock = StageClock(params.time_budget_s)
         try:
             query, first = self.start(image_bytes, params, store, depth_bytes, spare, clock)
@@ -226,7 +226,7 @@ class Localizer:
             return out_of_time(params.estimator.name, clock.finish())
 
         def estimate(_: int, matched: MatchedQuery) -> LocalizationResult:
-            return self.estimate(matched, query, params, params.estimator, clock)
+            return self.estimate(matched, query, params, params.estimator, clock, spare)
 
         results, attempts, upright = search_turns(
             query.frame.turns,
@@ -433,9 +433,11 @@ class Localizer:
         params: LocalizeParams,
         estimator: PoseEstimator,
         clock: StageClock,
+        spare: SpareWorkers | None = None,
     ) -> LocalizationResult:
         """Estimate and verify the pose of a matched query with ``estimator``, check it
-        against the query's gravity, and answer it (timed on a branch of ``clock``)."""
+        against the query's gravity, and answer it (timed on a branch of ``clock``).
+        ``spare``: the idle workers the estimate may borrow."""
         clock = clock.branch()
         camera, observations, names, turn, _ = matched
         uncertainty = None
@@ -449,7 +451,9 @@ class Localizer:
                 camera,
                 params.camera is None,
                 observations,
-                clock.bound(params.options),
+                replace(
+                    clock.bound(params.options), spread=spare.split if spare is not None else None
+                ),
                 clock.deadline,
                 self.confidence_model,
             )
