@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -24,26 +25,31 @@ def advisory_key(name: str) -> int:
     )
 
 
-@contextmanager
-def exclusive(engine: Engine, name: str, wait: bool = False) -> Iterator[bool]:
-    """Hold the lock ``name`` across processes while the block runs: yields True when held;
-    without ``wait``, False at once when another holder has it (the block should then skip
-    its work); with ``wait``, True once the other holder has released it.
+# seconds between two tries of a PostgreSQL advisory lock while waiting for it
+POLL_S = 0.1
 
-    PostgreSQL: a session-level advisory lock (``pg_advisory_lock``, or
-    ``pg_try_advisory_lock`` without ``wait``) on a connection kept for the block (the block
-    may run many transactions on other connections), released by ``pg_advisory_unlock``, or by
+
+@contextmanager
+def exclusive(engine: Engine, name: str, wait_s: float = 0.0) -> Iterator[bool]:
+    """Hold the lock ``name`` across processes while the block runs: yields True when held,
+    False when another holder kept it for ``wait_s`` seconds (0: tried once; the block should
+    then skip its work).
+
+    PostgreSQL: a session-level advisory lock (``pg_try_advisory_lock``, tried every
+    ``POLL_S`` until ``wait_s`` has passed) on a connection kept for the block (the block may
+    run many transactions on other connections), released by ``pg_advisory_unlock``, or by
     the server if the process dies. Other databases: a lock of this process.
     """
     if engine.dialect.name == "postgresql":
         key = advisory_key(name)
+        deadline = time.monotonic() + wait_s
         with engine.connect() as conn:
-            if wait:
-                conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": key})
-                held = True
-            else:
+            while True:
                 held = bool(conn.scalar(text("SELECT pg_try_advisory_lock(:k)"), {"k": key}))
-            conn.commit()
+                conn.commit()
+                if held or time.monotonic() >= deadline:
+                    break
+                time.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
             try:
                 yield held
             finally:
@@ -53,7 +59,7 @@ def exclusive(engine: Engine, name: str, wait: bool = False) -> Iterator[bool]:
         return
     with _local_guard:
         lock = _local_locks.setdefault(name, threading.Lock())
-    held = lock.acquire(blocking=wait)
+    held = lock.acquire(timeout=wait_s) if wait_s > 0 else lock.acquire(blocking=False)
     try:
         yield held
     finally:

@@ -78,11 +78,11 @@ class SqlVocabularyStore:
             return _descriptors(session, image_ids)
 
     @contextmanager
-    def training_lock(self, wait: bool = False) -> Iterator[bool]:
+    def training_lock(self, wait_s: float = 0.0) -> Iterator[bool]:
         """The map and model's training lock across every process on the database."""
         engine = self.sessions.kw["bind"]
         name = f"vocabulary:{self.map_id}:{self.feature_model}"
-        with exclusive(engine, name, wait) as held:
+        with exclusive(engine, name, wait_s) as held:
             yield held
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:

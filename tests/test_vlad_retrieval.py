@@ -5,6 +5,7 @@ demand (API and CLI path) from stored descriptors only; on a real SQLite file an
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -14,6 +15,7 @@ import pytest
 from sqlalchemy import select
 
 from app.schemas.images import ImageMetadata
+from app.usecases import reindex
 from app.usecases.images import add_reference_image
 from app.usecases.localize import reference_store
 from db import vocabulary
@@ -170,10 +172,10 @@ def test_reindex_waits_for_a_training_running_elsewhere(
     real_exclusive, real_train = vocabulary.exclusive, VladIndexer.train
 
     @contextmanager
-    def announcing(engine: object, name: str, wait: bool = False) -> Iterator[bool]:
-        if wait:
+    def announcing(engine: object, name: str, wait_s: float = 0.0) -> Iterator[bool]:
+        if wait_s:
             waiting.set()
-        with real_exclusive(engine, name, wait) as held:  # type: ignore[arg-type]
+        with real_exclusive(engine, name, wait_s) as held:  # type: ignore[arg-type]
             yield held
 
     def probing(self: VladIndexer, yield_to_newer: bool = False) -> object:
@@ -199,6 +201,36 @@ def test_reindex_waits_for_a_training_running_elsewhere(
     assert response.status_code == 200, response.text
     assert response.json()["vocabulary_version"] == 1
     assert held_while_training == [True]
+
+
+def test_reindex_answers_409_when_a_training_elsewhere_outlasts_its_wait(
+    database_url: str,
+    localizer: Localizer,
+    reference_views: list[SyntheticView],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The reindex waits for a training running elsewhere at most TRAINING_WAIT_S, then
+    answers 409 and trains nothing; once that training is done it trains."""
+    monkeypatch.setattr(reindex, "TRAINING_WAIT_S", 0.5)
+    engine = make_engine(database_url)
+    with make_client(database_url, localizer) as client:
+        map_id = create_map(client, "busy")
+        for view in reference_views[:3]:
+            assert upload_view(client, map_id, view).status_code == 201  # type: ignore[attr-defined]
+        lock_name = f"vocabulary:{map_id}:{localizer.extractor.name}"
+        with vocabulary.exclusive(engine, lock_name) as held:
+            assert held
+            start = time.monotonic()
+            refused = client.post(f"/v1/maps/{map_id}/reindex")
+            waited = time.monotonic() - start
+        assert refused.status_code == 409, refused.text
+        assert refused.headers["content-type"] == "application/problem+json"
+        assert "being trained elsewhere" in refused.json()["detail"]
+        assert 0.5 <= waited < 30
+        trained = client.post(f"/v1/maps/{map_id}/reindex")
+    engine.dispose()
+    assert trained.status_code == 200, trained.text
+    assert trained.json()["vocabulary_version"] == 1
 
 
 def test_global_model_maps_have_no_vocabulary(database_url: str, localizer: Localizer) -> None:

@@ -17,6 +17,11 @@ from services.retrieval.vlad_index import VladIndexer
 
 logger = logging.getLogger(__name__)
 
+# seconds a reindex waits for a training of the map running elsewhere (in the background, on
+# another replica) before it answers 409, so that waiting holds a thread and a database
+# connection for a bounded time
+TRAINING_WAIT_S = 60.0
+
 
 @dataclass(frozen=True)
 class Reindexed:
@@ -48,8 +53,9 @@ def reindex_map(
 
     Raises:
         NotFoundError: unknown map, also one deleted while it was being trained.
-        ConflictError: retrieval uses an ONNX global model (``vlad`` False), or the map has
-            too few descriptors.
+        ConflictError: retrieval uses an ONNX global model (``vlad`` False), the map has too
+            few descriptors, or a training running elsewhere went on for longer than
+            ``TRAINING_WAIT_S``.
     """
     with sessions() as session:
         map_row = require_map(session, map_id)
@@ -61,7 +67,8 @@ def reindex_map(
         )
     feature_model = localizer.extractor.name
     try:
-        report = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model)).train_now()
+        indexer = VladIndexer(SqlVocabularyStore(sessions, map_id, feature_model))
+        report = indexer.train_now(TRAINING_WAIT_S)
     except VocabularyError as exc:
         with sessions() as session:
             require_map(session, map_id)  # gone meanwhile: not found, not a conflict

@@ -69,6 +69,10 @@ class VocabularyError(ValueError):
     """A vocabulary cannot be trained (too few references or descriptors, or the map went)."""
 
 
+class TrainingBusyError(VocabularyError):
+    """Another trainer of the map held its training lock for longer than a trainer waits."""
+
+
 class VocabularyStore(Protocol):
     """Where one map's vocabulary and VLAD vectors (of one feature model) are kept."""
 
@@ -89,10 +93,10 @@ class VocabularyStore(Protocol):
         """(N, D) local descriptors of the references among ``image_ids`` still stored."""
         ...
 
-    def training_lock(self, wait: bool = False) -> AbstractContextManager[bool]:
+    def training_lock(self, wait_s: float = 0.0) -> AbstractContextManager[bool]:
         """Held while a vocabulary is trained, by one trainer at a time across every process
-        sharing the store; when another trainer holds it, yields False at once, or with
-        ``wait`` True once that trainer is done."""
+        sharing the store; yields False when another trainer kept it for ``wait_s`` seconds
+        (0: at once)."""
         ...
 
     def stage(self, vectors: dict[str, Float32Array], tag: str) -> None:

@@ -20,7 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
+from services.retrieval.contracts import (
+    TrainingBusyError,
+    VocabularyError,
+    VocabularyState,
+    VocabularyStore,
+)
 from services.retrieval.policy import TRAINING_IMAGES, num_centers, training_due
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode, sample_rows, train_vocabulary
@@ -88,15 +93,22 @@ class VladIndexer:
             # checked under the lock: a trainer that held it before may just have published
             return self.train(yield_to_newer=True) if self.due() else None
 
-    def train_now(self) -> ReindexReport:
+    def train_now(self, wait_s: float) -> ReindexReport:
         """``train`` holding the store's training lock, after a training that holds it
-        elsewhere is done: one trainer at a time, and one due meanwhile finds nothing left
-        to do once this version is published.
+        elsewhere is done, waiting for it at most ``wait_s`` seconds: one trainer at a time,
+        and one due meanwhile finds nothing left to do once this version is published.
 
         Raises:
+            TrainingBusyError: the other training went on for longer than ``wait_s``.
             VocabularyError: as ``train``.
         """
-        with self.store.training_lock(wait=True):
+        with self.store.training_lock(wait_s) as held:
+            if not held:
+                raise TrainingBusyError(
+                    f"map {self.store.map_id}'s retrieval vocabulary is being trained elsewhere "
+                    f"(in the background or on another replica) for longer than {wait_s:g} s; "
+                    "retry once that training is done"
+                )
             return self.train()
 
     def train(self, yield_to_newer: bool = False) -> ReindexReport:
