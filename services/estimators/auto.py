@@ -232,7 +232,7 @@ class AutoEstimator:
             return verify_pose(found, query_camera, references, budget, deadline)
 
         results: dict[str, EstimateResult] = {}
-        if options.spread is not None and len(plan.first) > 1:
+        if options.spread is not None and len(plan.first) > 1 and not deadline.expired():
             # the first stage's estimators are independent: at once where a worker is idle
             done = options.spread(lambda names: [attempt(n) for n in names], plan.first)
             results.update(zip(plan.first, done, strict=True))
