@@ -89,9 +89,9 @@ def check_jpeg_complete(data: bytes) -> None:
 def _pixels(data: bytes, reduced: bool) -> UInt8Array | None:
     """The decoded samples (at 1/8 scale when ``reduced``), None when undecodable.
 
-    Pillow decodes, with the libjpeg that OpenCV's decoder also wraps: it keeps libjpeg's
-    warnings to itself, where OpenCV's decoder prints each to the process's stderr (the probe
-    draws one, "extraneous bytes", from every complete stream). The reader is constructed
+    Pillow decodes, with libjpeg-turbo as OpenCV's decoder does: it keeps libjpeg's warnings
+    to itself, where OpenCV's decoder prints each to the process's stderr (the probe draws
+    one, "extraneous bytes", from every complete stream). The reader is constructed
     directly, which leaves the pixel limit to the caller, as ``services.imaging.exif`` does.
     """
     try:
