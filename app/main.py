@@ -96,7 +96,8 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             settings.blob_url, settings.database_url, settings.data_dir
         )
         logger.info("originals of reference images: %s", blobs.description)
-        # health's probe of it: one at a time, so that a store that hangs holds one thread
+        # its probe (health, readiness, /metrics): one at a time, so that a store that hangs
+        # holds one thread
         app.state.blob_probe_threads = CapacityLimiter(1)
         app.state.blob_sweep = (
             StartupSweep(app.state.sessions, blobs, settings.blob_sweep_grace_s)

@@ -59,7 +59,7 @@ def exclusive(engine: Engine, name: str, wait_s: float = 0.0) -> Iterator[bool]:
         return
     with _local_guard:
         lock = _local_locks.setdefault(name, threading.Lock())
-    held = lock.acquire(timeout=wait_s) if wait_s > 0 else lock.acquire(blocking=False)
+    held = lock.acquire(timeout=wait_s)  # 0: a single try
     try:
         yield held
     finally:

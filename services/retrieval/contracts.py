@@ -66,11 +66,8 @@ Encoder = Callable[[Float32Array], Float32Array]
 
 
 class VocabularyError(ValueError):
-    """A vocabulary cannot be trained (too few references or descriptors, or the map went)."""
-
-
-class TrainingBusyError(VocabularyError):
-    """Another trainer of the map held its training lock for longer than a trainer waits."""
+    """A vocabulary cannot be trained (too few references or descriptors, the map went, or
+    another trainer of the map kept its training lock for longer than this one waits)."""
 
 
 class VocabularyStore(Protocol):

@@ -20,12 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.retrieval.contracts import (
-    TrainingBusyError,
-    VocabularyError,
-    VocabularyState,
-    VocabularyStore,
-)
+from services.retrieval.contracts import VocabularyError, VocabularyState, VocabularyStore
 from services.retrieval.policy import TRAINING_IMAGES, num_centers, training_due
 from services.retrieval.training import BackgroundTrainer
 from services.retrieval.vlad import encode, sample_rows, train_vocabulary
@@ -99,12 +94,12 @@ class VladIndexer:
         and one due meanwhile finds nothing left to do once this version is published.
 
         Raises:
-            TrainingBusyError: the other training went on for longer than ``wait_s``.
-            VocabularyError: as ``train``.
+            VocabularyError: the other training went on for longer than ``wait_s``; or as
+                ``train``.
         """
         with self.store.training_lock(wait_s) as held:
             if not held:
-                raise TrainingBusyError(
+                raise VocabularyError(
                     f"map {self.store.map_id}'s retrieval vocabulary is being trained elsewhere "
                     f"(in the background or on another replica) for longer than {wait_s:g} s; "
                     "retry once that training is done"
