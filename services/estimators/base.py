@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -12,6 +12,9 @@ from services.estimators.options import EstimatorOptions
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d
 from services.types import BoolArray, FloatArray
+
+if TYPE_CHECKING:
+    from services.estimators.verification import CheckedTracks
 
 
 class FailureReason(StrEnum):
@@ -74,6 +77,9 @@ class EstimateResult:
         estimator_used: the estimator whose answer this is, when another one chose it
             (``auto``); None when it is the estimator called.
         estimator_reason: why ``estimator_used`` was chosen (a short sentence), or None.
+        structure: the 3D check of this pose's inlier tracks that ``verify_pose`` made, for
+            the uncertainty to read instead of making it again (``structure_of``); None
+            when the pose was not verified.
     """
 
     cam_from_world: Rigid3d | None
@@ -83,6 +89,7 @@ class EstimateResult:
     failure_reason: FailureReason | None = None
     estimator_used: str | None = None
     estimator_reason: str | None = None
+    structure: CheckedTracks | None = field(default=None, compare=False, repr=False)
 
     @property
     def num_inliers(self) -> int:

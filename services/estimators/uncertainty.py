@@ -30,7 +30,7 @@ import numpy as np
 from services.estimators.base import EstimateResult, ReferenceObservation
 from services.estimators.options import EstimatorOptions, UncertaintyOptions
 from services.estimators.ransac import Deadline
-from services.estimators.verification import CheckedTracks, check_structure
+from services.estimators.verification import CheckedTracks, structure_of
 from services.geometry.camera import Camera
 from services.geometry.pose_covariance import ReferenceViews, pose_covariance
 from services.geometry.projection import normalized_from_pixels
@@ -73,9 +73,7 @@ def pose_uncertainty(
     pose = result.cam_from_world
     if pose is None or result.num_inliers == 0:
         return None
-    checked = check_structure(
-        query_camera, pose, references, result.inliers, options.ransac.max_error_px, deadline
-    )
+    checked = structure_of(result, query_camera, references, options.ransac.max_error_px, deadline)
     if checked is None:
         return None
     check = checked.check

@@ -292,12 +292,33 @@ class CheckedTracks:
         track_xy: (T, 2) the query pixel of each track (its ``check.points`` row).
         track_of: (K,) the track of each inlier correspondence.
         reference_of: (K,) the index into the references of each.
+        inputs: the query camera, pose, references and inlier masks it was made of, and the
+            threshold (``structure_of`` compares them by identity).
     """
 
     check: StructureCheck
     track_xy: FloatArray
     track_of: IntArray
     reference_of: IntArray
+    inputs: tuple[Camera, Rigid3d, list[ReferenceObservation], list[BoolArray], float]
+
+    def made_of(
+        self,
+        query_camera: Camera,
+        cam_from_world: Rigid3d,
+        references: list[ReferenceObservation],
+        inliers: list[BoolArray],
+        max_error_px: float,
+    ) -> bool:
+        """Whether it checked these very objects (not equal copies) at this threshold."""
+        camera, pose, refs, masks, threshold = self.inputs
+        return (
+            camera is query_camera
+            and pose is cam_from_world
+            and refs is references
+            and masks is inliers
+            and threshold == max_error_px
+        )
 
 
 def check_structure(
@@ -343,7 +364,37 @@ def check_structure(
         np.array([max_error_px / float(np.mean(references[i].camera.focal_lengths)) for i in used]),
         deadline=deadline,
     )
-    return CheckedTracks(check, track_xy, track_ids.astype(np.int64), reference_of)
+    return CheckedTracks(
+        check,
+        track_xy,
+        track_ids.astype(np.int64),
+        reference_of,
+        (query_camera, cam_from_world, references, inliers, max_error_px),
+    )
+
+
+def structure_of(
+    result: EstimateResult,
+    query_camera: Camera,
+    references: list[ReferenceObservation],
+    max_error_px: float,
+    deadline: Deadline | None = None,
+) -> CheckedTracks | None:
+    """``check_structure`` of ``result``'s pose and inliers: the check ``verify_pose`` kept
+    (``result.structure``) when it was made of the same camera, pose, references, masks and
+    threshold, else a new one. ``result`` must have a pose.
+
+    Raises:
+        DeadlinePassedError: ``deadline`` passed during a new check.
+    """
+    pose = result.cam_from_world
+    assert pose is not None
+    kept = result.structure
+    if kept is not None and kept.made_of(
+        query_camera, pose, references, result.inliers, max_error_px
+    ):
+        return kept
+    return check_structure(query_camera, pose, references, result.inliers, max_error_px, deadline)
 
 
 def count_verified_points(
@@ -355,9 +406,13 @@ def count_verified_points(
     deadline: Deadline | None = None,
 ) -> tuple[int, int]:
     """(verified points, candidate tracks) of a pose; see ``check_structure``."""
-    checked = check_structure(
-        query_camera, cam_from_world, references, inliers, max_error_px, deadline
+    return _counts(
+        check_structure(query_camera, cam_from_world, references, inliers, max_error_px, deadline)
     )
+
+
+def _counts(checked: CheckedTracks | None) -> tuple[int, int]:
+    """(verified points, candidate tracks) of a check; (0, 0) for none."""
     if checked is None:
         return 0, 0
     return checked.check.num_verified_points, checked.check.num_tracks
@@ -378,7 +433,7 @@ def verify_pose(
     Applied by the pipeline to every estimator's answer. Results without a pose, without
     inliers (``pose_approx`` uses no correspondences) or with the check disabled
     (``min_verified_points = 0``) pass through unchanged. A singular system on the way is a
-    ``degenerate_geometry`` failure.
+    ``degenerate_geometry`` failure. A pose that passes keeps its check as ``structure``.
     """
     if (
         result.cam_from_world is None
@@ -387,7 +442,7 @@ def verify_pose(
     ):
         return result
     try:
-        verified, tracks = count_verified_points(
+        checked = check_structure(
             query_camera,
             result.cam_from_world,
             references,
@@ -410,6 +465,7 @@ def verify_pose(
             confidence=0.0,
             failure_reason=FailureReason.DEGENERATE_GEOMETRY,
         )
+    verified, tracks = _counts(checked)
     stats = {
         **result.stats,
         VERIFIED_POINTS: float(verified),
@@ -423,4 +479,4 @@ def verify_pose(
             stats=stats,
             failure_reason=FailureReason.NO_CONSENSUS,
         )
-    return replace(result, stats=stats)
+    return replace(result, stats=stats, structure=checked)

@@ -7,6 +7,9 @@ synthetic map of 20 references.
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -14,6 +17,7 @@ from numpy.typing import NDArray
 from services.estimators import verification
 from services.estimators.base import EstimateResult, FailureReason, ReferenceObservation
 from services.estimators.options import EstimatorOptions, VerificationOptions
+from services.estimators.uncertainty import pose_uncertainty
 from services.estimators.verification import StructureCheck, verify_by_reference_triangulation
 from services.features.sift import SiftExtractor
 from services.geometry.camera import Camera
@@ -206,14 +210,63 @@ def test_singular_system_in_verification_is_degenerate_geometry(
     masks = [np.ones(len(setup.points), bool) for _ in observations]
     result = EstimateResult(setup.query, masks, 0.9, {"score": 1.0})
 
-    def singular(*args: object) -> tuple[int, int]:
+    def singular(*args: object) -> None:
         raise np.linalg.LinAlgError("Singular matrix")
 
-    monkeypatch.setattr(verification, "count_verified_points", singular)
+    monkeypatch.setattr(verification, "check_structure", singular)
     verified = verification.verify_pose(result, _CAMERA, observations, EstimatorOptions())
     assert verified.cam_from_world is None
     assert verified.failure_reason is FailureReason.DEGENERATE_GEOMETRY
     assert verified.stats == {"score": 1.0}
+
+
+def test_the_uncertainty_reads_the_check_the_verification_kept(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A verified pose carries its structure check; the uncertainty of that very pose, inliers
+    and references reads it instead of checking again, and gets what a new check gives. A
+    pose replaced after the verification (another object) is checked anew."""
+    setup = _Setup()
+    observations = [
+        ReferenceObservation(
+            f"ref{i}",
+            _CAMERA,
+            ref,
+            _pixels(setup.query, setup.points)
+            + 0.3 * np.sin(np.arange(len(setup.points)))[:, None],
+            _pixels(ref, setup.points),
+        )
+        for i, ref in enumerate(setup.references)
+    ]
+    masks = [np.ones(len(setup.points), bool) for _ in observations]
+    options = EstimatorOptions()
+    verified = verification.verify_pose(
+        EstimateResult(setup.query, masks, 0.9), _CAMERA, observations, options
+    )
+    assert verified.structure is not None
+    assert verified.stats[verification.VERIFIED_POINTS] == len(setup.points)
+    fresh = pose_uncertainty(
+        replace(verified, structure=None), _CAMERA, observations, options, False
+    )
+
+    calls: list[object] = []
+    check_structure = verification.check_structure
+
+    def counted(*args: Any, **kwargs: Any) -> verification.CheckedTracks | None:
+        calls.append(args)
+        return check_structure(*args, **kwargs)
+
+    monkeypatch.setattr(verification, "check_structure", counted)
+    kept = pose_uncertainty(verified, _CAMERA, observations, options, False)
+    assert calls == []
+    assert kept == fresh and kept is not None
+
+    moved = Rigid3d(setup.query.rotation, setup.query.translation + np.array([0.01, 0.0, 0.0]))
+    again = pose_uncertainty(
+        replace(verified, cam_from_world=moved), _CAMERA, observations, options, False
+    )
+    assert len(calls) == 1
+    assert again is not None and again.position_m != kept.position_m
 
 
 # ---------------------------------------------------------------- pipeline on a synthetic map
