@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from services.estimators.base import ReferenceObservation
 from services.estimators.correspondences import (
@@ -17,6 +18,7 @@ from services.estimators.options import EstimatorOptions
 from services.estimators.pose_triangulation import sampled_solver, solve_5pt
 from services.estimators.ransac import Deadline
 from services.estimators.tracks import build_tracks
+from services.geometry import triangulation as geometry_triangulation
 from services.geometry.averaging import (
     average_rotations,
     irls_ray_intersection,
@@ -25,7 +27,11 @@ from services.geometry.averaging import (
 from services.geometry.camera import Camera
 from services.geometry.depth_pose import sampson_errors
 from services.geometry.rigid import Rigid3d, rotation_error_deg
-from services.geometry.triangulation import ransac_triangulate, triangulate_dlt
+from services.geometry.triangulation import (
+    ransac_triangulate,
+    triangulate_dlt,
+    triangulate_pairs,
+)
 from tools.synthetic.correspondences import make_correspondences
 
 
@@ -80,6 +86,39 @@ def test_triangulation_exact_and_ransac() -> None:
     np.testing.assert_allclose(tri.points, X, atol=1e-8)
     assert tri.valid.all() and not tri.inliers[:, 4].any()
     assert not tri.inliers[:10, 3].any() and tri.inliers[10:, 3].all()
+
+
+def test_two_view_triangulation_against_the_dlt(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``triangulate_pairs`` recovers exact points, agrees with the DLT's null vector to a
+    small fraction of the points' own error under noise, and leaves parallel rays
+    non-finite; the RANSAC's winning hypothesis is the first pair with the most inliers, and
+    chunks of pairs choose as one pass over them does."""
+    rng = np.random.default_rng(5)
+    P, _ = _views(rng, 2)
+    X = rng.uniform([-2, -2, 4], [2, 2, 8], (200, 3))
+    Xc = np.einsum("vij,tj->tvi", P[:, :, :3], X) + P[:, :, 3]
+    obs = Xc[..., :2] / Xc[..., 2:]
+    pairs = np.broadcast_to(P, (200, 2, 3, 4))
+    np.testing.assert_allclose(triangulate_pairs(obs, pairs), X, atol=1e-9)
+    noisy = obs + rng.normal(0.0, 1e-3, obs.shape)  # 0.5 px at f = 500
+    linear = triangulate_pairs(noisy, pairs)
+    dlt = triangulate_dlt(noisy, P, np.ones((200, 2)))
+    gap = np.linalg.norm(linear - dlt, axis=1)
+    error = np.linalg.norm(dlt - X, axis=1)
+    assert np.median(gap) < 0.05 * np.median(error)
+    same_ray = np.stack([np.eye(3, 4), np.eye(3, 4)])
+    assert not np.isfinite(triangulate_pairs(np.zeros((1, 2, 2)), same_ray[None])).all()
+
+    P5, centers5 = _views(rng, 5)
+    X5 = rng.uniform([-2, -2, 4], [2, 2, 8], (60, 3))
+    Xc5 = np.einsum("vij,tj->tvi", P5[:, :, :3], X5) + P5[:, :, 3]
+    obs5 = Xc5[..., :2] / Xc5[..., 2:] + rng.normal(0.0, 2e-3, (60, 5, 2))
+    observed = rng.random((60, 5)) < 0.8
+    whole = ransac_triangulate(obs5, observed, P5, np.full(5, 500.0), centers5, 2.0)
+    monkeypatch.setattr(geometry_triangulation, "HYPOTHESIS_CHUNK_ENTRIES", 1)  # a pair a chunk
+    single = ransac_triangulate(obs5, observed, P5, np.full(5, 500.0), centers5, 2.0)
+    np.testing.assert_array_equal(whole.points, single.points)
+    np.testing.assert_array_equal(whole.inliers, single.inliers)
 
 
 def test_tracks_group_shared_query_keypoints() -> None:
