@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.geometry.pose_covariance import inverse_3x3
 from services.types import BoolArray, FloatArray
 
 
@@ -57,29 +58,22 @@ def triangulate_dlt(
 def triangulate_pairs(normalized: FloatArray, projections: FloatArray) -> FloatArray:
     """Two-view linear triangulation of many tracks at once, with the point's fourth
     coordinate fixed at 1: the least-squares solution of the DLT rows as a 3 × 3 system
-    (normal equations, Cramer's rule). It differs from ``triangulate_dlt``'s null vector only
-    by how the residual is weighed, and takes a tenth of its time (numpy's batched ``eigh``
-    is the cost there): ``ransac_triangulate`` makes its hypotheses with it.
+    (normal equations, inverted by their adjugate). It differs from ``triangulate_dlt``'s null
+    vector only by how the residual is weighed, and takes a third of its time (numpy's batched
+    ``eigh`` is the cost there): ``ransac_triangulate`` makes its hypotheses with it.
 
     Args:
         normalized: (N, 2, 2) normalised observations of N tracks in their two views.
         projections: (N, 2, 3, 4) ``cam_from_world`` of each track's two views.
     Returns:
-        (N, 3) world points; not finite where the two rays are parallel.
+        (N, 3) world points; NaN where the two rays are parallel.
     """
     rows_x = normalized[..., 0:1] * projections[..., 2, :] - projections[..., 0, :]
     rows_y = normalized[..., 1:2] * projections[..., 2, :] - projections[..., 1, :]
     A = np.concatenate([rows_x, rows_y], axis=1)  # (N, 4, 4)
-    M = np.swapaxes(A[..., :3], 1, 2) @ A[..., :3]
-    r = -np.einsum("nki,nk->ni", A[..., :3], A[..., 3])
-    # the columns of adj(M) are the cross products of M's rows; M is symmetric, so adj(M) too
-    adjugate = np.stack(
-        [np.cross(M[:, 1], M[:, 2]), np.cross(M[:, 2], M[:, 0]), np.cross(M[:, 0], M[:, 1])],
-        axis=1,
-    )
-    det = np.einsum("ni,ni->n", M[:, 0], adjugate[:, 0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        points = np.einsum("nij,nj->ni", adjugate, r) / det[:, None]
+    inverse, solvable = inverse_3x3(np.swapaxes(A[..., :3], 1, 2) @ A[..., :3])
+    points = -np.einsum("nij,nj->ni", inverse, np.einsum("nkj,nk->nj", A[..., :3], A[..., 3]))
+    points[~solvable] = np.nan
     return np.asarray(points, dtype=np.float64)
 
 
