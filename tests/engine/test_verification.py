@@ -193,20 +193,27 @@ def test_parallel_agreeing_rays_leave_the_track_untriangulated() -> None:
     assert np.isnan(check.points).all()
 
 
-def test_singular_system_in_verification_is_degenerate_geometry(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    setup = _Setup()
-    observations = [
+def _observations(setup: _Setup, query_noise_px: float = 0.0) -> list[ReferenceObservation]:
+    """Each reference's matches with the query: every point, the query's pixels offset by up
+    to ``query_noise_px`` (a fixed pattern)."""
+    offset = query_noise_px * np.sin(np.arange(len(setup.points)))[:, None]
+    return [
         ReferenceObservation(
             f"ref{i}",
             _CAMERA,
             ref,
-            _pixels(setup.query, setup.points),
+            _pixels(setup.query, setup.points) + offset,
             _pixels(ref, setup.points),
         )
         for i, ref in enumerate(setup.references)
     ]
+
+
+def test_singular_system_in_verification_is_degenerate_geometry(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    setup = _Setup()
+    observations = _observations(setup)
     masks = [np.ones(len(setup.points), bool) for _ in observations]
     result = EstimateResult(setup.query, masks, 0.9, {"score": 1.0})
 
@@ -227,17 +234,7 @@ def test_the_uncertainty_reads_the_check_the_verification_kept(
     and references reads it instead of checking again, and gets what a new check gives. A
     pose replaced after the verification (another object) is checked anew."""
     setup = _Setup()
-    observations = [
-        ReferenceObservation(
-            f"ref{i}",
-            _CAMERA,
-            ref,
-            _pixels(setup.query, setup.points)
-            + 0.3 * np.sin(np.arange(len(setup.points)))[:, None],
-            _pixels(ref, setup.points),
-        )
-        for i, ref in enumerate(setup.references)
-    ]
+    observations = _observations(setup, query_noise_px=0.3)
     masks = [np.ones(len(setup.points), bool) for _ in observations]
     options = EstimatorOptions()
     verified = verification.verify_pose(
