@@ -200,7 +200,7 @@ def ransac_triangulate(
             return stopped
         pairs = all_pairs[start : start + per_chunk]
         both = observed[:, pairs[:, 0]] & observed[:, pairs[:, 1]]  # (T, P)
-        pair_of, track_of = np.nonzero(both.T)  # pair-major: the loop's order
+        pair_of, track_of = np.nonzero(both.T)  # pair-major: ties go to the earlier pair
         if track_of.size == 0:
             continue
         views = pairs[pair_of]  # (N, 2)
