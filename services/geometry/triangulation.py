@@ -159,7 +159,6 @@ def ransac_triangulate(
     centers: FloatArray,
     threshold_px: float,
     min_angle_deg: float = 1.0,
-    view_pairs: FloatArray | None = None,
     stop: Callable[[], bool] | None = None,
 ) -> TriangulatedTracks:
     """Robust triangulation of every track: each pair of observing views proposes a point
@@ -175,7 +174,6 @@ def ransac_triangulate(
         centers: (V, 3) view centres, for the parallax check.
         threshold_px: inlier threshold on the reprojection error.
         min_angle_deg: least triangulation angle of a valid point.
-        view_pairs: (P, 2) view-index pairs to hypothesise from; all pairs when None.
         stop: polled between chunks of view pairs and between the later steps' chunks (a
             request's deadline: with V = 100 views there are 4950 pairs, seconds of work);
             once it answers True no track is valid.
@@ -184,11 +182,7 @@ def ransac_triangulate(
     """
     T, V = observed.shape
     normalized = np.where(observed[..., None], normalized, 0.0)
-    all_pairs = (
-        np.stack(np.triu_indices(V, k=1), axis=1)
-        if view_pairs is None
-        else np.asarray(view_pairs, dtype=np.int64).reshape(-1, 2)
-    )
+    all_pairs = np.stack(np.triu_indices(V, k=1), axis=1)
     best_count = np.zeros(T, dtype=np.int64)
     best_points = np.zeros((T, 3))
     stopped = TriangulatedTracks(best_points, np.zeros((T, V), bool), np.zeros(T, bool))
