@@ -400,7 +400,7 @@ function showAnswer(entry, answer) {
   const latency = `${entry.latency_ms.toFixed(0)} ms`;
   if (!answer.localized) {
     const hint = answer.candidate
-      ? ` (a candidate pose had confidence ${answer.candidate.confidence.toFixed(2)})` : "";
+      ? ` (a candidate pose had confidence ${answer.confidence.toFixed(2)})` : "";
     showFailure(`Not localized: ${answer.reason}${hint}; ${latency}`);
     return;
   }

@@ -222,9 +222,10 @@ def test_ar_client_localizes_the_camera(
     # not localized, with its reason, and the overlay is hidden
     def without_pose(route: playwright.Route) -> None:
         answer = route.fetch().json()
-        candidate = {"confidence": 0.05, "num_inliers": 12}
+        # as the API answers it: the candidate is the pose, `confidence` is the candidate's
+        candidate = answer["cam_from_world"]
         answer.update(localized=False, reason="low_confidence", candidate=candidate)
-        answer.update(cam_from_world=None, camera_center=None, world_from_cam=None)
+        answer.update(confidence=0.05, cam_from_world=None, camera_center=None, world_from_cam=None)
         route.fulfill(json=answer)
 
     page.route("**/localize", without_pose)
