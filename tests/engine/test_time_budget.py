@@ -14,18 +14,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.confidence.model import default_confidence_model
 from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions
-from services.estimators.ransac import Deadline
-from services.estimators.registry import estimator_names, get_estimator
+from services.estimators.registry import estimator_names
 from services.estimators.rig_pose import RigFrame, estimate_rig_pose
-from services.localization.estimate import answer_pose
 from services.localization.frames import QueryFrame, localize_frames
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
 from tests.timing import timed
-from tools.synthetic.budget import TOP_K, copied_store, large_correspondences
+from tools.synthetic.budget import TOP_K, answer_in_budget, copied_store, large_correspondences
 from tools.synthetic.correspondences import SyntheticCorrespondences
 from tools.synthetic.scene import SyntheticView, encode_png
 
@@ -49,20 +46,10 @@ def large() -> SyntheticCorrespondences:
 def _timed_answer(
     name: str, scene: SyntheticCorrespondences, focal_estimated: bool, budget_s: float = BUDGET_S
 ) -> tuple[float, FailureReason | None, bool]:
-    def run() -> tuple[FailureReason | None, bool]:
-        result = answer_pose(
-            get_estimator(name),
-            scene.query_camera,
-            focal_estimated,
-            scene.references,
-            EstimatorOptions(time_budget_s=budget_s),
-            Deadline(budget_s),
-            default_confidence_model(),
-        ).result
-        return result.failure_reason, result.cam_from_world is not None
-
-    elapsed, (reason, localized) = timed(run, budget_s + SLACK_S)
-    return elapsed, reason, localized
+    elapsed, result = timed(
+        lambda: answer_in_budget(name, scene, focal_estimated, budget_s), budget_s + SLACK_S
+    )
+    return elapsed, result.failure_reason, result.cam_from_world is not None
 
 
 @pytest.mark.parametrize("name", estimator_names())

@@ -22,15 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from services.components import EngineConfig, build_localizer
-from services.confidence.model import default_confidence_model
 from services.estimators.options import EstimatorOptions
-from services.estimators.ransac import Deadline
-from services.estimators.registry import estimator_names, get_estimator
+from services.estimators.registry import estimator_names
 from services.estimators.rig_pose import RigFrame, estimate_rig_pose
-from services.localization.estimate import answer_pose
 from services.localization.frames import QueryFrame, localize_frames
 from services.localization.localizer import LocalizeParams
-from tools.synthetic.budget import TOP_K, copied_store, large_correspondences
+from tools.synthetic.budget import TOP_K, answer_in_budget, copied_store, large_correspondences
 from tools.synthetic.scene import SyntheticScene, encode_png
 
 # a path: run once at a budget (seconds), answer what came out
@@ -42,15 +39,7 @@ def estimator_paths() -> dict[str, Path_]:
 
     def answer(name: str, focal_estimated: bool) -> Path_:
         def run(budget: float) -> str:
-            result = answer_pose(
-                get_estimator(name),
-                large.query_camera,
-                focal_estimated,
-                large.references,
-                EstimatorOptions(time_budget_s=budget),
-                Deadline(budget),
-                default_confidence_model(),
-            ).result
+            result = answer_in_budget(name, large, focal_estimated, budget)
             return "localized" if result.failure_reason is None else str(result.failure_reason)
 
         return run

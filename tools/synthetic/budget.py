@@ -4,6 +4,12 @@ map of the rendered reference views under several names each for the localizer's
 
 from __future__ import annotations
 
+from services.confidence.model import default_confidence_model
+from services.estimators.base import EstimateResult
+from services.estimators.options import EstimatorOptions
+from services.estimators.ransac import Deadline
+from services.estimators.registry import get_estimator
+from services.localization.estimate import answer_pose
 from services.localization.localizer import Localizer
 from services.references.memory import MemoryReferenceStore
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
@@ -19,6 +25,22 @@ def large_correspondences() -> SyntheticCorrespondences:
     return make_correspondences(
         seed=5, num_references=100, matches_per_reference=1000, with_depth=True
     )
+
+
+def answer_in_budget(
+    name: str, scene: SyntheticCorrespondences, focal_estimated: bool, budget_s: float
+) -> EstimateResult:
+    """``name``'s answer on ``scene`` (its camera estimated first when ``focal_estimated``)
+    under a time budget of ``budget_s`` seconds."""
+    return answer_pose(
+        get_estimator(name),
+        scene.query_camera,
+        focal_estimated,
+        scene.references,
+        EstimatorOptions(time_budget_s=budget_s),
+        Deadline(budget_s),
+        default_confidence_model(),
+    ).result
 
 
 def copied_store(
