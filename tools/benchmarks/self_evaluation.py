@@ -86,6 +86,15 @@ def _row(dataset: str, features: str, figures: dict[str, Any]) -> str:
     )
 
 
+def _label(dataset: str) -> str:
+    """The dataset's folder name, with its split rules when it has them (two splits of one
+    dataset keep apart in the table, the JSON and the output folders)."""
+    path, *rules = dataset.split("::")
+    folder = Path(path).resolve()
+    name = (folder.parent if folder.is_file() else folder).name
+    return name if not rules else f"{name} {'/'.join(rules).replace(':', '')}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("datasets", nargs="+")
@@ -104,18 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     rows = [header, "|" + "---|" * (len(THRESHOLDS) + 6)]
     results: dict[str, dict[str, Any]] = {}
     for dataset in args.datasets:
-        name = Path(dataset.split("::")[0]).resolve()
-        name = name.parent if name.is_file() else name
+        label = _label(dataset)
         for features in args.features.split(","):
             figures = measure(
                 dataset,
                 features,
                 args.sample_size,
                 args.holdout_radius,
-                args.out / name.name / features,
+                args.out / label.replace(" ", "_").replace("/", "_") / features,
             )
-            results[f"{name.name}/{features}"] = figures
-            rows.append(_row(name.name, features, figures))
+            results[f"{label}/{features}"] = figures
+            rows.append(_row(label, features, figures))
             print(rows[-1], file=sys.stderr, flush=True)
     (args.out / "summary.json").write_text(json.dumps(results, indent=1))
     print("queries / self-evaluation in each cell")
