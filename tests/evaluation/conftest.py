@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 
 from app.settings import get_settings
+from tools.evaluation.datasets import open_dataset
+from tools.evaluation.split import Split, split_dataset
 from tools.importers import CSV_COLUMNS
 from tools.synthetic.scene import SyntheticView, encode_depth_png, encode_png
 
@@ -83,3 +85,9 @@ def synthetic_csv(
     write_images(eval_views, root)
     write_csv(eval_views, root / "scene.csv")
     return root / "scene.csv"
+
+
+@pytest.fixture(scope="session")
+def split(synthetic_csv: Path) -> Split:
+    """The scene's references and queries as ``slloc eval`` splits them."""
+    return split_dataset(open_dataset(synthetic_csv, None), SPLIT_ARGS[1], SPLIT_ARGS[3])

@@ -18,14 +18,14 @@ def hand_made(
 ) -> QueryRecord:
     """A record of ``query`` under ``config``, ``pos`` metres and ``rot`` degrees off; it is
     localized when the errors are finite unless ``localized`` says otherwise; ``fields`` set
-    the rest (``confidence``, ``estimator_used``, ``unrelated``, ...)."""
+    the rest (``confidence``, ``reason``, ``estimator_used``, ``unrelated``, ...)."""
     if localized is None:
         localized = math.isfinite(pos)
     return QueryRecord(
         config=config,
         query=query,
         localized=localized,
-        reason=None if localized else "no_consensus",
+        reason=fields.pop("reason", None if localized else "no_consensus"),
         position_error_m=pos,
         rotation_error_deg=rot,
         num_inliers=0,

@@ -4,7 +4,6 @@ must be those of one localize per estimator, and the map's feature options must 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,16 +11,9 @@ import pytest
 from app.settings import get_settings
 from app.usecases.maps import require_map
 from services.estimators.registry import DEPTH_ESTIMATORS, estimator_names
-from tests.evaluation.conftest import SPLIT_ARGS
-from tools.evaluation.datasets import open_dataset
 from tools.evaluation.evaluate import localize_params
 from tools.evaluation.runner import InProcessRunner
-from tools.evaluation.split import Split, split_dataset
-
-
-@pytest.fixture(scope="module")
-def split(synthetic_csv: Path) -> Split:
-    return split_dataset(open_dataset(synthetic_csv, None), SPLIT_ARGS[1], SPLIT_ARGS[3])
+from tools.evaluation.split import Split
 
 
 @pytest.fixture(scope="module")

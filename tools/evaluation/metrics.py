@@ -31,7 +31,8 @@ class QueryRecord:
     """One query localized under one configuration (``features/estimator``).
 
     Errors are ``inf`` without a pose; ``unrelated`` queries (images of nothing in the map)
-    have no ground truth and count as false accepts when localized.
+    have no ground truth and count as false accepts when localized. ``candidate_*_error``:
+    the errors of a ``low_confidence`` answer's withheld pose (``inf`` without one).
     """
 
     config: str
@@ -52,6 +53,8 @@ class QueryRecord:
     wrong_intrinsics: bool = False
     stats: dict[str, float] = field(default_factory=dict)
     estimator_used: str | None = None
+    candidate_position_error_m: float = float("inf")
+    candidate_rotation_error_deg: float = float("inf")
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,9 @@ def make_record(
     pos_err = rot_err = float("inf")
     if truth is not None and pose is not None:
         pos_err, rot_err = pose_error(pose.to_rigid(), truth)
+    candidate_pos_err = candidate_rot_err = float("inf")
+    if truth is not None and outcome.candidate is not None:
+        candidate_pos_err, candidate_rot_err = pose_error(outcome.candidate.to_rigid(), truth)
     record = QueryRecord(
         config=config,
         query=query,
@@ -108,6 +114,8 @@ def make_record(
         cam_from_world=pose.model_dump() if pose is not None else None,
         unrelated=truth is None,
         stats=outcome.stats,
+        candidate_position_error_m=candidate_pos_err,
+        candidate_rotation_error_deg=candidate_rot_err,
     )
     if truth is not None:
         record.localizable = bool(references.near(truth, *LOCALIZABLE).any())
@@ -152,6 +160,19 @@ def confident_answers(posed: list[QueryRecord]) -> dict[str, int]:
     confident = [r for r in posed if r.localized and r.confidence > CONFIDENT]
     wrong = [r for r in confident if not within(r, WRONG_M, WRONG_DEG)]
     return {"confident": len(confident), "confident_wrong": len(wrong)}
+
+
+def withheld_answers(posed: list[QueryRecord]) -> dict[str, int]:
+    """``withheld``: answers whose pose fell below ``min_confidence`` (``low_confidence``,
+    the pose as their candidate); ``withheld_right``: those of them within ``WRONG_M`` and
+    ``WRONG_DEG``, the right answers the threshold turned away."""
+    withheld = [r for r in posed if r.reason == "low_confidence"]
+    right = [
+        r
+        for r in withheld
+        if r.candidate_position_error_m <= WRONG_M and r.candidate_rotation_error_deg <= WRONG_DEG
+    ]
+    return {"withheld": len(withheld), "withheld_right": len(right)}
 
 
 def choices(
@@ -214,6 +235,7 @@ def summarize(
         if covered
         else 0.0,
         **confident_answers(posed),
+        **withheld_answers(posed),
         "unrelated_queries": len(unrelated),
         "unrelated_accepted": sum(r.localized for r in unrelated),
         "wrong_intrinsics_queries": len(wrong_intrinsics),

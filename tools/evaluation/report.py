@@ -92,6 +92,13 @@ def markdown_tables(
             f"{config} {s['confident']} / {s['confident_wrong']} wrong"
             for config, s in summaries.items()
         ),
+        "",
+        "Answers withheld below `min_confidence` (`low_confidence`, the pose as `candidate`), "
+        f"and those of them within {WRONG_M * 100:g} cm and {WRONG_DEG:g}°: "
+        + ", ".join(
+            f"{config} {s['withheld']} / {s['withheld_right']} right"
+            for config, s in summaries.items()
+        ),
     ]
     lines += ["", *confidence_table(summaries)]
     lines += choices_table(summaries, thresholds)

@@ -66,6 +66,7 @@ class QueryOutcome:
         stats: the engine's numbers about the estimate; over HTTP only ``wider_retrieval``
             (1 when the answer says its query was retrieved again wider, else 0).
         estimator_used: the estimator whose answer it is (``auto`` names its choice).
+        candidate: a ``low_confidence`` answer's pose, withheld below ``min_confidence``.
     """
 
     localized: bool
@@ -77,6 +78,7 @@ class QueryOutcome:
     timings_ms: dict[str, float]
     stats: dict[str, float] = field(default_factory=dict)
     estimator_used: str | None = None
+    candidate: PoseSchema | None = None
 
     @classmethod
     def not_localized(cls, reason: str, stats: dict[str, float] | None = None) -> QueryOutcome:
@@ -232,6 +234,7 @@ def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
         timings_ms={**result.timings_ms, "client": client_ms},
         stats=dict(result.stats),
         estimator_used=result.estimator_used,
+        candidate=PoseSchema.from_rigid(result.candidate) if result.candidate is not None else None,
     )
 
 
@@ -347,7 +350,7 @@ class HttpRunner:
         body = response.json()
         timings = {k: float(v) for k, v in body["timings_ms"].items()}
         timings["client"] = client_ms
-        pose = body["cam_from_world"]
+        pose, candidate = body["cam_from_world"], body.get("candidate")
         return QueryOutcome(
             localized=bool(body["localized"]),
             reason=body["reason"],
@@ -358,6 +361,7 @@ class HttpRunner:
             timings_ms=timings,
             stats={"wider_retrieval": float(bool(body.get("wider_retrieval")))},
             estimator_used=body.get("estimator_used"),
+            candidate=PoseSchema.model_validate(candidate) if candidate is not None else None,
         )
 
     def localize_each(
