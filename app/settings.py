@@ -84,7 +84,7 @@ class Settings(BaseSettings):
         "memory bound counts them all; empty = the server's own configuration only",
     )
     auto_evaluation_references: int = Field(
-        20,
+        10,
         ge=0,
         description="A map that follows its self-evaluation (features auto, the default) is "
         "evaluated on its own once it has this many references with their originals, then "
