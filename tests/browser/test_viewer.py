@@ -92,14 +92,16 @@ def serve_viewer_app(
     folder: Path, localizer: Localizer, **settings: object
 ) -> Iterator[tuple[str, Any]]:
     """A uvicorn server on a free loopback port, in a thread, for an app with auth on (the
-    admin and client keys), SQLite and the SIFT localizer in ``folder``; yields its URL and
-    the app. ``settings`` override the app's settings."""
+    admin and client keys), SQLite and the SIFT localizer in ``folder``, maps evaluating
+    themselves only when asked; yields its URL and the app. ``settings`` override the app's
+    settings."""
     values: dict[str, Any] = {
         "database_url": f"sqlite:///{folder / 'viewer.db'}",
         "api_keys": f"{ADMIN_KEY}:admin,{CLIENT_KEY}:client",
         "data_dir": folder / "data",
         "features": "sift",
         "models_dir": folder / "no-models",
+        "auto_evaluation_references": 0,  # a map evaluates itself only when a test asks
     }
     app = create_app(Settings(**(values | settings)), localizer=localizer)
     sock = socket.socket()

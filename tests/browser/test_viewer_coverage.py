@@ -35,7 +35,7 @@ REFERENCES, HELD_OUT = 8, 4
 
 @pytest.fixture
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[str]:
-    with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as (url, _):
+    with serve_viewer_app(tmp_path, localizer) as (url, _):
         yield url
 
 

@@ -43,7 +43,7 @@ class Server:
 
 @pytest.fixture
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[Server]:
-    with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as (url, app):
+    with serve_viewer_app(tmp_path, localizer) as (url, app):
         yield Server(url, app)
 
 

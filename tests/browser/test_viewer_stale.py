@@ -35,7 +35,7 @@ REASON = "self-evaluation 1234: 2 view(s) that cover it matched it with at most 
 
 @pytest.fixture
 def server(tmp_path: Path, localizer: Localizer) -> Iterator[tuple[str, Any]]:
-    with serve_viewer_app(tmp_path, localizer, auto_evaluation_references=0) as served:
+    with serve_viewer_app(tmp_path, localizer) as served:
         yield served
 
 
