@@ -41,10 +41,12 @@ from db.migrate import upgrade
 from db.session import make_engine, make_session_factory
 from services.components import Localizers, build_localizer
 from services.localization.localizer import Localizer
+from services.localization.second_opinion import DescribedCache
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.ann import AnnOptions
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.training import BackgroundTrainer
+from services.runtime.memory import SECOND_OPINION_DESCRIBED
 from services.runtime.spare_workers import SpareWorkers
 from services.runtime.threads import apply_thread_plan
 from services.runtime.worker_slots import WorkerSlots
@@ -79,6 +81,7 @@ def create_app(settings: Settings | None = None, localizer: Localizer | None = N
             builder=app.state.ann_builder,
         )
         app.state.reference_cache = ReferenceFeatureCache(settings.reference_cache_mib * 2**20)
+        app.state.described_cache = DescribedCache(SECOND_OPINION_DESCRIBED)
         app.state.vocabulary_trainer = BackgroundTrainer()
         app.state.memory_bound = bound = service_memory_bound(settings, served)
         # the workers compute within the memory the bound counts for them

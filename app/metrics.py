@@ -92,6 +92,13 @@ class ServiceMetrics:
             "spread wider (its first answer below confidence 0.5)",
             registry=self.registry,
         )
+        self.second_opinions = Counter(
+            "slloc_localize_second_opinions",
+            "Localize answers whose query another feature configuration localized again, the "
+            "map's own having found no answer, by that configuration and its outcome",
+            ("features", "localized"),
+            registry=self.registry,
+        )
         self.registry.register(_StateCollector(state))
         # the process (process_*: CPU, resident memory, open file descriptors, start time),
         # the interpreter (python_info) and its garbage collector (python_gc_*), as the default
@@ -101,11 +108,14 @@ class ServiceMetrics:
 
     def observe_localization(self, result: LocalizationResult) -> None:
         """Count one localize answer: its outcome, its stages' times (a stage at 0 ms was not
-        reached) and whether its query was retrieved again wider."""
+        reached), whether its query was retrieved again wider and its second opinion."""
         reason = result.reason
         self.outcomes.labels(result.estimator, str(reason is None).lower(), reason or "none").inc()
         if result.wider_retrieval:
             self.wider_retrievals.inc()
+        opinion = result.second_opinion
+        if opinion is not None:
+            self.second_opinions.labels(opinion.features, str(opinion.localized).lower()).inc()
         for stage, ms in result.timings_ms.items():
             if ms > 0.0:
                 self.stage_seconds.labels(stage).observe(ms / 1000.0)

@@ -83,6 +83,15 @@ class Settings(BaseSettings):
         "its models when first used, those whose models are not built are left out, and the "
         "memory bound counts them all; empty = the server's own configuration only",
     )
+    second_opinion: str = Field(
+        AUTO,
+        description="The feature configuration that localizes a query again when its map's "
+        "own retrieves references but finds no answer (too few matches, no consensus, "
+        "low confidence), against those references described from their originals: "
+        f"{AUTO} = the first configuration served (SLLOC_FEATURES, then "
+        "SLLOC_EVALUATION_FEATURES) other than the map's, a name, or empty = none; a request "
+        "turns it off with params.second_opinion false",
+    )
     auto_evaluation_references: int = Field(
         10,
         ge=0,
@@ -296,6 +305,15 @@ class Settings(BaseSettings):
                 f"evaluation_features: unknown {', '.join(unknown)}; known: {', '.join(known)}"
             )
         return self
+
+    @field_validator("second_opinion")
+    @classmethod
+    def _check_second_opinion(cls, value: str) -> str:
+        value = value.strip()
+        known = feature_config_names()
+        if value and value != AUTO and value not in known:
+            raise ValueError(f"unknown {value}; known: {AUTO}, {', '.join(known)}, or empty")
+        return value
 
     @model_validator(mode="after")
     def _check_body_memory(self) -> Settings:

@@ -113,8 +113,10 @@ def write_model_files(models_dir: Path, *names: str) -> None:
 def make_client(
     url: str, localizer: Localizer, raise_server_exceptions: bool = True, **settings: object
 ) -> TestClient:
-    # maps evaluate themselves only where a test asks (tests/api/test_map_features.py)
+    # maps evaluate themselves, and failed queries get a second opinion, only where a test
+    # asks (tests/api/test_map_features.py, tests/api/test_second_opinion.py)
     settings.setdefault("auto_evaluation_references", 0)
+    settings.setdefault("second_opinion", "")
     app = create_app(Settings(database_url=url, **settings), localizer=localizer)  # type: ignore[arg-type]
     return TestClient(app, raise_server_exceptions=raise_server_exceptions)
 

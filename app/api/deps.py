@@ -91,6 +91,8 @@ def localize_context(state: State) -> LocalizeContext:
         blobs=state.blobs,
         models_dir=engine.models_dir,
         features=engine.features,
+        second_opinion=settings.second_opinion,
+        described=state.described_cache,
     )
 
 

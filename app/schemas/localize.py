@@ -19,6 +19,7 @@ from services.localization.answer import (
     DEFAULT_MIN_CONFIDENCE,
     LocalizationResult,
     RetrievedReference,
+    SecondOpinion,
 )
 from services.localization.frames import SessionLocalizationResult
 from services.localization.query_frame import QueryFrameHints
@@ -97,6 +98,14 @@ class LocalizeParamsIn(BaseModel):
         description="A pose less confident than this is not an answer: localized: false, "
         "reason low_confidence, the pose as `candidate`. 0 answers every verified pose",
     )
+    second_opinion: bool = Field(
+        True,
+        description="When the map's feature configuration retrieves references but does not "
+        "localize the query (too_few_matches, no_consensus, degenerate_geometry, "
+        "focal_unobservable, low_confidence), localize it again with the server's second "
+        "configuration (SLLOC_SECOND_OPINION) against those references, within the time "
+        "budget left; false answers at once. See the docs' API page, 'A second opinion'",
+    )
 
     def to_request(self) -> LocalizeRequest:
         prior = self.prior
@@ -113,6 +122,7 @@ class LocalizeParamsIn(BaseModel):
                 self.rotation_search,
             ),
             min_confidence=self.min_confidence,
+            second_opinion=self.second_opinion,
         )
 
     def to_frames(self) -> list[SessionFrame] | None:
@@ -149,6 +159,34 @@ class Timings(BaseModel):
     match: float
     estimate: float
     total: float
+
+
+class SecondOpinionOut(BaseModel):
+    """What the second configuration answered; the answer is its own when it localized."""
+
+    features: str = Field(description="The feature configuration asked")
+    localized: bool
+    reason: FailureReason | None
+    confidence: float
+    elapsed_ms: float = Field(
+        description="Its time, in timings_ms too: the references it described from their "
+        "originals (counted in extract) and its localization"
+    )
+    described: int = Field(
+        description="References it described from their originals (the others were kept from "
+        "earlier second opinions)"
+    )
+
+    @classmethod
+    def from_opinion(cls, opinion: SecondOpinion) -> SecondOpinionOut:
+        return cls(
+            features=opinion.features,
+            localized=opinion.localized,
+            reason=FailureReason(opinion.reason) if opinion.reason is not None else None,
+            confidence=opinion.confidence,
+            elapsed_ms=round(opinion.elapsed_ms, 3),
+            described=opinion.described,
+        )
 
 
 class FrameOut(BaseModel):
@@ -249,6 +287,11 @@ class LocalizeResult(BaseModel):
     world_from_cam: dict[PoseConvention, FramePoseOut] | None = Field(
         None, description="The pose of `output.pose_of` in the conventions `output.frames`"
     )
+    second_opinion: SecondOpinionOut | None = Field(
+        None,
+        description="When the map's configuration found no answer and another localized the "
+        "query again (params.second_opinion): what it answered; null when none was asked",
+    )
 
     @classmethod
     def from_result(
@@ -297,6 +340,9 @@ class LocalizeResult(BaseModel):
                 for f in output.frames
             }
             if pose is not None and output.frames
+            else None,
+            second_opinion=SecondOpinionOut.from_opinion(result.second_opinion)
+            if result.second_opinion is not None
             else None,
         )
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -17,10 +19,12 @@ from services.components import Localizers
 from services.errors import InvalidInputError
 from services.estimators.options import EstimatorOptions
 from services.estimators.registry import get_estimator
+from services.features.configs import AUTO
 from services.geometry.camera import Camera
 from services.localization.answer import DEFAULT_MIN_CONFIDENCE, LocalizationResult
 from services.localization.localizer import LocalizeParams, Localizer
 from services.localization.query_frame import QueryFrameHints
+from services.localization.second_opinion import DescribedCache, ask, merged, wants_second_opinion
 from services.references.cache import ReferenceFeatureCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.search import PositionPrior
@@ -43,6 +47,8 @@ class LocalizeRequest:
         time_budget_s: wall-clock budget of the localization in seconds (None: the service's).
         frame: an AR client's camera rotation, gravity and rotation search.
         min_confidence: a pose less confident than this is answered ``low_confidence``.
+        second_opinion: whether a query the map's configuration retrieves references for but
+            does not localize is localized again by the context's second configuration.
     """
 
     camera: Camera | None = None
@@ -53,6 +59,7 @@ class LocalizeRequest:
     time_budget_s: float | None = None
     frame: QueryFrameHints = field(default_factory=QueryFrameHints)
     min_confidence: float = DEFAULT_MIN_CONFIDENCE
+    second_opinion: bool = True
 
 
 def engine_params(
@@ -116,6 +123,11 @@ class LocalizeContext:
             matches are not refined).
         models_dir / features: where the server's models are and its feature configuration
             (named when a map's references need models it lacks).
+        second_opinion: the configuration a query its map's own does not localize is
+            localized with again (``services.localization.second_opinion``): ``auto`` (the
+            first served that is not the map's), a name, or empty (none).
+        described: the references described for second opinions, kept between requests
+            (None: a second opinion is never asked).
     """
 
     sessions: sessionmaker[Session]
@@ -131,6 +143,8 @@ class LocalizeContext:
     blobs: BlobStore | None = None
     models_dir: Path = Path("models")
     features: str = ""
+    second_opinion: str = ""
+    described: DescribedCache | None = None
 
     def map_engine(
         self, map_id: str, request: LocalizeRequest
@@ -176,6 +190,24 @@ class LocalizeContext:
         )
         return localizer, params, store
 
+    def second_localizer(self, map_id: str) -> tuple[str, Localizer] | None:
+        """The configuration that gives the map's queries a second opinion, and its localizer
+        at its defaults; None when there is none (turned off, or the server serves no other)."""
+        if not self.second_opinion or self.described is None:
+            return None
+        with self.sessions() as session:
+            preset = require_map(session, map_id).feature_preset or self.localizers.features
+        name = second_configuration(self.localizers.choices, self.second_opinion, preset)
+        return (name, self.localizers.get(name)) if name is not None else None
+
+
+def second_configuration(served: Sequence[str], setting: str, preset: str) -> str | None:
+    """The configuration of ``setting`` (``auto``: the first of ``served`` other than the map's
+    ``preset``; a name: that one where it is served and not the map's; empty: none)."""
+    if setting == AUTO:
+        return next((name for name in served if name != preset), None)
+    return setting if setting and setting != preset and setting in served else None
+
 
 def localize(
     context: LocalizeContext,
@@ -198,9 +230,36 @@ def localize(
             f"depth: estimator {params.estimator.name} needs the query's depth map (the depth "
             "upload); the references need depth too"
         )
+    start = time.monotonic()
     memory = localizer.upload_memory_mib(image_bytes, depth_bytes is not None, params.top_k)
     with holding(context.slots, memory):
-        return localizer.localize(image_bytes, params, store, depth_bytes, context.spare)
+        result = localizer.localize(image_bytes, params, store, depth_bytes, context.spare)
+    if not request.second_opinion or not wants_second_opinion(result):
+        return result
+    second = context.second_localizer(map_id)
+    if second is None or context.described is None:
+        return result
+    name, other = second
+    if params.time_budget_s is not None:
+        left = params.time_budget_s - (time.monotonic() - start)
+        if left <= 0.0:
+            return result
+        params = replace(params, time_budget_s=left)
+    references = store.load_references([r.image_id for r in result.retrieved])
+    memory = other.upload_memory_mib(image_bytes, depth_bytes is not None, len(references))
+    with holding(context.slots, memory):
+        asked = ask(
+            other,
+            name,
+            image_bytes,
+            params,
+            references,
+            store.read_original,
+            context.described,
+            depth_bytes,
+            context.spare,
+        )
+    return merged(result, *asked) if asked is not None else result
 
 
 def reference_store(

@@ -37,6 +37,25 @@ class RetrievedReference:
 
 
 @dataclass(frozen=True)
+class SecondOpinion:
+    """What the second configuration answered (``LocalizationResult.second_opinion``).
+
+    Attributes:
+        features: the configuration asked.
+        localized, reason, confidence: its answer (the query's answer when it localized).
+        elapsed_ms: its time, the references' descriptions included.
+        described: references it described from their originals (the others were kept).
+    """
+
+    features: str
+    localized: bool
+    reason: str | None
+    confidence: float
+    elapsed_ms: float
+    described: int
+
+
+@dataclass(frozen=True)
 class LocalizationResult:
     """Attributes:
     estimator: the estimator asked for; ``estimator_used`` the one whose answer this is (the
@@ -61,6 +80,9 @@ class LocalizationResult:
     upright_turn_deg: int = 0  # the clockwise turn of the upload the query was matched at
     # the pose of a ``low_confidence`` answer, which is not localized
     candidate: Rigid3d | None = None
+    # what another feature configuration answered when the map's own found no answer
+    # (``services.localization.second_opinion``)
+    second_opinion: SecondOpinion | None = None
 
     @property
     def wider_retrieval(self) -> bool:

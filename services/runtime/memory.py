@@ -24,6 +24,7 @@ The bound is the sum of:
   within ``SLLOC_BODY_MEMORY_MIB`` (``app/limits.py`` reserves each body's share before it
   is read and frees it when the answer is sent);
 - ``self_evaluation``: the references a self-evaluation keeps described;
+- ``second_opinion``: the references described for second opinions, kept between requests;
 - ``vocabulary``: one training of a map's retrieval vocabulary, which reads the stored
   descriptors ``VOCABULARY_READ`` references at a time and keeps a sample of them;
 - ``retrieval_index``: the retrieval indexes of the maps localized against, which grow with
@@ -85,6 +86,9 @@ LIGHTGLUE_MIB_PER_MILLION_PAIRS = 90.0
 JSON_BODY_FACTOR = 1.7
 # references a self-evaluation keeps described between its held-out queries
 EVALUATION_DESCRIBED = 60
+# references described for second opinions, kept between requests
+# (services.localization.second_opinion)
+SECOND_OPINION_DESCRIBED = 20
 # a map's retrieval vocabulary (services.retrieval.vlad_index): the references whose stored
 # descriptors its training and its encoding read at once, and the descriptors its k-means
 # samples from them
@@ -238,6 +242,8 @@ def memory_bound(inputs: MemoryInputs) -> MemoryBound:
         # the references a self-evaluation keeps described (its held-out queries compute as
         # requests do)
         "self_evaluation": EVALUATION_DESCRIBED * i.max_keypoints * widest / MIB,
+        # the references described for second opinions (their requests compute as others)
+        "second_opinion": SECOND_OPINION_DESCRIBED * i.max_keypoints * widest / MIB,
         # one vocabulary training at a time: a batch of references read, or its sample
         "vocabulary": max(
             VOCABULARY_READ * i.max_keypoints, VOCABULARY_SAMPLE_COPIES * VOCABULARY_SAMPLE

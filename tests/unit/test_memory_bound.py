@@ -26,6 +26,7 @@ from services.runtime.memory import (
     MODEL_RESIDENT_PER_FILE_MIB,
     REFERENCE_COPIES,
     RUNTIME_MIB,
+    SECOND_OPINION_DESCRIBED,
     MemoryBound,
     RequestShape,
     request_memory_mib,
@@ -91,6 +92,8 @@ def test_terms_follow_the_settings_arithmetic() -> None:
         "bodies": 256.0,
         # a self-evaluation's described references (its queries compute as requests do)
         "self_evaluation": EVALUATION_DESCRIBED * 4096 * SIFT_FEATURE_BYTES / MIB,
+        # the references described for second opinions
+        "second_opinion": SECOND_OPINION_DESCRIBED * 4096 * SIFT_FEATURE_BYTES / MIB,
         # a vocabulary's training: its sample of 100 000 descriptors, three times, is more
         # than 25 references of 4096 keypoints read at once
         "vocabulary": 3 * 100_000 * SIFT_FEATURE_BYTES / MIB,

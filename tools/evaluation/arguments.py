@@ -119,6 +119,14 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         "--max-side", type=int, metavar="PX", help="the map's longer image side for features"
     )
     parser.add_argument(
+        "--second-opinion",
+        metavar="NAME",
+        default="",
+        help="in process: a query the map's configuration does not localize is localized "
+        "again by configuration NAME against its retrieved references, as the server's "
+        "SLLOC_SECOND_OPINION does (default: none; with --url the server's setting applies)",
+    )
+    parser.add_argument(
         "--map-preset",
         metavar="NAME",
         help="with --url: the created map's feature configuration (default: auto, the "

@@ -109,6 +109,10 @@ def eval_main(args: argparse.Namespace) -> int:
         for key, value in (("max_keypoints", args.max_keypoints), ("max_side", args.max_side))
         if value is not None
     }
+    if args.second_opinion and args.url:
+        raise SystemExit("--second-opinion is in process only (a server has SLLOC_SECOND_OPINION)")
+    if args.second_opinion and args.second_opinion not in feature_config_names():
+        raise SystemExit(f"--second-opinion: unknown {args.second_opinion}")
     if args.map_preset and not args.url:
         raise SystemExit("--map-preset needs --url (in process, --features names each run's)")
     factories: list[Callable[[], Runner]]
@@ -127,7 +131,14 @@ def eval_main(args: argparse.Namespace) -> int:
         ]
     else:
         factories = [
-            partial(InProcessRunner, name, settings.models_dir, **map_features) for name in features
+            partial(
+                InProcessRunner,
+                name,
+                settings.models_dir,
+                **map_features,
+                second_opinion=args.second_opinion if args.second_opinion != name else "",
+            )
+            for name in features
         ]
     _log(
         f"{dataset.name}: {len(split.references)} references, {len(split.queries)} queries, "
@@ -148,6 +159,7 @@ def eval_main(args: argparse.Namespace) -> int:
         "max_error_px": args.max_error_px,
         "intrinsics": not args.no_intrinsics,
         "query_scale": args.query_scale,
+        "second_opinion": args.second_opinion or None,
         "thresholds": thresholds,
         "seconds": time.perf_counter() - start,
     }

@@ -175,6 +175,23 @@ def withheld_answers(posed: list[QueryRecord]) -> dict[str, int]:
     return {"withheld": len(withheld), "withheld_right": len(right)}
 
 
+def second_opinions(posed: list[QueryRecord]) -> dict[str, Any]:
+    """The queries a second configuration localized again (in process, ``--second-opinion``):
+    ``second_opinions`` asked, ``second_opinions_localized`` of them answered by it, and
+    those within ``WRONG_M`` and ``WRONG_DEG`` (``second_opinions_right``), their median
+    time (``second_opinion_ms``, null when none was asked)."""
+    asked = [r for r in posed if "second_opinion_ms" in r.stats]
+    localized = [r for r in asked if r.stats.get("second_opinion_localized", 0.0) > 0.0]
+    return {
+        "second_opinions": len(asked),
+        "second_opinions_localized": len(localized),
+        "second_opinions_right": sum(within(r, WRONG_M, WRONG_DEG) for r in localized),
+        "second_opinion_ms": float(np.median([r.stats["second_opinion_ms"] for r in asked]))
+        if asked
+        else None,
+    }
+
+
 def choices(
     posed: list[QueryRecord], thresholds: tuple[tuple[float, float], ...]
 ) -> dict[str, dict[str, Any]]:
@@ -236,6 +253,7 @@ def summarize(
         else 0.0,
         **confident_answers(posed),
         **withheld_answers(posed),
+        **second_opinions(posed),
         "unrelated_queries": len(unrelated),
         "unrelated_accepted": sum(r.localized for r in unrelated),
         "wrong_intrinsics_queries": len(wrong_intrinsics),

@@ -100,6 +100,19 @@ def markdown_tables(
             for config, s in summaries.items()
         ),
     ]
+    if any(s.get("second_opinions") for s in summaries.values()):
+        lines += [
+            "",
+            "Second opinions (the map's configuration found no answer; `--second-opinion`): "
+            f"asked, localized by it, of those within {WRONG_M * 100:g} cm and {WRONG_DEG:g}°, "
+            "its median time: "
+            + ", ".join(
+                f"{config} {s['second_opinions']}, {s['second_opinions_localized']}, "
+                f"{s['second_opinions_right']} right, {s['second_opinion_ms'] or 0:.0f} ms"
+                for config, s in summaries.items()
+                if s.get("second_opinions")
+            ),
+        ]
     lines += ["", *confidence_table(summaries)]
     lines += choices_table(summaries, thresholds)
     lines += paired_table(summaries, thresholds)

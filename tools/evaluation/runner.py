@@ -24,7 +24,7 @@ import httpx
 
 from app.schemas.geometry import CameraSchema, PoseSchema
 from app.schemas.images import ImageMetadata
-from app.schemas.localize import LocalizeParamsIn
+from app.schemas.localize import LocalizeParamsIn, SecondOpinionOut
 from app.usecases.compare_estimators import localize_with_each
 from app.usecases.errors import ConflictError
 from app.usecases.images import add_reference_image
@@ -42,8 +42,10 @@ from services.estimators.registry import (
     DEPTH_USING_ESTIMATORS,
 )
 from services.localization.answer import LocalizationResult
+from services.localization.second_opinion import DescribedCache
 from services.retrieval.cache import RetrievalIndexCache
 from services.retrieval.policy import MIN_IMAGES
+from services.runtime.memory import SECOND_OPINION_DESCRIBED
 from tools.evaluation.datasets import PosedImage
 
 
@@ -145,10 +147,14 @@ class InProcessRunner:
         max_pixels: int = 40_000_000,
         max_keypoints: int | None = None,
         max_side: int | None = None,
+        second_opinion: str = "",
     ) -> None:
-        """``max_keypoints``, ``max_side``: the map's feature options (None: the default)."""
+        """``max_keypoints``, ``max_side``: the map's feature options (None: the default);
+        ``second_opinion``: the configuration that localizes again a query the map's does not
+        (``LocalizeContext.second_opinion``; empty: none)."""
         engine = EngineConfig.resolve(models_dir, max_pixels, features)
-        self.localizers = Localizers(engine, build_localizer(engine))
+        others = (second_opinion,) if second_opinion else ()
+        self.localizers = Localizers(engine, build_localizer(engine), others)
         self.features = features
         self._tmp = tempfile.TemporaryDirectory(prefix="slloc-eval-")
         self._engine = make_engine(f"sqlite:///{self._tmp.name}/eval.db")
@@ -165,6 +171,8 @@ class InProcessRunner:
             max_top_k=1_000_000,
             cache=RetrievalIndexCache(),
             blobs=self.blobs,
+            second_opinion=second_opinion,
+            described=DescribedCache(SECOND_OPINION_DESCRIBED) if second_opinion else None,
         )
 
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
@@ -203,7 +211,9 @@ class InProcessRunner:
         estimators: Sequence[str],
     ) -> list[QueryOutcome]:
         """The query described and matched once; ``client`` is that shared time plus the
-        estimator's own."""
+        estimator's own. With a second opinion and one estimator: ``localize``'s answer."""
+        if self._context.second_opinion and len(estimators) == 1:
+            return [self.localize(image, depth, {**params, "estimator": estimators[0]})]
         start = time.perf_counter()
         results = localize_with_each(
             self._context,
@@ -232,10 +242,27 @@ def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
         confidence=result.confidence,
         retrieved=[r.name for r in result.retrieved],
         timings_ms={**result.timings_ms, "client": client_ms},
-        stats=dict(result.stats),
+        stats={
+            **result.stats,
+            **_second_opinion_stats(
+                SecondOpinionOut.from_opinion(result.second_opinion).model_dump()
+                if result.second_opinion is not None
+                else None
+            ),
+        },
         estimator_used=result.estimator_used,
         candidate=PoseSchema.from_rigid(result.candidate) if result.candidate is not None else None,
     )
+
+
+def _second_opinion_stats(opinion: dict[str, Any] | None) -> dict[str, float]:
+    """Whether an answer's ``second_opinion`` localized the query, and its time."""
+    if opinion is None:
+        return {}
+    return {
+        "second_opinion_localized": float(bool(opinion["localized"])),
+        "second_opinion_ms": float(opinion["elapsed_ms"]),
+    }
 
 
 def _media_type(name: str) -> str:
@@ -359,7 +386,10 @@ class HttpRunner:
             confidence=float(body["confidence"]),
             retrieved=[r["name"] for r in body["retrieved"]],
             timings_ms=timings,
-            stats={"wider_retrieval": float(bool(body.get("wider_retrieval")))},
+            stats={
+                "wider_retrieval": float(bool(body.get("wider_retrieval"))),
+                **_second_opinion_stats(body.get("second_opinion")),
+            },
             estimator_used=body.get("estimator_used"),
             candidate=PoseSchema.model_validate(candidate) if candidate is not None else None,
         )

@@ -1788,6 +1788,12 @@ export interface components {
              */
             rotation_search?: boolean;
             /**
+             * Second Opinion
+             * @description When the map's feature configuration retrieves references but does not localize the query (too_few_matches, no_consensus, degenerate_geometry, focal_unobservable, low_confidence), localize it again with the server's second configuration (SLLOC_SECOND_OPINION) against those references, within the time budget left; false answers at once. See the docs' API page, 'A second opinion'
+             * @default true
+             */
+            second_opinion?: boolean;
+            /**
              * Time Budget S
              * @description Wall-clock budget in seconds, at most the service's (SLLOC_LOCALIZE_TIME_BUDGET_S, its default); past it the answer is localized: false with reason time_budget_exceeded
              * @default null
@@ -1850,6 +1856,8 @@ export interface components {
             reason: components["schemas"]["FailureReason"] | null;
             /** Retrieved */
             retrieved: components["schemas"]["RetrievedOut"][];
+            /** @description When the map's configuration found no answer and another localized the query again (params.second_opinion): what it answered; null when none was asked */
+            second_opinion?: components["schemas"]["SecondOpinionOut"] | null;
             timings_ms: components["schemas"]["Timings"];
             /** @description Pose uncertainty; null without a pose or enough verified points */
             uncertainty?: components["schemas"]["UncertaintyOut"] | null;
@@ -2320,6 +2328,32 @@ export interface components {
              * @description Threads one operation may use (onnxruntime intra-op, OpenCV, BLAS)
              */
             threads_per_worker: number;
+        };
+        /**
+         * SecondOpinionOut
+         * @description What the second configuration answered; the answer is its own when it localized.
+         */
+        SecondOpinionOut: {
+            /** Confidence */
+            confidence: number;
+            /**
+             * Described
+             * @description References it described from their originals (the others were kept from earlier second opinions)
+             */
+            described: number;
+            /**
+             * Elapsed Ms
+             * @description Its time, in timings_ms too: the references it described from their originals (counted in extract) and its localization
+             */
+            elapsed_ms: number;
+            /**
+             * Features
+             * @description The feature configuration asked
+             */
+            features: string;
+            /** Localized */
+            localized: boolean;
+            reason: components["schemas"]["FailureReason"] | null;
         };
         /** Sensor */
         Sensor: {

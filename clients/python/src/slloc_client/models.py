@@ -837,6 +837,10 @@ class LocalizeParamsIn(BaseModel):
         default=True,
         description="Without a gravity hint, also try the upload turned by 90°, 270° and 180° (within the time budget) when it fails as uploaded",
     )
+    second_opinion: bool = Field(
+        default=True,
+        description="When the map's feature configuration retrieves references but does not localize the query (too_few_matches, no_consensus, degenerate_geometry, focal_unobservable, low_confidence), localize it again with the server's second configuration (SLLOC_SECOND_OPINION) against those references, within the time budget left; false answers at once. See the docs' API page, 'A second opinion'",
+    )
     time_budget_s: float | None = Field(
         default=None,
         description="Wall-clock budget in seconds, at most the service's (SLLOC_LOCALIZE_TIME_BUDGET_S, its default); past it the answer is localized: false with reason time_budget_exceeded",
@@ -889,6 +893,10 @@ class LocalizeResult(BaseModel):
     num_inliers: int
     reason: FailureReason | None
     retrieved: list[RetrievedOut]
+    second_opinion: SecondOpinionOut | None = Field(
+        default=None,
+        description="When the map's configuration found no answer and another localized the query again (params.second_opinion): what it answered; null when none was asked",
+    )
     timings_ms: Timings
     uncertainty: UncertaintyOut | None = Field(
         default=None, description="Pose uncertainty; null without a pose or enough verified points"
@@ -1195,6 +1203,22 @@ class RuntimeOut(BaseModel):
     threads_per_worker: int = Field(
         description="Threads one operation may use (onnxruntime intra-op, OpenCV, BLAS)"
     )
+
+
+class SecondOpinionOut(BaseModel):
+    """What the second configuration answered; the answer is its own when it localized."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    confidence: float
+    described: int = Field(
+        description="References it described from their originals (the others were kept from earlier second opinions)"
+    )
+    elapsed_ms: float = Field(
+        description="Its time, in timings_ms too: the references it described from their originals (counted in extract) and its localization"
+    )
+    features: str = Field(description="The feature configuration asked")
+    localized: bool
+    reason: FailureReason | None
 
 
 class Sensor(BaseModel):

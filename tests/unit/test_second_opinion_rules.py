@@ -1,0 +1,108 @@
+"""Which answers get a second opinion, from which configuration, and what the answer becomes;
+the descriptions kept between requests."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from app.usecases.localize import second_configuration
+from services.estimators.base import FailureReason
+from services.geometry.rigid import Rigid3d
+from services.localization.answer import (
+    LocalizationResult,
+    RetrievedReference,
+    SecondOpinion,
+)
+from services.localization.second_opinion import DescribedCache, merged, wants_second_opinion
+from services.references.store import ReferenceData
+
+STAGES = ("decode", "extract", "retrieve", "match", "estimate", "total")
+
+
+def _result(reason: str | None, retrieved: int = 3, ms: float = 10.0) -> LocalizationResult:
+    empty = np.zeros((0, 2))
+    return LocalizationResult(
+        localized=reason is None,
+        reason=reason,
+        estimator="auto",
+        cam_from_world=Rigid3d.identity() if reason is None else None,
+        num_inliers=100 if reason is None else 0,
+        confidence=0.9 if reason is None else 0.1,
+        retrieved=[
+            RetrievedReference(f"id{i}", f"ref{i}", 0.5, 10, 0, empty, empty)
+            for i in range(retrieved)
+        ],
+        timings_ms=dict.fromkeys(STAGES, ms),
+        stats={},
+    )
+
+
+@pytest.mark.parametrize(
+    "reason",
+    [
+        "too_few_matches",
+        "no_consensus",
+        "degenerate_geometry",
+        "focal_unobservable",
+        "low_confidence",
+    ],
+)
+def test_a_failure_with_references_asks_a_second_opinion(reason: str) -> None:
+    assert wants_second_opinion(_result(reason))
+    assert not wants_second_opinion(_result(reason, retrieved=0))
+
+
+@pytest.mark.parametrize(
+    "reason",
+    [
+        None,
+        FailureReason.NO_REFERENCES.value,
+        FailureReason.TIME_BUDGET_EXCEEDED.value,
+        FailureReason.MISSING_DEPTH.value,
+        FailureReason.GRAVITY_MISMATCH.value,
+    ],
+)
+def test_an_answer_or_an_unrelated_failure_asks_none(reason: str | None) -> None:
+    assert not wants_second_opinion(_result(reason))
+
+
+def test_the_second_configuration_is_another_served_one() -> None:
+    served = ("xfeat-lg", "sift")
+    assert second_configuration(served, "auto", "sift") == "xfeat-lg"
+    assert second_configuration(served, "auto", "xfeat-lg") == "sift"
+    assert second_configuration(("sift",), "auto", "sift") is None
+    assert second_configuration(served, "sift", "xfeat-lg") == "sift"
+    assert second_configuration(served, "sift", "sift") is None  # not the map's own
+    assert second_configuration(served, "aliked", "sift") is None  # not served here
+    assert second_configuration(served, "", "sift") is None
+
+
+def test_the_answer_is_the_second_when_it_localized_and_times_add_up() -> None:
+    first = _result("no_consensus", ms=10.0)
+    opinion = SecondOpinion("xfeat-lg", True, None, 0.9, 25.0, 3)
+    answer = merged(first, _result(None, ms=25.0), opinion)
+    assert answer.localized and answer.second_opinion == opinion
+    assert answer.timings_ms == dict.fromkeys(STAGES, 35.0)
+    failed = replace(opinion, localized=False, reason="no_consensus")
+    kept = merged(first, _result("no_consensus", ms=5.0), failed)
+    assert not kept.localized and kept.reason == "no_consensus" and kept.second_opinion == failed
+    assert kept.timings_ms["total"] == 15.0
+
+
+def _data(tag: float) -> ReferenceData:
+    return ReferenceData(None, np.full(4, tag, np.float32), None, "x", "g")  # type: ignore[arg-type]
+
+
+def test_the_cache_keeps_the_most_recently_used() -> None:
+    cache = DescribedCache(2)
+    cache.put("xfeat", "a", _data(1))
+    cache.put("xfeat", "b", _data(2))
+    assert cache.get("xfeat", "a") is not None  # a is now the most recent
+    cache.put("xfeat", "c", _data(3))
+    assert cache.get("xfeat", "b") is None
+    assert cache.get("xfeat", "a") is not None and cache.get("xfeat", "c") is not None
+    assert cache.get("sift", "a") is None  # by extractor
+    assert len(cache) == 2
