@@ -234,7 +234,7 @@ def localize(
     memory = localizer.upload_memory_mib(image_bytes, depth_bytes is not None, params.top_k)
     with holding(context.slots, memory):
         result = localizer.localize(image_bytes, params, store, depth_bytes, context.spare)
-    if not request.second_opinion or not wants_second_opinion(result):
+    if not request.second_opinion or not wants_second_opinion(result, params.options.ransac):
         return result
     second = context.second_localizer(map_id)
     if second is None or context.described is None:

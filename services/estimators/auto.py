@@ -55,7 +55,7 @@ from services.estimators.base import (
 from services.estimators.estimator import precheck
 from services.estimators.options import EstimatorOptions
 from services.estimators.position_conditioning import ReferenceLayout, reference_layout
-from services.estimators.ransac import Deadline
+from services.estimators.ransac import Deadline, searched_in_vain
 from services.estimators.verification import verify_pose
 from services.geometry.camera import Camera
 from services.geometry.rigid import rotation_error_deg
@@ -239,7 +239,10 @@ class AutoEstimator:
         for name in plan.estimators:
             if name in results:
                 continue
-            if deadline.expired() or (name in plan.fallbacks and self._verified(results)):
+            if deadline.expired() or (
+                name in plan.fallbacks
+                and (self._verified(results) or self._in_vain(results, plan, options))
+            ):
                 break
             results[name] = attempt(name)
         attempts = {"auto_attempts": float(len(results))}
@@ -270,6 +273,19 @@ class AutoEstimator:
             estimator_used=first_name,
             estimator_reason=f"{plan.reason}; no estimator localized "
             f"({', '.join(results) or 'none ran'}){''.join(unfit)}",
+        )
+
+    @staticmethod
+    def _in_vain(results: dict[str, EstimateResult], plan: Plan, options: EstimatorOptions) -> bool:
+        """The plan's first estimator, whose failure ``auto`` answers when none localizes,
+        drew every hypothesis it may without a pose (``searched_in_vain``): an image of
+        nothing in the map, where a fallback on the same matches finds nothing either (no
+        fallback answered a query on either development set)."""
+        first = results.get(plan.first[0])
+        return (
+            first is not None
+            and first.cam_from_world is None
+            and searched_in_vain(first.stats, options.ransac)
         )
 
     @staticmethod

@@ -10,6 +10,7 @@ optimisation whenever that beats the best model so far (PoseLib's LO-RANSAC, bat
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
@@ -57,6 +58,14 @@ def required_iterations(inlier_ratio: float, sample_size: int, success_prob: flo
     if p_good <= 1e-12:
         return 2**31
     return int(np.ceil(np.log(1.0 - success_prob) / np.log(1.0 - p_good)))
+
+
+def searched_in_vain(stats: Mapping[str, float], options: RansacOptions) -> bool:
+    """Whether the robust loop that wrote ``stats`` (its ``iterations``) drew every hypothesis
+    ``options`` allow: no pose it found had enough agreeing data to stop it earlier (at the
+    default cap, under 4.5 % of the points for local triangulation's 3-point samples). An image
+    of nothing in the map ends there; a search cut short by the time budget does not count."""
+    return stats.get("iterations", 0.0) >= options.max_iterations
 
 
 def msac_score(errors: FloatArray, threshold: float) -> FloatArray:

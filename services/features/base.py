@@ -54,6 +54,9 @@ class FeatureExtractor(Protocol):
     max_side: int
     # the most keypoints it returns of an image
     max_keypoints: int
+    # whether a turned image gives the same keypoints and descriptors, turned (SIFT assigns
+    # each keypoint its orientation): a sideways query then matches as well as an upright one
+    rotation_invariant: bool
 
     def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:
         """Features of an (H, W, 3) RGB uint8 image. ``spare``: idle workers the extraction

@@ -41,6 +41,8 @@ class OnnxKeypointExtractor:
     worker, run when the idle workers are lent to the extraction (XFeat at 640×480: 28 ms
     on two threads against 41 ms on one)."""
 
+    rotation_invariant = False  # the networks describe keypoints as they were trained: upright
+
     def __init__(
         self,
         session: Any,

@@ -38,6 +38,8 @@ class SiftExtractor:
     (None: it runs on the threads of one worker). SIFT on a 640 × 480 frame takes about 75 ms
     on one thread and 43 ms on two."""
 
+    rotation_invariant = True
+
     def __init__(self, options: SiftOptions | None = None, wide_threads: int | None = None) -> None:
         self.options = options or SiftOptions()
         self.wide_threads = wide_threads

@@ -62,6 +62,7 @@ def localize_each(
         lambda matched: localizer.match_wider(query, matched, params, store, clock, spare),
         estimate,
         clock,
+        params.options.ransac,
     )
     summed = clock.finish() if attempts > 1 or any(widened) else None
     return [

@@ -242,6 +242,7 @@ class Localizer:
             lambda matched: self.match_wider(query, matched, params, store, clock, spare),
             estimate,
             clock,
+            params.options.ransac,
         )
         timings = clock.finish() if attempts > 1 or widened else result.timings_ms
         return searched_answer(
@@ -272,6 +273,9 @@ class Localizer:
         """The decode stage of a query: its pixels, frame, camera and depth map."""
         image = decode_image(image_bytes, self.max_pixels)
         frame = resolve_query_frame(image_bytes, image, params.camera, params.frame)
+        if self.extractor.rotation_invariant:
+            # every turn matches as the first does: searching the others would only repeat it
+            frame = replace(frame, turns=frame.turns[:1])
         camera = frame.camera or default_camera(image.shape[1], image.shape[0])
         return DecodedQuery(
             image, frame, camera, decode_depth_for(depth_bytes, camera, self.max_pixels)

@@ -14,6 +14,8 @@ from dataclasses import replace
 
 from services.errors import InvalidInputError
 from services.estimators.base import FailureReason
+from services.estimators.options import RansacOptions
+from services.estimators.ransac import searched_in_vain
 from services.localization.answer import LocalizationResult, SecondOpinion
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
@@ -36,9 +38,14 @@ REASONS = frozenset(
 )
 
 
-def wants_second_opinion(result: LocalizationResult) -> bool:
-    """Whether ``result`` failed in a way another configuration may not."""
-    return not result.localized and result.reason in REASONS and bool(result.retrieved)
+def wants_second_opinion(result: LocalizationResult, ransac: RansacOptions) -> bool:
+    """Whether ``result`` failed in a way another configuration may not: references were
+    retrieved, and its pose search did not draw every hypothesis ``ransac`` allows
+    (``searched_in_vain``: an image of nothing in the map, which no second configuration
+    localized on either development set; docs/benchmarks/2026-12-02-images-of-nothing.md)."""
+    if result.localized or result.reason not in REASONS or not result.retrieved:
+        return False
+    return not searched_in_vain(result.stats, ransac)
 
 
 class DescribedCache:

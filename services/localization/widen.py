@@ -15,6 +15,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from services.estimators.base import FailureReason
+from services.estimators.options import RansacOptions
+from services.estimators.ransac import searched_in_vain
 from services.localization.answer import LocalizationResult
 from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.stages import MatchedQuery
@@ -30,13 +32,15 @@ def widen_unsure(
     match_wider: Callable[[MatchedQuery], MatchedQuery | None],
     estimate: Callable[[int, MatchedQuery], LocalizationResult],
     clock: StageClock,
+    ransac: RansacOptions,
 ) -> tuple[list[LocalizationResult], list[bool]]:
     """``results`` (the answers of the estimates ``estimate(i, matched)``) with each unsure
     one replaced by the better (``turns.better``) of it and its estimate on
     ``match_wider(upright)``, while the budget lasts; and, for each, whether it was estimated
     on that wider match. ``match_wider`` answers None when the wider retrieval brings no other
-    reference (a small map): nothing is estimated again."""
-    again = [not sure(r) for r in results]
+    reference (a small map): nothing is estimated again. ``ransac``: the options the
+    estimates ran with (``sure``)."""
+    again = [not sure(r, ransac) for r in results]
     untouched = [False] * len(results)
     if not any(again) or clock.deadline.expired():
         return results, untouched
@@ -54,9 +58,14 @@ def widen_unsure(
     return results, again
 
 
-def sure(result: LocalizationResult) -> bool:
+def sure(result: LocalizationResult, ransac: RansacOptions) -> bool:
     """No other spread of references needs trying for this answer: it is localized with
-    ``SURE_CONFIDENCE`` or more, or failed for want of depth, which no reference brings."""
+    ``SURE_CONFIDENCE`` or more, failed for want of depth, which no reference brings, or its
+    pose search drew every hypothesis ``ransac`` allows without an answer (``searched_in_vain``:
+    an image of nothing in the map; no wider spread localized such a query on either
+    development set)."""
     if result.reason == FailureReason.MISSING_DEPTH.value:
+        return True
+    if not result.localized and searched_in_vain(result.stats, ransac):
         return True
     return result.localized and result.confidence >= SURE_CONFIDENCE

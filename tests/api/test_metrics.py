@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import uuid
 
+import cv2
 import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
@@ -53,22 +54,26 @@ def localize(
 def test_queries_retrieved_again_wider_are_counted(
     client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
 ) -> None:
-    """An answer that is unsure after its first retrieval (an unrelated image: not localized)
-    on a map of more references than top_k is retrieved again wider, says so and is counted;
-    a sure one is not."""
+    """An answer that is unsure after its first retrieval (a query blurred until its
+    confidence falls below ``SURE_CONFIDENCE``) on a map of more references than top_k is
+    retrieved again wider, says so and is counted; a sure one is not, nor an unrelated image
+    (its pose search drew every hypothesis without a pose: no spread of references helps)."""
     map_id = create_map(client)
     for view in reference_views:
         assert upload_view(client, map_id, view).status_code == 201
     answers = [localize(client, map_id, view) for view in query_views[:3]]
+    blurred = cv2.GaussianBlur(query_views[1].image, (0, 0), 6)
+    unsure = localize(client, map_id, query_views[1], encode_png(blurred))
+    assert unsure["wider_retrieval"] is True, unsure
     unrelated = localize(client, map_id, query_views[0], encode_png(unrelated_image(0)))
-    assert unrelated["localized"] is False and unrelated["wider_retrieval"] is True
+    assert unrelated["localized"] is False and unrelated["wider_retrieval"] is False
     for answer in answers:
         confidence = answer["confidence"]
         assert isinstance(confidence, float)
         sure = answer["localized"] is True and confidence >= SURE_CONFIDENCE
         assert answer["wider_retrieval"] is not sure
     assert any(answer["wider_retrieval"] is False for answer in answers)
-    widened = sum(answer["wider_retrieval"] is True for answer in [*answers, unrelated])
+    widened = sum(answer["wider_retrieval"] is True for answer in [*answers, unsure, unrelated])
     counted = scrape(client)["slloc_localize_wider_retrievals"]
     assert value(counted, "slloc_localize_wider_retrievals_total") == widened
 

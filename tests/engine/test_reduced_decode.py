@@ -49,6 +49,7 @@ class RecordingExtractor:
         self.inner = inner
         self.name = inner.name
         self.max_side = inner.max_side
+        self.rotation_invariant = inner.rotation_invariant
         self.sizes: list[tuple[int, int]] = []
 
     def extract(self, image: UInt8Array, spare: SpareWorkers | None = None) -> LocalFeatures:

@@ -10,6 +10,7 @@ import pytest
 
 from app.usecases.localize import second_configuration
 from services.estimators.base import FailureReason
+from services.estimators.options import RansacOptions
 from services.geometry.rigid import Rigid3d
 from services.localization.answer import (
     LocalizationResult,
@@ -20,6 +21,8 @@ from services.localization.second_opinion import DescribedCache, merged, wants_s
 from services.references.store import ReferenceData
 
 STAGES = ("decode", "extract", "retrieve", "match", "estimate", "total")
+RANSAC = RansacOptions()
+MAX_ITERATIONS = RANSAC.max_iterations
 
 
 def _result(reason: str | None, retrieved: int = 3, ms: float = 10.0) -> LocalizationResult:
@@ -51,8 +54,16 @@ def _result(reason: str | None, retrieved: int = 3, ms: float = 10.0) -> Localiz
     ],
 )
 def test_a_failure_with_references_asks_a_second_opinion(reason: str) -> None:
-    assert wants_second_opinion(_result(reason))
-    assert not wants_second_opinion(_result(reason, retrieved=0))
+    assert wants_second_opinion(_result(reason), RANSAC)
+    assert not wants_second_opinion(_result(reason, retrieved=0), RANSAC)
+
+
+@pytest.mark.parametrize("reason", ["no_consensus", "degenerate_geometry", "low_confidence"])
+def test_a_pose_search_that_ran_to_its_cap_asks_none(reason: str) -> None:
+    """An image of nothing in the map: no pose that a few percent of its matches agree with."""
+    for iterations, asks in ((101, True), (MAX_ITERATIONS - 1, True), (MAX_ITERATIONS, False)):
+        result = replace(_result(reason), stats={"iterations": float(iterations)})
+        assert wants_second_opinion(result, RANSAC) is asks
 
 
 @pytest.mark.parametrize(
@@ -66,7 +77,7 @@ def test_a_failure_with_references_asks_a_second_opinion(reason: str) -> None:
     ],
 )
 def test_an_answer_or_an_unrelated_failure_asks_none(reason: str | None) -> None:
-    assert not wants_second_opinion(_result(reason))
+    assert not wants_second_opinion(_result(reason), RANSAC)
 
 
 def test_the_second_configuration_is_another_served_one() -> None:

@@ -4,8 +4,11 @@ brings no other reference, or a spent budget, estimates nothing again."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
+from services.estimators.options import RansacOptions
 from services.features.base import LocalFeatures
 from services.geometry.camera import default_camera
 from services.localization.answer import LocalizationResult
@@ -13,6 +16,8 @@ from services.localization.clock import OutOfTimeError, StageClock
 from services.localization.stages import MatchedQuery
 from services.localization.widen import SURE_CONFIDENCE, sure, widen_unsure
 from services.retrieval.thinning import SPACING_FACTOR, WIDER_SPACING_FACTOR, thin_references
+
+RANSAC = RansacOptions()
 
 
 def _answer(localized: bool, confidence: float, reason: str | None = None) -> LocalizationResult:
@@ -60,7 +65,7 @@ def test_only_unsure_answers_are_estimated_again_and_keep_the_more_confident() -
         asked.append(i)
         return wider_answers[i]
 
-    widened, ran = widen_unsure(results, upright, match_wider, estimate, StageClock(None))
+    widened, ran = widen_unsure(results, upright, match_wider, estimate, StageClock(None), RANSAC)
     assert ran == [False, True, True, True]  # each answer: estimated on the wider match
     assert asked == [1, 2, 3]
     assert [r.confidence for r in widened] == [0.9, 0.7, 0.3, 0.95]
@@ -71,21 +76,37 @@ def test_sure_answers_match_nothing_again() -> None:
         raise AssertionError("a sure answer was matched again")
 
     results = [_answer(True, SURE_CONFIDENCE), _answer(False, 0.0, reason="missing_depth")]
-    widened, ran = widen_unsure(results, _matched(), match_wider, _never, StageClock(None))
+    widened, ran = widen_unsure(results, _matched(), match_wider, _never, StageClock(None), RANSAC)
     assert ran == [False, False]
     assert widened == results
-    assert sure(results[0]) and sure(results[1])
-    assert not sure(_answer(True, SURE_CONFIDENCE - 0.01))
+    assert sure(results[0], RANSAC) and sure(results[1], RANSAC)
+    assert not sure(_answer(True, SURE_CONFIDENCE - 0.01), RANSAC)
+
+
+def test_a_pose_search_that_found_nothing_is_not_widened() -> None:
+    """An answer whose pose search drew every hypothesis without a pose (an image of nothing
+    in the map) is not matched again; one that stopped earlier is."""
+    cap = float(RANSAC.max_iterations)
+    in_vain = replace(_answer(False, 0.0, reason="no_consensus"), stats={"iterations": cap})
+    searched = replace(in_vain, stats={"iterations": cap - 1})
+    assert sure(in_vain, RANSAC) and not sure(searched, RANSAC)
+    widened, ran = widen_unsure(
+        [in_vain, searched], _matched(), lambda m: m, lambda i, m: in_vain, StageClock(None), RANSAC
+    )
+    assert ran == [False, True]
+    assert widened[0] is in_vain
 
 
 def test_no_other_reference_or_no_time_left_estimates_nothing_again() -> None:
     results = [_answer(True, 0.2)]
     for match_wider in (lambda _: None, _out_of_time):
-        widened, ran = widen_unsure(results, _matched(), match_wider, _never, StageClock(None))
+        widened, ran = widen_unsure(
+            results, _matched(), match_wider, _never, StageClock(None), RANSAC
+        )
         assert ran == [False]
         assert widened == results
     spent = StageClock(0.0)
-    widened, ran = widen_unsure(results, _matched(), _out_of_time, _never, spent)
+    widened, ran = widen_unsure(results, _matched(), _out_of_time, _never, spent, RANSAC)
     assert ran == [False]
 
 
