@@ -21,15 +21,6 @@ WORLD_DOWN = np.array([0.0, 1.0, 0.0])  # the synthetic room's world is y-down
 
 
 @pytest.fixture(scope="module")
-def store(localizer: Localizer, reference_views: list[SyntheticView]) -> MemoryReferenceStore:
-    memory = MemoryReferenceStore()
-    for view in reference_views:
-        data = localizer.describe_reference(encode_png(view.image), view.camera)
-        memory.add(view.name, view.camera, view.cam_from_world, data)
-    return memory
-
-
-@pytest.fixture(scope="module")
 def query(query_views: list[SyntheticView]) -> SyntheticView:
     return query_views[0]
 

@@ -15,15 +15,6 @@ from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticView, encode_png
 
 
-@pytest.fixture(scope="module")
-def store(localizer: Localizer, reference_views: list[SyntheticView]) -> MemoryReferenceStore:
-    memory = MemoryReferenceStore()
-    for view in reference_views:
-        data = localizer.describe_reference(encode_png(view.image), view.camera)
-        memory.add(view.name, view.camera, view.cam_from_world, data)
-    return memory
-
-
 @pytest.mark.parametrize("sign", [1.0, -1.0], ids=["upright", "upside-down"])
 def test_gravity_reading_against_the_pose(
     sign: float,

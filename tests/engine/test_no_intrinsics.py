@@ -13,15 +13,6 @@ from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticScene, SyntheticView, encode_png
 
 
-@pytest.fixture(scope="module")
-def store(localizer: Localizer, reference_views: list[SyntheticView]) -> MemoryReferenceStore:
-    memory = MemoryReferenceStore()
-    for view in reference_views:
-        data = localizer.describe_reference(encode_png(view.image), view.camera)
-        memory.add(view.name, view.camera, view.cam_from_world, data)
-    return memory
-
-
 @pytest.mark.parametrize("focal", [500.0, 380.0, 700.0])
 @pytest.mark.parametrize("estimator", ["e5p1", "local_tri_all"])
 def test_queries_without_intrinsics(

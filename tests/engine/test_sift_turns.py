@@ -17,15 +17,6 @@ from services.references.memory import MemoryReferenceStore
 from tools.synthetic.scene import SyntheticView, encode_png, unrelated_image
 
 
-@pytest.fixture(scope="module")
-def store(localizer: Localizer, reference_views: list[SyntheticView]) -> MemoryReferenceStore:
-    memory = MemoryReferenceStore()
-    for view in reference_views:
-        data = localizer.describe_reference(encode_png(view.image), view.camera)
-        memory.add(view.name, view.camera, view.cam_from_world, data)
-    return memory
-
-
 @pytest.mark.parametrize("turn", [90, 180, 270])
 def test_a_sideways_query_localizes_as_uploaded(
     turn: int, localizer: Localizer, store: MemoryReferenceStore, query_views: list[SyntheticView]
