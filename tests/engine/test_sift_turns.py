@@ -47,8 +47,9 @@ def test_an_image_of_nothing_is_extracted_once(
 def test_an_image_of_nothing_ends_with_its_pose_search(
     localizer: Localizer, store: MemoryReferenceStore, query_views: list[SyntheticView]
 ) -> None:
-    """Both of ``auto``'s first estimators draw every hypothesis they may without a pose: no
-    fallback estimator and no wider spread of references is tried on top."""
+    """``auto``'s first estimator (``e5p1``, run with ``local_tri_all``) draws every
+    hypothesis it may without a pose: no fallback estimator and no wider spread of references
+    is tried on top."""
     params = LocalizeParams(camera=query_views[0].camera)
     for seed in range(3):
         result = localizer.localize(encode_png(unrelated_image(seed)), params, store)
