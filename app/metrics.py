@@ -99,6 +99,14 @@ class ServiceMetrics:
             ("features", "localized"),
             registry=self.registry,
         )
+        self.agreed_opinions = Counter(
+            "slloc_localize_agreed_opinions",
+            "Localize answers whose map's configuration and second opinion both withheld a pose "
+            "below min_confidence and the two agreed, by the second configuration and whether "
+            "the query was localized so",
+            ("features", "localized"),
+            registry=self.registry,
+        )
         self.registry.register(_StateCollector(state))
         # the process (process_*: CPU, resident memory, open file descriptors, start time),
         # the interpreter (python_info) and its garbage collector (python_gc_*), as the default
@@ -116,6 +124,9 @@ class ServiceMetrics:
         opinion = result.second_opinion
         if opinion is not None:
             self.second_opinions.labels(opinion.features, str(opinion.localized).lower()).inc()
+            if opinion.agreed:
+                localized = str(result.localized).lower()
+                self.agreed_opinions.labels(opinion.features, localized).inc()
         for stage, ms in result.timings_ms.items():
             if ms > 0.0:
                 self.stage_seconds.labels(stage).observe(ms / 1000.0)

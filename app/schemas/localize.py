@@ -176,6 +176,13 @@ class SecondOpinionOut(BaseModel):
         description="References it described from their originals (the others were kept from "
         "earlier second opinions)"
     )
+    agreed: bool = Field(
+        False,
+        description="Both configurations withheld a pose below min_confidence and the two "
+        "agree (within 15 cm and 3°): the answer is the more confident of them, its confidence "
+        "raised to 0.5 at most as its uncertainty allows, localized where that reaches "
+        "min_confidence",
+    )
 
     @classmethod
     def from_opinion(cls, opinion: SecondOpinion) -> SecondOpinionOut:
@@ -186,6 +193,7 @@ class SecondOpinionOut(BaseModel):
             confidence=opinion.confidence,
             elapsed_ms=round(opinion.elapsed_ms, 3),
             described=opinion.described,
+            agreed=opinion.agreed,
         )
 
 

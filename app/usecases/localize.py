@@ -259,7 +259,9 @@ def localize(
             depth_bytes,
             context.spare,
         )
-    return merged(result, *asked) if asked is not None else result
+    if asked is None:
+        return result
+    return merged(result, *asked, params.min_confidence, params.options.uncertainty)
 
 
 def reference_store(

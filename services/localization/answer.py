@@ -43,6 +43,8 @@ class SecondOpinion:
     Attributes:
         features: the configuration asked.
         localized, reason, confidence: its answer (the query's answer when it localized).
+        agreed: both configurations withheld a pose below ``min_confidence`` and the two
+            agree (``services.localization.second_opinion.agreed``).
         elapsed_ms: its time, the references' descriptions included.
         described: references it described from their originals (the others were kept).
     """
@@ -53,6 +55,7 @@ class SecondOpinion:
     confidence: float
     elapsed_ms: float
     described: int
+    agreed: bool = False
 
 
 @dataclass(frozen=True)
@@ -78,8 +81,9 @@ class LocalizationResult:
     uncertainty: PoseUncertainty | None = None
     camera_adaptation: CameraAdaptation | None = None  # how the request's camera was adapted
     upright_turn_deg: int = 0  # the clockwise turn of the upload the query was matched at
-    # the pose of a ``low_confidence`` answer, which is not localized
+    # the pose of a ``low_confidence`` answer, which is not localized, and its uncertainty
     candidate: Rigid3d | None = None
+    candidate_uncertainty: PoseUncertainty | None = None
     # what another feature configuration answered when the map's own found no answer
     # (``services.localization.second_opinion``)
     second_opinion: SecondOpinion | None = None
@@ -102,6 +106,22 @@ class LocalizationResult:
             cam_from_world=None,
             candidate=self.cam_from_world,
             uncertainty=None,
+            candidate_uncertainty=self.uncertainty,
+        )
+
+    def raised(self, confidence: float) -> LocalizationResult:
+        """This ``low_confidence`` answer localized at its candidate pose with ``confidence``."""
+        if self.candidate is None:
+            raise ValueError("only a low_confidence answer with a candidate pose can be raised")
+        return replace(
+            self,
+            localized=True,
+            reason=None,
+            cam_from_world=self.candidate,
+            candidate=None,
+            uncertainty=self.candidate_uncertainty,
+            candidate_uncertainty=None,
+            confidence=confidence,
         )
 
 

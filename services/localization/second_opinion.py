@@ -14,8 +14,10 @@ from dataclasses import replace
 
 from services.errors import InvalidInputError
 from services.estimators.base import FailureReason
-from services.estimators.options import RansacOptions
+from services.estimators.options import RansacOptions, UncertaintyOptions
 from services.estimators.ransac import searched_in_vain
+from services.estimators.uncertainty import within_target_probability
+from services.geometry.rigid import pose_error
 from services.localization.answer import LocalizationResult, SecondOpinion
 from services.localization.localizer import LocalizeParams, Localizer
 from services.references.memory import MemoryReferenceStore
@@ -46,6 +48,13 @@ def wants_second_opinion(result: LocalizationResult, ransac: RansacOptions) -> b
     if result.localized or result.reason not in REASONS or not result.retrieved:
         return False
     return not searched_in_vain(result.stats, ransac)
+
+
+# two configurations' withheld poses agree when they lie within this share of the confidence's
+# target of each other (0.6 of 25 cm and 5°: 15 cm and 3°): on redkitchen's queries outside the
+# map's frames every pair that close was within the target, and the closest pair with a wrong
+# pose lay 25 cm apart (docs/benchmarks/2026-12-02-agreeing-opinions.md)
+AGREEMENT_SHARE = 0.6
 
 
 class DescribedCache:
@@ -159,14 +168,63 @@ def _describe(
     return replace(data, depth=view.depth)
 
 
-def merged(
-    first: LocalizationResult, second: LocalizationResult, opinion: SecondOpinion
+def agree(
+    first: LocalizationResult, second: LocalizationResult, options: UncertaintyOptions
+) -> bool:
+    """Whether both answers withheld a pose (``low_confidence``) and the two lie within
+    ``AGREEMENT_SHARE`` of the confidence's target (``options.target_position_m`` and
+    ``target_rotation_deg``) of each other."""
+    if first.candidate is None or second.candidate is None:
+        return False
+    position, rotation = pose_error(first.candidate, second.candidate)
+    return (
+        position <= AGREEMENT_SHARE * options.target_position_m
+        and rotation <= AGREEMENT_SHARE * options.target_rotation_deg
+    )
+
+
+def agreed(
+    first: LocalizationResult,
+    second: LocalizationResult,
+    min_confidence: float,
+    options: UncertaintyOptions,
 ) -> LocalizationResult:
-    """The query's answer: the second configuration's when it localized, else the first's;
-    either with ``opinion`` and the two attempts' stage times summed."""
+    """The more confident of two ``low_confidence`` answers that ``agree``, its confidence
+    raised to ``options.capped_confidence`` — two configurations, each from its own keypoints
+    and matches, found the same pose — yet never above the probability its uncertainty leaves
+    for the target, nor below its own; localized at its candidate pose where that reaches
+    ``min_confidence``, still withheld otherwise."""
+    chosen = first if first.confidence >= second.confidence else second
+    uncertainty = chosen.candidate_uncertainty
+    raised = options.capped_confidence
+    if uncertainty is not None:
+        raised = min(raised, within_target_probability(uncertainty, options))
+    confidence = max(chosen.confidence, raised)
+    if confidence >= min_confidence:
+        return chosen.raised(confidence)
+    return replace(chosen, confidence=confidence)
+
+
+def merged(
+    first: LocalizationResult,
+    second: LocalizationResult,
+    opinion: SecondOpinion,
+    min_confidence: float,
+    options: UncertaintyOptions,
+) -> LocalizationResult:
+    """The query's answer: the second configuration's when it localized; when both withheld
+    poses that ``agree``, the more confident raised (``agreed``), localized where that reaches
+    ``min_confidence``; else the first's. With ``opinion`` and the two attempts' stage times
+    summed."""
     timings = {
         stage: first.timings_ms.get(stage, 0.0) + second.timings_ms.get(stage, 0.0)
         for stage in dict.fromkeys([*first.timings_ms, *second.timings_ms])
     }
-    answer = second if second.localized else first
+    if second.localized:
+        answer = second
+    elif agree(first, second, options):
+        answer = agreed(first, second, min_confidence, options)
+        opinion = replace(opinion, agreed=True)
+    else:
+        answer = first
     return replace(answer, timings_ms=timings, second_opinion=opinion)

@@ -16,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.components import missing_models
+from services.geometry.rigid import Rigid3d
 from tests.conftest import image_metadata, make_client, upload_view
 from tools.synthetic.scene import SyntheticView, encode_png, unrelated_image
 
@@ -134,6 +135,29 @@ def test_a_second_opinion_below_the_confidence_asked_is_no_answer(
     opinion = answer["second_opinion"]
     assert opinion["features"] == OTHER and not opinion["localized"]
     assert opinion["reason"] == "low_confidence"
+
+
+def test_two_withheld_poses_that_agree_say_so(
+    client: TestClient, reference_views: list[SyntheticView], query_views: list[SyntheticView]
+) -> None:
+    """Both configurations find the query's pose, each below the confidence asked (1.0): the
+    two agree, and the answer is still withheld at the more confident one's confidence."""
+    created = client.post("/v1/maps", json={"name": "scene", "features": {"preset": "sift"}})
+    map_id = str(created.json()["id"])
+    for view in reference_views[:REFERENCES]:
+        assert upload_view(client, map_id, view).status_code == 201
+    query = query_views[0]
+    answer = _localize(client, map_id, query, min_confidence=1.0)
+    assert not answer["localized"] and answer["reason"] == "low_confidence", answer
+    opinion = answer["second_opinion"]
+    assert opinion["features"] == OTHER and opinion["reason"] == "low_confidence"
+    assert opinion["agreed"], opinion
+    assert answer["confidence"] >= opinion["confidence"]
+    pose = answer["candidate"]
+    candidate = Rigid3d.from_quaternion(np.array(pose["rotation"]), np.array(pose["translation"]))
+    assert np.linalg.norm(candidate.center - query.cam_from_world.center) < 0.05
+    metrics = client.get("/metrics").text
+    assert 'slloc_localize_agreed_opinions_total{features="xfeat",localized="false"} 1.0' in metrics
 
 
 def test_a_map_served_well_asks_no_second_opinion(

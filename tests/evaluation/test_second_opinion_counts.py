@@ -47,24 +47,33 @@ def test_a_query_the_map_cannot_localize_is_answered_by_the_second(split: Split)
 
 
 def test_the_summary_counts_the_second_opinions() -> None:
-    def asked(pos: float, localized: bool, ms: float) -> QueryRecord:
-        stats = {"second_opinion_localized": float(localized), "second_opinion_ms": ms}
+    def asked(pos: float, localized: bool, ms: float, agreed: bool = False) -> QueryRecord:
+        stats = {
+            "second_opinion_localized": float(localized and not agreed),
+            "second_opinion_agreed": float(agreed),
+            "second_opinion_ms": ms,
+        }
         return hand_made(pos=pos, rot=1.0, localized=localized, stats=stats)
 
     records = [
         asked(0.1, True, 300.0),  # right
         asked(0.4, True, 500.0),  # answered, more than 25 cm off
         asked(math.inf, False, 100.0),  # asked, no answer either
+        asked(0.05, True, 400.0, agreed=True),  # two withheld poses that agree, right
+        asked(0.3, True, 350.0, agreed=True),  # the same, more than 25 cm off
+        asked(math.inf, False, 200.0, agreed=True),  # agreed, still below min_confidence
         hand_made(pos=0.01, rot=0.1),  # answered by the map's own
     ]
     summary = summarize(records, THRESHOLDS)
-    assert summary["second_opinions"] == 3
+    assert summary["second_opinions"] == 6
     assert summary["second_opinions_localized"] == 2
     assert summary["second_opinions_right"] == 1
-    assert summary["second_opinion_ms"] == 300.0
+    assert summary["second_opinions_agreed"] == 3
+    assert summary["agreed_localized"] == 2 and summary["agreed_right"] == 1
+    assert summary["second_opinion_ms"] == 325.0
     summary["confidence"] = curve_summary(curve_of(records))
     report = markdown_tables({"c": summary}, THRESHOLDS)
-    assert "Second opinions" in report and "c 3, 2, 1 right, 300 ms" in report
-    alone = summarize(records[3:], THRESHOLDS)
-    alone["confidence"] = curve_summary(curve_of(records[3:]))
+    assert "Second opinions" in report and "c 6, 2, 1 right; 3, 2, 1 right; 325 ms" in report
+    alone = summarize(records[6:], THRESHOLDS)
+    alone["confidence"] = curve_summary(curve_of(records[6:]))
     assert "Second opinions" not in markdown_tables({"c": alone}, THRESHOLDS)

@@ -178,14 +178,22 @@ def withheld_answers(posed: list[QueryRecord]) -> dict[str, int]:
 def second_opinions(posed: list[QueryRecord]) -> dict[str, Any]:
     """The queries a second configuration localized again (in process, ``--second-opinion``):
     ``second_opinions`` asked, ``second_opinions_localized`` of them answered by it, and
-    those within ``WRONG_M`` and ``WRONG_DEG`` (``second_opinions_right``), their median
-    time (``second_opinion_ms``, null when none was asked)."""
+    those within ``WRONG_M`` and ``WRONG_DEG`` (``second_opinions_right``); those whose
+    withheld pose agreed with the map's (``second_opinions_agreed``), the queries localized
+    so (``agreed_localized``) and those of them within ``WRONG_M`` and ``WRONG_DEG``
+    (``agreed_right``); their median time (``second_opinion_ms``, null when none was
+    asked)."""
     asked = [r for r in posed if "second_opinion_ms" in r.stats]
     localized = [r for r in asked if r.stats.get("second_opinion_localized", 0.0) > 0.0]
+    agreed = [r for r in asked if r.stats.get("second_opinion_agreed", 0.0) > 0.0]
+    agreed_localized = [r for r in agreed if r.localized]
     return {
         "second_opinions": len(asked),
         "second_opinions_localized": len(localized),
         "second_opinions_right": sum(within(r, WRONG_M, WRONG_DEG) for r in localized),
+        "second_opinions_agreed": len(agreed),
+        "agreed_localized": len(agreed_localized),
+        "agreed_right": sum(within(r, WRONG_M, WRONG_DEG) for r in agreed_localized),
         "second_opinion_ms": float(np.median([r.stats["second_opinion_ms"] for r in asked]))
         if asked
         else None,

@@ -104,11 +104,14 @@ def markdown_tables(
         lines += [
             "",
             "Second opinions (the map's configuration found no answer; `--second-opinion`): "
-            f"asked, localized by it, of those within {WRONG_M * 100:g} cm and {WRONG_DEG:g}°, "
+            f"asked, localized by it, of those within {WRONG_M * 100:g} cm and {WRONG_DEG:g}°; "
+            "withheld poses that agreed with the map's, localized so, of those right; "
             "its median time: "
             + ", ".join(
                 f"{config} {s['second_opinions']}, {s['second_opinions_localized']}, "
-                f"{s['second_opinions_right']} right, {s['second_opinion_ms'] or 0:.0f} ms"
+                f"{s['second_opinions_right']} right; {s.get('second_opinions_agreed', 0)}, "
+                f"{s.get('agreed_localized', 0)}, {s.get('agreed_right', 0)} right; "
+                f"{s['second_opinion_ms'] or 0:.0f} ms"
                 for config, s in summaries.items()
                 if s.get("second_opinions")
             ),

@@ -256,11 +256,13 @@ def _outcome(result: LocalizationResult, client_ms: float) -> QueryOutcome:
 
 
 def _second_opinion_stats(opinion: dict[str, Any] | None) -> dict[str, float]:
-    """Whether an answer's ``second_opinion`` localized the query, and its time."""
+    """Whether an answer's ``second_opinion`` localized the query, whether its withheld pose
+    agreed with the map's, and its time."""
     if opinion is None:
         return {}
     return {
         "second_opinion_localized": float(bool(opinion["localized"])),
+        "second_opinion_agreed": float(bool(opinion.get("agreed", False))),
         "second_opinion_ms": float(opinion["elapsed_ms"]),
     }
 

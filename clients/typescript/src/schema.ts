@@ -2334,6 +2334,12 @@ export interface components {
          * @description What the second configuration answered; the answer is its own when it localized.
          */
         SecondOpinionOut: {
+            /**
+             * Agreed
+             * @description Both configurations withheld a pose below min_confidence and the two agree (within 15 cm and 3°): the answer is the more confident of them, its confidence raised to 0.5 at most as its uncertainty allows, localized where that reaches min_confidence
+             * @default false
+             */
+            agreed?: boolean;
             /** Confidence */
             confidence: number;
             /**

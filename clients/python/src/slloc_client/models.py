@@ -1209,6 +1209,10 @@ class SecondOpinionOut(BaseModel):
     """What the second configuration answered; the answer is its own when it localized."""
 
     model_config = ConfigDict(extra="allow", populate_by_name=True)
+    agreed: bool = Field(
+        default=False,
+        description="Both configurations withheld a pose below min_confidence and the two agree (within 15 cm and 3°): the answer is the more confident of them, its confidence raised to 0.5 at most as its uncertainty allows, localized where that reaches min_confidence",
+    )
     confidence: float
     described: int = Field(
         description="References it described from their originals (the others were kept from earlier second opinions)"
