@@ -175,6 +175,12 @@ class InProcessRunner:
             described=DescribedCache(SECOND_OPINION_DESCRIBED) if second_opinion else None,
         )
 
+    @property
+    def context(self) -> LocalizeContext:
+        """What the map's localizations share (``localize``'s and ``localize_with_session``'s
+        first argument)."""
+        return self._context
+
     def add_reference(self, image: PosedImage, depth: bytes | None) -> None:
         add_reference_image(
             self.sessions,
