@@ -4,7 +4,7 @@ query(ies) of the split as the frames of one session (the ground truth's poses p
 session turned and moved from the map). Prints recall of the first frame's pose at (5 cm, 5°)
 and (25 cm, 2°), its median error, the answers above confidence 0.8 and those of them more
 than 25 cm or 5° off, the localized answers more than 1 m off, failures by reason and the
-median time; every answer in ``OUT/results.json``.
+median time; every answer, with the joint estimate's stats, in ``OUT/results.json``.
 
     python -m tools.benchmarks.session_frames DATASET [--references RULE] [--queries RULE] \
         [--features xfeat-lg] [--frames 2] [--out out/session-frames]
@@ -118,6 +118,7 @@ def main() -> int:
                     "error_m": float(error[0]),
                     "error_deg": float(error[1]),
                     "ms": ms,
+                    "stats": answer.stats,
                 }
             )
             said = f"{error[0] * 100:.1f} cm" if answer.localized else answer.reason
