@@ -29,6 +29,7 @@ from app.settings import get_settings
 from app.usecases.localize_frames import SessionFrame, localize_with_session
 from services.geometry.rigid import Rigid3d, pose_error
 from tools.evaluation.datasets import open_dataset
+from tools.evaluation.metrics import CONFIDENT, WRONG_DEG, WRONG_M
 from tools.evaluation.runner import InProcessRunner
 from tools.evaluation.split import split_dataset
 
@@ -37,9 +38,6 @@ MAP_FROM_SESSION = Rigid3d.from_quaternion(
     np.array([0.9659258, 0.0, 0.2588190, 0.0]), np.array([3.0, -0.5, 2.0])
 )
 THRESHOLDS = ((0.05, 5.0), (0.25, 2.0))
-# a confident answer, and a wrong one (the confidence's target)
-CONFIDENT = 0.8
-WRONG = (0.25, 5.0)
 FAR_M = 1.0
 
 
@@ -62,7 +60,7 @@ def summarize(answers: list[dict[str, Any]]) -> dict[str, Any]:
         "median_error_m": float(np.median([a["error_m"] for a in answers])) if answers else None,
         "confident": len(confident),
         "confident_wrong": sum(
-            a["error_m"] > WRONG[0] or a["error_deg"] > WRONG[1] for a in confident
+            a["error_m"] > WRONG_M or a["error_deg"] > WRONG_DEG for a in confident
         ),
         "far": sum(a["error_m"] > FAR_M for a in located),
         "failures": dict(reasons),
