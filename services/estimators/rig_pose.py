@@ -33,7 +33,9 @@ inconsistent frame, the answer is ``inconsistent_frames``. A joint pose that fit
 agree by chance, or were triangulated wrong. The confidence reads the agreement:
 the pooled ``confidence_from_inliers`` times the fraction of frames *supported* by the joint
 estimate (at least ``MIN_FRAME_SUPPORT`` of a frame's 2D–3D points are inliers of the joint
-pose), so a dropped frame or one without support lowers it.
+pose), so a dropped frame or one without support lowers it; and, as a single frame's, it is
+capped by the pose's uncertainty (``services.estimators.uncertainty.rig_pose_uncertainty``:
+every frame's verified points and the references they rest on, carried onto the first frame).
 
 Scale: the session is metric (ARKit, ARCore, WebXR) and the map is taken to be metric; a map in
 other units gives a wrong ``session_from_map`` (no scale is estimated).
@@ -42,7 +44,7 @@ other units gives a wrong ``session_from_map`` (no scale is estimated).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,7 +62,13 @@ from services.estimators.poselib_bridge import (
 )
 from services.estimators.ransac import Deadline
 from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
-from services.estimators.verification import count_verified_points
+from services.estimators.uncertainty import (
+    PoseUncertainty,
+    capped_confidence,
+    rig_pose_uncertainty,
+    uncertainty_stats,
+)
+from services.estimators.verification import CheckedTracks, check_structure
 from services.geometry.camera import Camera
 from services.geometry.rigid import Rigid3d, rotation_error_deg
 from services.types import BoolArray, FloatArray
@@ -112,10 +120,12 @@ class RigEstimate:
             Sampson error of the frame's pose (all False on failure).
         point_inliers: per frame, its 2D–3D inliers of the generalized absolute pose.
         confidence: ``confidence_from_inliers`` of the pooled inliers times the fraction of
-            supported frames, 0 on failure.
+            supported frames, capped by the uncertainty (``capped_confidence``), 0 on failure.
         stats: numbers describing the run.
         failure_reason: set exactly when ``session_from_map`` is None.
         dropped: indices of the frames left out as inconsistent (no pose, no inliers).
+        uncertainty: the first frame's pose uncertainty under the joint estimate
+            (``rig_pose_uncertainty``); None on failure or without enough verified points.
     """
 
     session_from_map: Rigid3d | None
@@ -125,6 +135,7 @@ class RigEstimate:
     stats: dict[str, float] = field(default_factory=dict)
     failure_reason: FailureReason | None = None
     dropped: frozenset[int] = frozenset()
+    uncertainty: PoseUncertainty | None = None
 
     @property
     def num_inliers(self) -> int:
@@ -259,22 +270,32 @@ def _estimate(
     if share < MIN_POINT_INLIER_SHARE:
         return _failure(FailureReason.NO_CONSENSUS, frames, stats)
 
+    poses = [frame.cam_from_session.compose(session_from_map) for frame in frames]
     inliers: list[list[BoolArray]] = []
-    verified = 0
-    for i, (frame, points) in enumerate(zip(frames, per_frame, strict=True)):
+    checks: list[CheckedTracks | None] = []
+    for i, (frame, points, pose) in enumerate(zip(frames, per_frame, poses, strict=True)):
         if deadline.expired():  # a pose not verified in time is no answer
             return _failure(FailureReason.TIME_BUDGET_EXCEEDED, frames, stats)
-        pose = frame.cam_from_session.compose(session_from_map)
         if not frame.references or i in dropped:
             inliers.append([np.zeros(ref.num_matches, bool) for ref in frame.references])
+            checks.append(None)
             continue
         errors = pose_sampson_errors_px(points.stacked, pose.rotation[None], pose.center[None])[0]
         masks = points.stacked.split(errors < threshold)
         inliers.append(masks)
-        verified += count_verified_points(frame.camera, pose, frame.references, masks, threshold)[0]
-    return _accept(
+        checks.append(check_structure(frame.camera, pose, frame.references, masks, threshold))
+    verified = sum(checked.check.num_verified_points for checked in checks if checked)
+    estimate = _accept(
         session_from_map, frames, inliers, point_inliers, verified, options, stats, dropped
     )
+    if estimate.session_from_map is None:
+        return estimate
+    uncertainty = rig_pose_uncertainty(
+        poses, [frame.camera for frame in frames], checks, options.uncertainty
+    )
+    stats.update(uncertainty_stats(uncertainty))
+    confidence = capped_confidence(estimate.confidence, uncertainty, options.uncertainty, False)
+    return replace(estimate, confidence=confidence, uncertainty=uncertainty)
 
 
 def _own_pose(

@@ -32,8 +32,15 @@ from services.estimators.options import EstimatorOptions, UncertaintyOptions
 from services.estimators.ransac import Deadline
 from services.estimators.verification import CheckedTracks, structure_of
 from services.geometry.camera import Camera
-from services.geometry.pose_covariance import ReferenceViews, pose_covariance
+from services.geometry.pose_covariance import (
+    ReferenceViews,
+    RigObservations,
+    pose_covariance,
+    rig_pose_covariance,
+)
 from services.geometry.projection import normalized_from_pixels
+from services.geometry.rigid import Rigid3d
+from services.types import IntArray
 
 
 @dataclass(frozen=True)
@@ -105,6 +112,118 @@ def pose_uncertainty(
         given_points.position_rms,
         given_points.rotation_rms_deg,
     )
+
+
+def rig_pose_uncertainty(
+    poses: list[Rigid3d],
+    cameras: list[Camera],
+    checks: list[CheckedTracks | None],
+    options: UncertaintyOptions,
+) -> PoseUncertainty | None:
+    """The uncertainty of the first frame's pose when the frames move together (a rig whose
+    relative poses are known, ``services.estimators.rig_pose``), from each frame's inlier
+    tracks checked in 3D at its pose (``checks``, None for a frame without); a point that
+    several frames verified (the same keypoint of a reference) is one point, whose reference
+    observations count once (``rig_pose_covariance``). None with fewer than
+    ``options.min_points`` verified points over all frames or when they leave the pose
+    undetermined."""
+    verified = sum(int(c.check.point_verified.sum()) for c in checks if c is not None)
+    if verified < options.min_points:
+        return None
+    observed, views = _rig_observations(poses, cameras, checks, options)
+    given_points = rig_pose_covariance(observed)
+    with_points = rig_pose_covariance(observed, views)
+    if given_points is None or with_points is None:
+        return None
+    return PoseUncertainty(
+        with_points.position_rms,
+        with_points.rotation_rms_deg,
+        len(observed.points3d),
+        given_points.sigma_px,
+        given_points.position_rms,
+        given_points.rotation_rms_deg,
+    )
+
+
+def _rig_observations(
+    poses: list[Rigid3d],
+    cameras: list[Camera],
+    checks: list[CheckedTracks | None],
+    options: UncertaintyOptions,
+) -> tuple[RigObservations, ReferenceViews]:
+    """The frames' verified points merged: two frames' points that rest on the same reference
+    keypoint (its image and exact pixel) are one point, placed where the first frame
+    triangulated it; each reference observation once; each reference (by image id) once."""
+    image_ids: dict[str, int] = {}
+    reference_poses: list[ReferenceObservation] = []
+    rows_key, rows_node, xy, view_of, positions = [], [], [], [], []
+    offset = 0
+    for v, (camera, checked) in enumerate(zip(cameras, checks, strict=True)):
+        if checked is None:
+            continue
+        refs, masks = checked.inputs[2], checked.inputs[3]
+        check = checked.check
+        verified = np.flatnonzero(check.point_verified)
+        node_of = np.full(len(check.point_verified), -1, np.int64)
+        node_of[verified] = offset + np.arange(len(verified))
+        offset += len(verified)
+        focal = float(np.mean(camera.focal_lengths))
+        xy.append(normalized_from_pixels(camera, checked.track_xy[verified]) * focal)
+        view_of.append(np.full(len(verified), v, np.int64))
+        positions.append(check.points[verified])
+        for ref in refs:
+            if ref.image_id not in image_ids:
+                image_ids[ref.image_id] = len(image_ids)
+                reference_poses.append(ref)
+        rows = np.flatnonzero(check.correspondence_verified)
+        global_ref = np.array([image_ids[ref.image_id] for ref in refs], np.int64)
+        used = [i for i, mask in enumerate(masks) if mask.any()]
+        reference_xy = np.concatenate([refs[i].reference_xy[masks[i]] for i in used])
+        rows_key.append(
+            np.column_stack([global_ref[checked.reference_of[rows]], reference_xy[rows]])
+        )
+        rows_node.append(node_of[checked.track_of[rows]])
+    keys, key_of = np.unique(np.concatenate(rows_key), axis=0, return_inverse=True)
+    row_node = np.concatenate(rows_node)
+    point_of_node = _shared_components(row_node, key_of.reshape(-1), offset, len(keys))
+    # each point where the first of its nodes placed it
+    first_node = np.unique(point_of_node, return_index=True)[1]
+    points3d = np.concatenate(positions)[first_node]
+    observed = RigObservations(
+        poses,
+        np.array([float(np.mean(c.focal_lengths)) for c in cameras]),
+        np.concatenate(view_of),
+        point_of_node,
+        np.concatenate(xy),
+        points3d,
+    )
+    # one observation per reference keypoint: its point and its reference
+    views = ReferenceViews(
+        point_of=point_of_node[row_node[np.unique(key_of.reshape(-1), return_index=True)[1]]],
+        camera_of=keys[:, 0].astype(np.int64),
+        rotations=np.stack([r.cam_from_world.rotation for r in reference_poses]),
+        translations=np.stack([r.cam_from_world.translation for r in reference_poses]),
+        focals=np.array([float(np.mean(r.camera.focal_lengths)) for r in reference_poses]),
+        rotation_sigma_rad=math.radians(options.reference_rotation_sigma_deg),
+        position_sigma=options.reference_position_sigma_m,
+    )
+    return observed, views
+
+
+def _shared_components(row_node: IntArray, row_key: IntArray, nodes: int, keys: int) -> IntArray:
+    """(nodes,) the point of each node: nodes linked through a shared key are one point (each
+    takes the least node of its component, spread through the keys until nothing changes),
+    numbered 0… in order of appearance."""
+    label = np.arange(nodes)
+    while True:
+        least = np.full(keys, nodes)
+        np.minimum.at(least, row_key, label[row_node])
+        spread = label.copy()
+        np.minimum.at(spread, row_node, least[row_key])
+        if np.array_equal(spread, label):
+            break
+        label = spread
+    return np.unique(label, return_inverse=True)[1].reshape(-1)
 
 
 def _reference_views(

@@ -210,6 +210,7 @@ def _answer(
         cam_from_world=frame_results[0].cam_from_world,
         num_inliers=estimate.num_inliers if localized else 0,
         confidence=estimate.confidence,
+        uncertainty=estimate.uncertainty,
         retrieved=frame_results[0].retrieved,
         timings_ms=timings,
         stats=estimate.stats,

@@ -101,6 +101,10 @@ def _window(image: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
+def _pose(schema: dict[str, Any]) -> Rigid3d:
+    return Rigid3d.from_quaternion(np.array(schema["rotation"]), np.array(schema["translation"]))
+
+
 def test_frames_recover_map_from_session(
     client: TestClient, scene_map: str, session_views: list[SyntheticView]
 ) -> None:
@@ -115,17 +119,19 @@ def test_frames_recover_map_from_session(
         assert dt < 0.01 and dr < 0.2, (count, dt, dr)
         assert len(result["frames"]) == count
         for frame, view in zip(result["frames"], views, strict=True):
-            pose = Rigid3d.from_quaternion(
-                np.array(frame["cam_from_world"]["rotation"]),
-                np.array(frame["cam_from_world"]["translation"]),
-            )
-            ft, fr = pose_error(pose, view.cam_from_world)
+            ft, fr = pose_error(_pose(frame["cam_from_world"]), view.cam_from_world)
             assert ft < 0.01 and fr < 0.2
             assert frame["num_point_inliers"] > 0
             assert frame["num_inliers"] == sum(len(i["query_xy"]) for i in frame["inliers"])
         assert result["cam_from_world"] == result["frames"][0]["cam_from_world"]
         assert result["num_inliers"] == sum(f["num_inliers"] for f in result["frames"])
         assert 0.0 < result["confidence"] <= 1.0
+        # the first frame's pose uncertainty under the joint estimate covers its error
+        uncertainty = result["uncertainty"]
+        first = session_views[0].cam_from_world
+        assert uncertainty is not None and uncertainty["num_points"] > 0
+        ft, fr = pose_error(_pose(result["frames"][0]["cam_from_world"]), first)
+        assert ft < 3 * uncertainty["position_m"] and fr < 3 * uncertainty["rotation_deg"]
 
 
 def test_joint_estimate_below_min_confidence_is_not_localized(

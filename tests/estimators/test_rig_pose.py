@@ -3,13 +3,16 @@ correspondences with exact ground truth."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
 from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions, RansacOptions
 from services.estimators.registry import get_estimator
-from services.estimators.rig_pose import RigFrame, estimate_rig_pose
+from services.estimators.rig_pose import MIN_POINT_INLIER_SHARE, RigFrame, estimate_rig_pose
+from services.estimators.uncertainty import pose_uncertainty, within_target_probability
 from services.estimators.verification import verify_pose
 from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
@@ -19,10 +22,15 @@ MAP_FROM_SESSION = Rigid3d(cv2.Rodrigues(np.array([0.1, 0.6, -0.2]))[0], np.arra
 
 
 def _rig(scenes: list[SyntheticCorrespondences]) -> list[RigFrame]:
-    """Each scene's query as one frame of a session placed by ``MAP_FROM_SESSION``."""
+    """Each scene's query as one frame of a session placed by ``MAP_FROM_SESSION``; each
+    scene's references are their own images (ids unique over the scenes, as in a map)."""
     return [
-        RigFrame(s.query_camera, s.query_pose.compose(MAP_FROM_SESSION), s.references)
-        for s in scenes
+        RigFrame(
+            s.query_camera,
+            s.query_pose.compose(MAP_FROM_SESSION),
+            [replace(r, image_id=f"scene{k}-{r.image_id}") for r in s.references],
+        )
+        for k, s in enumerate(scenes)
     ]
 
 
@@ -144,3 +152,67 @@ def test_no_references_and_too_few_matches() -> None:
     out = estimate_rig_pose([RigFrame(scene.query_camera, scene.query_pose, few)] * 2, OPTIONS)
     assert out.failure_reason == FailureReason.TOO_FEW_MATCHES
     assert out.session_from_map is None and out.num_inliers == 0
+
+
+def test_joint_uncertainty_covers_the_error_and_is_below_one_frames() -> None:
+    """The joint answer's uncertainty (the first frame's pose) covers its error within 3σ and
+    is narrower than the first frame's own answer's; the confidence stays below the
+    probability it leaves for 25 cm and 5°."""
+    scenes = _scenes(20, 3)
+    frames = _rig(scenes)
+    out = estimate_rig_pose(frames, OPTIONS)
+    assert out.uncertainty is not None, out.stats
+    pose = out.cam_from_map(frames[0], 0)
+    assert pose is not None
+    dt, dr = pose_error(pose, scenes[0].query_pose)
+    assert dt < 3 * out.uncertainty.position_m and dr < 3 * out.uncertainty.rotation_deg
+    assert out.stats["structure_position_sigma_m"] == out.uncertainty.position_m
+    alone = verify_pose(
+        get_estimator("local_tri_all").estimate(
+            scenes[0].query_camera, scenes[0].references, OPTIONS
+        ),
+        scenes[0].query_camera,
+        scenes[0].references,
+        OPTIONS,
+    )
+    single = pose_uncertainty(alone, scenes[0].query_camera, scenes[0].references, OPTIONS, False)
+    assert single is not None
+    assert out.uncertainty.position_m < single.position_m
+    assert out.uncertainty.rotation_deg < single.rotation_deg
+    assert out.confidence <= within_target_probability(out.uncertainty, OPTIONS.uncertainty)
+
+
+def _query_keypoints_swapped(scene: SyntheticCorrespondences, share: float, seed: int) -> list:
+    """The scene's references with ``share`` of the query keypoints swapped among themselves
+    (the same swap in every reference): the references still triangulate every point where
+    it is, but those points' query pixels are another point's."""
+    pixels = np.unique(np.concatenate([r.query_xy for r in scene.references]), axis=0)
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(len(pixels), round(share * len(pixels)), replace=False)
+    moved = pixels.copy()
+    moved[chosen] = pixels[np.roll(chosen, 1)]
+    lookup = {tuple(p): m for p, m in zip(pixels, moved, strict=True)}
+    return [
+        replace(r, query_xy=np.array([lookup[tuple(p)] for p in r.query_xy]))
+        for r in scene.references
+    ]
+
+
+def test_a_joint_pose_that_fits_few_points_is_refused() -> None:
+    """With 70 % of every frame's query keypoints swapped, the true pose fits about a third
+    of the triangulated points: below ``MIN_POINT_INLIER_SHARE``, ``no_consensus``; with 30 %
+    swapped, the same frames are localized."""
+    scenes = _scenes(20, 3)
+    for share, refused in ((0.7, True), (0.3, False)):
+        frames = [
+            RigFrame(f.camera, f.cam_from_session, _query_keypoints_swapped(s, share, k))
+            for k, (f, s) in enumerate(zip(_rig(scenes), scenes, strict=True))
+        ]
+        out = estimate_rig_pose(frames, OPTIONS)
+        if refused:
+            assert out.failure_reason == FailureReason.NO_CONSENSUS, out.stats
+            assert out.stats["points_inlier_share"] < MIN_POINT_INLIER_SHARE
+        else:
+            assert out.failure_reason is None, out.stats
+            assert out.stats["points_inlier_share"] >= MIN_POINT_INLIER_SHARE
+            assert _alignment_error(out.session_from_map)[0] < 0.05

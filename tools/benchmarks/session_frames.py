@@ -3,8 +3,9 @@ dataset's split built with one feature configuration, each query sent together w
 query(ies) of the split as the frames of one session (the ground truth's poses placed in a
 session turned and moved from the map). Prints recall of the first frame's pose at (5 cm, 5°)
 and (25 cm, 2°), its median error, the answers above confidence 0.8 and those of them more
-than 25 cm or 5° off, the localized answers more than 1 m off, failures by reason and the
-median time; every answer, with the joint estimate's stats, in ``OUT/results.json``.
+than 25 cm or 5° off, the localized answers more than 1 m off, those with an uncertainty and
+those of them within 3 times it, failures by reason and the median time; every answer, with
+the joint estimate's stats, in ``OUT/results.json``.
 
     python -m tools.benchmarks.session_frames DATASET [--references RULE] [--queries RULE] \
         [--features xfeat-lg] [--frames 2] [--out out/session-frames]
@@ -43,8 +44,10 @@ FAR_M = 1.0
 
 def summarize(answers: list[dict[str, Any]]) -> dict[str, Any]:
     """The figures of the answers (``error_m`` / ``error_deg`` of the first frame's pose,
-    ``inf`` when not localized)."""
+    ``inf`` when not localized; ``stats`` the joint estimate's, with its uncertainty when it
+    has one)."""
     located = [a for a in answers if a["localized"]]
+    sized = [a for a in located if "structure_position_sigma_m" in a.get("stats", {})]
     confident = [a for a in located if a["confidence"] > CONFIDENT]
     reasons = Counter(a["reason"] for a in answers if not a["localized"])
     return {
@@ -63,6 +66,12 @@ def summarize(answers: list[dict[str, Any]]) -> dict[str, Any]:
             a["error_m"] > WRONG_M or a["error_deg"] > WRONG_DEG for a in confident
         ),
         "far": sum(a["error_m"] > FAR_M for a in located),
+        "with_uncertainty": len(sized),
+        "within_3_uncertainty": sum(
+            a["error_m"] <= 3 * a["stats"]["structure_position_sigma_m"]
+            and a["error_deg"] <= 3 * a["stats"]["structure_rotation_sigma_deg"]
+            for a in sized
+        ),
         "failures": dict(reasons),
         "median_ms": float(np.median([a["ms"] for a in answers])) if answers else None,
     }
