@@ -12,8 +12,12 @@ from services.estimators.base import FailureReason
 from services.estimators.options import EstimatorOptions, RansacOptions
 from services.estimators.registry import get_estimator
 from services.estimators.rig_pose import MIN_POINT_INLIER_SHARE, RigFrame, estimate_rig_pose
-from services.estimators.uncertainty import pose_uncertainty, within_target_probability
-from services.estimators.verification import verify_pose
+from services.estimators.uncertainty import (
+    pose_uncertainty,
+    rig_pose_uncertainty,
+    within_target_probability,
+)
+from services.estimators.verification import check_structure, verify_pose
 from services.geometry.rigid import Rigid3d, pose_error, rotation_error_deg
 from tools.synthetic.correspondences import SyntheticCorrespondences, make_correspondences
 
@@ -216,3 +220,28 @@ def test_a_joint_pose_that_fits_few_points_is_refused() -> None:
             assert out.failure_reason is None, out.stats
             assert out.stats["points_inlier_share"] >= MIN_POINT_INLIER_SHARE
             assert _alignment_error(out.session_from_map)[0] < 0.05
+
+
+def test_points_that_frames_share_are_one_point() -> None:
+    """The same frame sent twice (same references, same keypoints, same pose): every point of
+    the second merges with the first's, so the points are the frame's alone, and with them
+    taken as exact the pose's variance halves (each point observed twice)."""
+    scene = _scenes(20, 1)[0]
+    checked = check_structure(
+        scene.query_camera,
+        scene.query_pose,
+        scene.references,
+        scene.inlier_masks,
+        OPTIONS.ransac.max_error_px,
+    )
+    assert checked is not None
+    options = OPTIONS.uncertainty
+    one = rig_pose_uncertainty([scene.query_pose], [scene.query_camera], [checked], options)
+    two = rig_pose_uncertainty(
+        [scene.query_pose] * 2, [scene.query_camera] * 2, [checked] * 2, options
+    )
+    assert one is not None and two is not None
+    assert two.num_points == one.num_points == int(checked.check.point_verified.sum())
+    ratio = two.given_points_position_m / one.given_points_position_m
+    assert abs(ratio - np.sqrt(0.5)) < 0.01, ratio
+    assert two.position_m < one.position_m
