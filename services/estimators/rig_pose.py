@@ -11,6 +11,10 @@ Structureless Visual Localization", generalised to a rig):
 2. all frames' query keypoints ↔ triangulated points go into one generalized absolute pose
    problem: GP3P in LO-RANSAC with refinement (PoseLib ``estimate_generalized_absolute_pose``,
    reprojection threshold ``RansacOptions.max_error_px``), camera ``i`` at ``cam_i_from_session``;
+   the pose is then refined jointly with the frames' points that fit it, each with the
+   reference observations that triangulated it (one bundle adjustment whose only free cameras
+   are the rig's), as a single frame's ``local_tri_all`` answer is, and kept when as many of
+   the points support it;
 3. each frame's pose ``cam_i_from_map = cam_i_from_session ∘ session_from_map``; its inliers are
    its matches within ``max_error_px`` Sampson error, as for every single-frame estimator;
 4. acceptance pools the frames: inliers, references with inliers and verified 3D points
@@ -61,7 +65,15 @@ from services.estimators.poselib_bridge import (
     ransac_options,
 )
 from services.estimators.ransac import Deadline
-from services.estimators.tracks import Tracks, build_tracks, triangulate_tracks
+from services.estimators.tracks import (
+    JOINT_MIN_POINTS,
+    JointPoints,
+    Tracks,
+    build_tracks,
+    joint_points,
+    support,
+    triangulate_tracks,
+)
 from services.estimators.uncertainty import (
     PoseUncertainty,
     capped_confidence,
@@ -70,7 +82,9 @@ from services.estimators.uncertainty import (
 )
 from services.estimators.verification import CheckedTracks, check_structure
 from services.geometry.camera import Camera
+from services.geometry.joint_refinement import PointObservations, RigViews, refine_pose_and_points
 from services.geometry.rigid import Rigid3d, rotation_error_deg
+from services.geometry.triangulation import TriangulatedTracks
 from services.types import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
@@ -150,12 +164,14 @@ class RigEstimate:
 
 @dataclass(frozen=True)
 class _FramePoints:
-    """A frame's query pixels (P, 2) and triangulated map points (P, 3)."""
+    """A frame's query pixels (P, 2) and triangulated map points (P, 3), and the
+    triangulation of its tracks they come from (None without tracks)."""
 
     stacked: StackedMatches
     tracks: Tracks
     pixels: FloatArray
     points: FloatArray
+    triangulated: TriangulatedTracks | None = None
 
 
 def _frame_points(frame: RigFrame, options: EstimatorOptions, deadline: Deadline) -> _FramePoints:
@@ -167,7 +183,7 @@ def _frame_points(frame: RigFrame, options: EstimatorOptions, deadline: Deadline
     tri = triangulate_tracks(stacked, tracks, options.triangulation.max_error_px, deadline=deadline)
     valid = np.flatnonzero(tri.valid)
     return _FramePoints(
-        stacked, tracks, stacked.query_xy[tracks.query_match[valid]], tri.points[valid]
+        stacked, tracks, stacked.query_xy[tracks.query_match[valid]], tri.points[valid], tri
     )
 
 
@@ -269,6 +285,9 @@ def _estimate(
     stats["points_inlier_share"] = share
     if share < MIN_POINT_INLIER_SHARE:
         return _failure(FailureReason.NO_CONSENSUS, frames, stats)
+    session_from_map = _refined_with_points(
+        frames, per_frame, used, session_from_map, options, deadline, stats
+    )
 
     poses = [frame.cam_from_session.compose(session_from_map) for frame in frames]
     inliers: list[list[BoolArray]] = []
@@ -296,6 +315,90 @@ def _estimate(
     stats.update(uncertainty_stats(uncertainty))
     confidence = capped_confidence(estimate.confidence, uncertainty, options.uncertainty, False)
     return replace(estimate, confidence=confidence, uncertainty=uncertainty)
+
+
+def _refined_with_points(
+    frames: list[RigFrame],
+    per_frame: list[_FramePoints],
+    used: list[int],
+    session_from_map: Rigid3d,
+    options: EstimatorOptions,
+    deadline: Deadline,
+    stats: dict[str, float],
+) -> Rigid3d:
+    """The rig's pose refined jointly with its frames' points, as a single frame's is
+    (``tracks.refine_with_points``): each used frame's triangulated points that fit its pose
+    (``tracks.joint_points``; ``JOINT_MIN_POINTS`` over all frames, as a frame too weak alone
+    still places the rig), with the reference observations that triangulated them, in one
+    bundle adjustment whose only free cameras are the rig's (``refine_pose_and_points`` with
+    ``RigViews``). Kept only when at least as many of the frames' points reproject within
+    ``max_error_px`` as of ``session_from_map`` (``points_refined_jointly`` in ``stats``)."""
+    found: dict[int, JointPoints] = {}
+    poses = {i: frames[i].cam_from_session.compose(session_from_map) for i in used}
+    for i in used:
+        points = per_frame[i].triangulated
+        if points is not None:
+            joint = joint_points(
+                per_frame[i].stacked,
+                per_frame[i].tracks,
+                points,
+                poses[i],
+                frames[i].camera,
+                options,
+                min_points=1,
+            )
+            if joint is not None:
+                found[i] = joint
+    total = sum(len(joint.points) for joint in found.values())
+    if total < JOINT_MIN_POINTS or deadline.expired():
+        return session_from_map
+    order = list(found)
+    first = poses[order[0]]
+    counts = np.cumsum([0] + [len(found[i].points) for i in order])
+    cameras = np.cumsum([0] + [len(found[i].references.rotations) for i in order])
+    refs = [found[i].references for i in order]
+    references = PointObservations(
+        point_of=np.concatenate([r.point_of + counts[v] for v, r in enumerate(refs)]),
+        camera_of=np.concatenate([r.camera_of + cameras[v] for v, r in enumerate(refs)]),
+        normalized=np.concatenate([r.normalized for r in refs]),
+        rotations=np.concatenate([r.rotations for r in refs]),
+        translations=np.concatenate([r.translations for r in refs]),
+        focals=np.concatenate([r.focals for r in refs]),
+    )
+    rig = RigViews(
+        [poses[i].compose(first.inverse()) for i in order],
+        np.array([float(np.mean(frames[i].camera.focal_lengths)) for i in order]),
+        np.repeat(np.arange(len(order)), np.diff(counts)),
+    )
+    refined, _ = refine_pose_and_points(
+        first,
+        np.concatenate([found[i].points for i in order]),
+        np.concatenate([found[i].query_normalized for i in order]),
+        0.0,
+        references,
+        float(np.mean([found[i].threshold for i in order])) / 4.0,
+        stop=deadline.expired,
+        rig=rig,
+    )
+    moved = frames[order[0]].cam_from_session.inverse().compose(refined)
+    limit = options.ransac.max_error_px
+
+    def rig_support(candidate: Rigid3d) -> int:
+        return sum(
+            support(
+                frames[i].cam_from_session.compose(candidate),
+                found[i].all_points,
+                found[i].all_query_xy,
+                frames[i].camera,
+                limit,
+            )
+            for i in order
+        )
+
+    if rig_support(moved) < rig_support(session_from_map):
+        return session_from_map
+    stats["points_refined_jointly"] = float(counts[-1])
+    return moved
 
 
 def _own_pose(

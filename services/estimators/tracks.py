@@ -228,21 +228,39 @@ def reprojection_errors(
     return np.where(np.isfinite(err), err, np.inf)
 
 
-def refine_with_points(
+@dataclass(frozen=True)
+class JointPoints:
+    """A query's triangulated points that fit its pose, ready for a joint refinement.
+
+    Attributes:
+        points: (U, 3) the points that reproject within ``threshold``.
+        query_normalized: (U, 2) their query keypoints, normalised coordinates.
+        references: the reference observations that triangulated them.
+        threshold: the adaptive threshold (pixels) they reproject within.
+        all_points: (P, 3) every triangulated point, and ``all_query_xy`` (P, 2) its query
+            pixel: what a refined pose's support is counted on.
+    """
+
+    points: FloatArray
+    query_normalized: FloatArray
+    references: PointObservations
+    threshold: float
+    all_points: FloatArray
+    all_query_xy: FloatArray
+
+
+def joint_points(
     stacked: StackedMatches,
     tracks: Tracks,
     triangulated: TriangulatedTracks,
     pose: Rigid3d,
     query_camera: Camera,
     options: EstimatorOptions,
-    deadline: Deadline,
-) -> tuple[Rigid3d, int]:
-    """``pose`` refined jointly with the triangulated points of ``tracks`` that reproject
-    within the adaptive threshold (``refine_on_points``' last round), each with the reference
-    observations that triangulated it (``services.geometry.joint_refinement``; Cauchy loss at
-    a quarter of the threshold). Kept only when at least as many of the points reproject
-    within ``max_error_px`` of it as of ``pose``. Returns the pose and the points it rests on
-    (0 when ``pose`` is kept)."""
+    min_points: int = JOINT_MIN_POINTS,
+) -> JointPoints | None:
+    """The triangulated points of ``tracks`` that reproject within the adaptive threshold of
+    ``pose`` (``refine_on_points``' last round), each with the reference observations that
+    triangulated it; None with fewer than ``min_points``."""
     valid = np.flatnonzero(triangulated.valid)
     points = triangulated.points[valid]
     tracks = tracks.subset(valid)
@@ -250,8 +268,8 @@ def refine_with_points(
     errors = reprojection_errors(pose, points, query_xy, query_camera)
     threshold = adaptive_threshold_px(errors, options.ransac.max_error_px)
     used = errors < threshold
-    if used.sum() < JOINT_MIN_POINTS or deadline.expired():
-        return pose, 0
+    if used.sum() < max(min_points, 1):
+        return None
     point_of, view_of = np.nonzero(triangulated.inliers[valid][used])
     starts = stacked.offsets[:-1]
     rotations = stacked.R_ref
@@ -263,21 +281,48 @@ def refine_with_points(
         translations=-(rotations @ stacked.C_ref[:, :, None])[:, :, 0],
         focals=stacked.ref_focal[np.minimum(starts, stacked.size - 1)],
     )
-    refined, _ = refine_pose_and_points(
-        pose,
+    return JointPoints(
         points[used],
         stacked.query_norm[tracks.query_match[used]],
-        float(np.mean(query_camera.focal_lengths)),
         observations,
-        threshold / 4.0,
+        threshold,
+        points,
+        query_xy,
+    )
+
+
+def refine_with_points(
+    stacked: StackedMatches,
+    tracks: Tracks,
+    triangulated: TriangulatedTracks,
+    pose: Rigid3d,
+    query_camera: Camera,
+    options: EstimatorOptions,
+    deadline: Deadline,
+) -> tuple[Rigid3d, int]:
+    """``pose`` refined jointly with the ``joint_points`` of ``tracks``
+    (``services.geometry.joint_refinement``; Cauchy loss at a quarter of the threshold). Kept
+    only when at least as many of the points reproject within ``max_error_px`` of it as of
+    ``pose``. Returns the pose and the points it rests on (0 when ``pose`` is kept)."""
+    found = joint_points(stacked, tracks, triangulated, pose, query_camera, options)
+    if found is None or deadline.expired():
+        return pose, 0
+    refined, _ = refine_pose_and_points(
+        pose,
+        found.points,
+        found.query_normalized,
+        float(np.mean(query_camera.focal_lengths)),
+        found.references,
+        found.threshold / 4.0,
         stop=deadline.expired,
     )
     limit = options.ransac.max_error_px
+    points, query_xy = found.all_points, found.all_query_xy
     if support(refined, points, query_xy, query_camera, limit) < support(
         pose, points, query_xy, query_camera, limit
     ):
         return pose, 0
-    return refined, int(used.sum())
+    return refined, len(found.points)
 
 
 def support(

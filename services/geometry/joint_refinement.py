@@ -31,6 +31,7 @@ from services.geometry.pose_covariance import (
     inverse_3x3,
     over_pose,
     projection_jacobian,
+    rig_adjoint,
     sum_by,
 )
 from services.geometry.rigid import Rigid3d
@@ -62,6 +63,22 @@ class PointObservations:
     focals: FloatArray
 
 
+@dataclass(frozen=True)
+class RigViews:
+    """The query cameras of a rig (frames whose relative poses are known), the first one's
+    pose refined for all.
+
+    Attributes:
+        from_first: each camera's pose relative to the first (``cam_v_from_cam_0``).
+        focals: (V,) each camera's focal length, pixels.
+        view_of: (N,) the camera that observes each point.
+    """
+
+    from_first: list[Rigid3d]
+    focals: FloatArray
+    view_of: IntArray
+
+
 def refine_pose_and_points(
     cam_from_world: Rigid3d,
     points3d: FloatArray,
@@ -71,6 +88,7 @@ def refine_pose_and_points(
     loss_scale_px: float,
     iterations: int = 3,
     stop: Callable[[], bool] | None = None,
+    rig: RigViews | None = None,
 ) -> tuple[Rigid3d, FloatArray]:
     """The query pose and the points after ``iterations`` damped steps (from a pose already
     refined on the points as if they were exact, three reach what more steps do to within a
@@ -79,15 +97,17 @@ def refine_pose_and_points(
     Args:
         points3d: (N, 3) world points, each observed by the query at ``query_normalized``
             (N, 2, normalised coordinates) and by the references in ``references``.
-        focal: the query's focal length, pixels.
+        focal: the query's focal length, pixels (with ``rig``, not used).
         loss_scale_px: the Cauchy loss's scale.
         stop: polled before each step (a request's deadline); once it answers True the
             steps taken so far are the result.
+        rig: the query is a rig's first camera, each point observed by the camera
+            ``rig.view_of`` says; its other cameras follow it (``rig_adjoint``).
     Returns:
         The pose and the (N, 3) points; ``cam_from_world`` and ``points3d`` unchanged when no
         step lowers the cost (or a point lies behind a camera).
     """
-    problem = _Problem(query_normalized, focal, references, loss_scale_px)
+    problem = _Problem(query_normalized, focal, references, loss_scale_px, rig)
     pose, points = cam_from_world, points3d
     cost = problem.cost(pose, points)
     damping = INITIAL_DAMPING
@@ -120,6 +140,26 @@ class _Problem:
     focal: float
     references: PointObservations
     scale: float
+    rig: RigViews | None = None
+
+    def query_poses(self, pose: Rigid3d) -> list[Rigid3d]:
+        """The query cameras' poses: ``pose``, or the rig's cameras placed by it."""
+        if self.rig is None:
+            return [pose]
+        return [from_first.compose(pose) for from_first in self.rig.from_first]
+
+    def query_focals(self) -> FloatArray | float:
+        return self.focal if self.rig is None else self.rig.focals[self.rig.view_of][:, None]
+
+    def query_points(self, poses: list[Rigid3d], points: FloatArray) -> FloatArray:
+        """(N, 3) each point in the frame of the query camera that observes it."""
+        if self.rig is None:
+            return poses[0].apply(points)
+        out = np.empty_like(points)
+        for v, pose in enumerate(poses):
+            rows = self.rig.view_of == v
+            out[rows] = pose.apply(points[rows])
+        return out
 
     def residuals(
         self, pose: Rigid3d, points: FloatArray
@@ -127,13 +167,15 @@ class _Problem:
         """Query and reference camera-frame points and pixel residuals; None when a point
         lies behind a camera that observes it."""
         refs = self.references
-        query_cam = pose.apply(points)
+        query_cam = self.query_points(self.query_poses(pose), points)
         rotations = refs.rotations[refs.camera_of]
         ref_cam = np.einsum("kij,kj->ki", rotations, points[refs.point_of])
         ref_cam += refs.translations[refs.camera_of]
         if np.any(query_cam[:, 2] <= 1e-9) or np.any(ref_cam[:, 2] <= 1e-9):
             return None
-        query_r = self.focal * (query_cam[:, :2] / query_cam[:, 2:3] - self.query_normalized)
+        query_r = self.query_focals() * (
+            query_cam[:, :2] / query_cam[:, 2:3] - self.query_normalized
+        )
         ref_focal = refs.focals[refs.camera_of][:, None]
         ref_r = ref_focal * (ref_cam[:, :2] / ref_cam[:, 2:3] - refs.normalized)
         return query_cam, ref_cam, query_r, ref_r
@@ -162,9 +204,17 @@ class _Problem:
         # Cauchy weights: ρ'(s) for s the squared residual norm
         query_w = 1.0 / (1.0 + (query_r**2).sum(axis=1) / scale**2)
         ref_w = 1.0 / (1.0 + (ref_r**2).sum(axis=1) / scale**2)
-        query_d = projection_jacobian(query_cam, self.focal)
-        over_query_pose = over_pose(query_d, query_cam, pose.rotation)  # (N, 2, 6)
-        over_point = query_d @ pose.rotation  # (N, 2, 3)
+        if self.rig is None:
+            query_d = projection_jacobian(query_cam, self.focal)
+            over_query_pose = over_pose(query_d, query_cam, pose.rotation)  # (N, 2, 6)
+            over_point = query_d @ pose.rotation  # (N, 2, 3)
+        else:
+            query_d = projection_jacobian(query_cam, self.rig.focals[self.rig.view_of])
+            poses = self.query_poses(pose)
+            view_rotations = np.stack([p.rotation for p in poses])[self.rig.view_of]
+            adjoints = np.stack([rig_adjoint(pose, p) for p in poses])[self.rig.view_of]
+            over_query_pose = over_pose(query_d, query_cam, view_rotations) @ adjoints
+            over_point = query_d @ view_rotations
         rotations = refs.rotations[refs.camera_of]
         ref_d = projection_jacobian(ref_cam, refs.focals[refs.camera_of])
         ref_over_point = ref_d @ rotations  # (K, 2, 3)

@@ -11,7 +11,7 @@ import pycolmap
 
 from services.estimators.poselib_bridge import refine_absolute_pose
 from services.geometry.camera import Camera
-from services.geometry.joint_refinement import PointObservations, refine_pose_and_points
+from services.geometry.joint_refinement import PointObservations, RigViews, refine_pose_and_points
 from services.geometry.rigid import Rigid3d
 from services.geometry.triangulation import triangulate_dlt
 from services.types import FloatArray
@@ -36,10 +36,11 @@ def _normalized(pose: Rigid3d, points: FloatArray, rng: np.random.Generator) -> 
 
 def forward_scene(
     seed: int,
-) -> tuple[Rigid3d, FloatArray, FloatArray, PointObservations, Rigid3d]:
+) -> tuple[Rigid3d, FloatArray, FloatArray, PointObservations, Rigid3d, FloatArray]:
     """The query's true pose, the points triangulated from two references (DLT), the query's
-    noisy observations of them, the references' observations, and the pose fitted to the
-    triangulated points as if they were exact (PoseLib's refinement from the truth)."""
+    noisy observations of them, the references' observations, the pose fitted to the
+    triangulated points as if they were exact (PoseLib's refinement from the truth), and the
+    points' true positions."""
     rng = np.random.default_rng(seed)
     references = [_camera((0.0, 0.0, 0.0), 0.0), _camera((0.0, 0.0, 2.3), 0.01)]
     query = _camera((0.3, 0.0, 3.3), 0.02)
@@ -65,7 +66,7 @@ def forward_scene(
         focals=np.full(2, FOCAL),
     )
     two_step = refine_absolute_pose(query_normalized * FOCAL, points, CAMERA, query, LOSS_PX)
-    return query, points, query_normalized, observations, two_step
+    return query, points, query_normalized, observations, two_step, world[ahead]
 
 
 def colmap_bundle_adjustment(
@@ -113,7 +114,7 @@ def colmap_bundle_adjustment(
 
 def test_agrees_with_colmaps_bundle_adjustment() -> None:
     for seed in range(3):
-        _, points, query_normalized, refs, two_step = forward_scene(seed)
+        _, points, query_normalized, refs, two_step, _ = forward_scene(seed)
         colmap = colmap_bundle_adjustment(two_step, points, query_normalized, refs)
         ours, _ = refine_pose_and_points(
             two_step, points, query_normalized, FOCAL, refs, LOSS_PX, iterations=20
@@ -128,7 +129,7 @@ def test_agrees_with_colmaps_bundle_adjustment() -> None:
 def test_places_a_forward_query_better_than_the_points_taken_as_exact() -> None:
     two_step_errors, joint_errors = [], []
     for seed in range(20):
-        truth, points, query_normalized, refs, two_step = forward_scene(seed)
+        truth, points, query_normalized, refs, two_step, _ = forward_scene(seed)
         joint, refined_points = refine_pose_and_points(
             two_step, points, query_normalized, FOCAL, refs, LOSS_PX
         )
@@ -161,3 +162,61 @@ def test_exact_observations_stay_where_they_are() -> None:
     pose, points = refine_pose_and_points(query, world, exact(query), FOCAL, refs, LOSS_PX)
     assert np.linalg.norm(pose.center - query.center) < 1e-9
     assert np.abs(points - world).max() < 1e-9
+
+
+def test_a_rig_of_one_camera_is_the_single_camera_refinement() -> None:
+    _, points, query_normalized, refs, two_step, _ = forward_scene(0)
+    single, single_points = refine_pose_and_points(
+        two_step, points, query_normalized, FOCAL, refs, LOSS_PX
+    )
+    rig = RigViews([Rigid3d(np.eye(3), np.zeros(3))], np.array([FOCAL]), np.zeros(len(points), int))
+    ours, our_points = refine_pose_and_points(
+        two_step, points, query_normalized, 0.0, refs, LOSS_PX, rig=rig
+    )
+    assert np.linalg.norm(ours.center - single.center) < 1e-9
+    assert np.abs(our_points - single_points).max() < 1e-9
+
+
+def test_a_rig_places_its_first_camera_better_than_one_camera() -> None:
+    """Two frames of a session a metre apart on the forward scene, each with its own copy of
+    the points the references triangulated (as the several-frame estimator keeps them):
+    refined together, the second frame fixed to the first, the first lies closer to the truth
+    than refined alone."""
+    alone_errors, rig_errors = [], []
+    for seed in range(20):
+        truth, points, query_normalized, refs, two_step, world = forward_scene(seed)
+        second = _camera((-0.3, 0.0, 4.3), 0.0)
+        visible = second.apply(world)[:, 2] > 0
+        second_normalized = _normalized(second, world[visible], np.random.default_rng(100 + seed))
+        alone, _ = refine_pose_and_points(two_step, points, query_normalized, FOCAL, refs, LOSS_PX)
+        kept = int(visible.sum())
+        index = np.flatnonzero(visible)
+        copy_of = np.full(len(points), -1)
+        copy_of[index] = len(points) + np.arange(kept)
+        seen = np.isin(refs.point_of, index)
+        both = PointObservations(
+            point_of=np.concatenate([refs.point_of, copy_of[refs.point_of[seen]]]),
+            camera_of=np.concatenate([refs.camera_of, refs.camera_of[seen]]),
+            normalized=np.concatenate([refs.normalized, refs.normalized[seen]]),
+            rotations=refs.rotations,
+            translations=refs.translations,
+            focals=refs.focals,
+        )
+        rig = RigViews(
+            [Rigid3d(np.eye(3), np.zeros(3)), second.compose(truth.inverse())],
+            np.full(2, FOCAL),
+            np.repeat([0, 1], [len(points), kept]),
+        )
+        joint, _ = refine_pose_and_points(
+            two_step,
+            np.concatenate([points, points[visible]]),
+            np.concatenate([query_normalized, second_normalized]),
+            0.0,
+            both,
+            LOSS_PX,
+            rig=rig,
+        )
+        alone_errors.append(np.linalg.norm(alone.center - truth.center))
+        rig_errors.append(np.linalg.norm(joint.center - truth.center))
+    # 12 of 20 closer, the mean error 0.82 times one camera's
+    assert np.mean(rig_errors) < 0.9 * np.mean(alone_errors)
